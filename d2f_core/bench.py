@@ -1,0 +1,180 @@
+"""Benchmarks: ``python -m d2f_core.bench render|app|accuracy`` (also ``d2f-bench``).
+
+Figures are printed as measured here, with ratios against a baseline measured in the same run;
+nothing here asserts a time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import statistics
+import sys
+import time
+from collections.abc import Callable
+
+import numpy as np
+import torch
+
+from .metrics import psnr
+from .rendering import render
+
+__all__ = ["bench_scene", "main", "time_call"]
+
+log = logging.getLogger(__name__)
+
+RENDER_SIZES = ((384, 576), (512, 768), (1024, 1536))
+
+
+def time_call(fn: Callable[[], object], repeat: int, warmup: int = 1) -> list[float]:
+    """Wall-clock seconds of ``repeat`` calls of ``fn`` after ``warmup`` calls."""
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(repeat):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return times
+
+
+def bench_scene(height: int, width: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """A real photo with its measured disparity: Middlebury 'motorcycle' from scikit-image.
+
+    Returns ``image (1, 3, H, W)`` and ``disparity (1, 1, H, W)`` in [0, 1] (1 = nearest),
+    holes filled with the farthest value.
+    """
+    from skimage import data
+    from skimage.transform import resize
+
+    left, _, disp = data.stereo_motorcycle()
+    disp = np.nan_to_num(disp.astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    image = resize(left, (height, width), anti_aliasing=True).astype(np.float32)
+    disp = resize(disp, (height, width), order=0, anti_aliasing=False)
+    valid = disp[disp > 0]
+    lo, hi = np.percentile(valid, 1), np.percentile(valid, 99)
+    disp = np.clip((disp - lo) / (hi - lo), 0.0, 1.0).astype(np.float32)
+    img_t = torch.from_numpy(np.ascontiguousarray(image)).permute(2, 0, 1)[None].contiguous()
+    return img_t, torch.from_numpy(disp)[None, None].contiguous()
+
+
+def _bench_render(args: argparse.Namespace) -> int:
+    torch.set_num_threads(args.threads)
+    rows = []
+    sizes = [tuple(int(v) for v in s.lower().split("x")) for s in args.sizes]
+    print(
+        f"# layered render, depth order, focus {args.focus}, blur = {args.blur_frac} x width, "
+        f"{torch.get_num_threads()} threads, median of {args.repeat}"
+    )
+    header = (
+        f"{'size':>10} {'blur':>5} {'quality':>9} {'ms':>8} {'x authors':>9} {'PSNR vs exact':>13}"
+    )
+    print(header)
+    for height, width in sizes:
+        image, disp = bench_scene(height, width)
+        blur = args.blur_frac * width
+        with torch.no_grad():
+            ref_method = "direct" if height * width <= args.direct_max_pixels else "fft"
+            start = time.perf_counter()
+            reference = render(
+                image.double(),
+                disp.double(),
+                args.focus,
+                blur,
+                quality="exact",
+                method=ref_method,
+                full_frame=True,
+            )
+            ref_s = time.perf_counter() - start
+            # the authors' way: every layer over the whole frame, direct convolution, float32
+            authors = time_call(
+                lambda im=image, d=disp, b=blur: render(
+                    im, d, args.focus, b, quality="exact", method="direct", full_frame=True
+                ),
+                repeat=1 if height * width > 400_000 else args.baseline_repeat,
+                warmup=0,
+            )
+            base_ms = 1000 * statistics.median(authors)
+            for quality in args.quality:
+                times = time_call(
+                    lambda im=image, d=disp, b=blur, q=quality: render(
+                        im, d, args.focus, b, quality=q
+                    ),
+                    repeat=args.repeat,
+                )
+                out = render(image, disp, args.focus, blur, quality=quality)
+                ms = 1000 * statistics.median(times)
+                row = {
+                    "size": f"{height}x{width}",
+                    "blur": blur,
+                    "quality": quality,
+                    "ms": ms,
+                    "authors_ms": base_ms,
+                    "speedup": base_ms / ms,
+                    "psnr_vs_exact": psnr(out.double(), reference),
+                    "reference": f"float64 {ref_method}, full frame, all layers ({ref_s:.1f} s)",
+                }
+                rows.append(row)
+                print(
+                    f"{row['size']:>10} {blur:5.0f} {quality:>9} {ms:8.1f} "
+                    f"{row['speedup']:8.1f}x {row['psnr_vs_exact']:10.1f} dB"
+                )
+            print(
+                f"{'':>10} {'':>5} {'authors':>9} {base_ms:8.1f} {1.0:8.1f}x   (reference: "
+                f"{row['reference']})"
+            )
+    if args.json:
+        with open(args.json, "w", encoding="utf-8") as fh:
+            json.dump(rows, fh, indent=2)
+    return 0
+
+
+def _bench_app(args: argparse.Namespace) -> int:
+    try:
+        from app.bench import main as app_bench
+    except ImportError as exc:  # the app is an optional part of the install
+        print(f"d2f-bench: error: the app is not installed ({exc})", file=sys.stderr)
+        return 1
+    return int(app_bench(args.rest) or 0)
+
+
+def _bench_accuracy(args: argparse.Namespace) -> int:
+    from .bench_accuracy import main as accuracy_main
+
+    return int(accuracy_main(args.rest) or 0)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="d2f-bench", description=__doc__)
+    sub = parser.add_subparsers(dest="command", required=True)
+    p = sub.add_parser("render", help="renderer ms per frame and PSNR against the exact model")
+    p.add_argument("--sizes", nargs="+", default=[f"{h}x{w}" for h, w in RENDER_SIZES])
+    p.add_argument("--quality", nargs="+", default=["balanced", "fast", "high", "exact"])
+    p.add_argument("--focus", type=float, default=0.6)
+    p.add_argument("--blur-frac", type=float, default=69 / 768, help="K as a fraction of width")
+    p.add_argument("--repeat", type=int, default=7)
+    p.add_argument("--baseline-repeat", type=int, default=3)
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument(
+        "--direct-max-pixels",
+        type=int,
+        default=512 * 768,
+        help="larger frames use a float64 FFT reference (direct float64 takes many minutes)",
+    )
+    p.add_argument("--json", help="also write the rows to this JSON file")
+    p.set_defaults(func=_bench_render)
+    for name, func, text in (
+        ("app", _bench_app, "app handler latency (see app/bench.py)"),
+        ("accuracy", _bench_accuracy, "renderer settings against ground truth"),
+    ):
+        q = sub.add_parser(name, help=text, add_help=False)
+        q.add_argument("rest", nargs=argparse.REMAINDER)
+        q.set_defaults(func=func)
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING)
+    return args.func(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,206 @@
+"""Aperture kernels and the layer kernel-size schedules of D2F.
+
+Every kernel is a 2-D tensor of shape ``(size, size)`` (``size`` odd) that sums to 1.
+Builders take keyword-only ``device`` and ``dtype`` so a renderer can build them where its
+data lives.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+__all__ = [
+    "PAPER_GROWING_SIZES",
+    "aperture_kernel",
+    "hard_disk_kernel",
+    "kernel_sizes",
+    "polygon_kernel",
+    "soft_disk_kernel",
+]
+
+#: The paper's "growing sampling" schedule: 15 kernel sizes, steps of 2, 4, 6, then 8 px.
+PAPER_GROWING_SIZES: tuple[int, ...] = (1, 3, 5, 7, 11, 15, 19, 23, 27, 33, 39, 45, 53, 61, 69)
+
+SOFT_SIGMA = 0.25
+SOFT_PHI = 0.5
+
+
+def _check_size(size: int) -> int:
+    if isinstance(size, bool) or not isinstance(size, (int,)) and not float(size).is_integer():
+        raise TypeError(f"size must be an integer, got {size!r}")
+    size = int(size)
+    if size < 1 or size % 2 == 0:
+        raise ValueError(f"size must be a positive odd integer, got {size}")
+    return size
+
+
+def _grid(size: int, scale: float, device, dtype) -> tuple[torch.Tensor, torch.Tensor]:
+    half = size // 2
+    coords = torch.arange(-half, half + 1, device=device, dtype=dtype) * scale
+    y, x = torch.meshgrid(coords, coords, indexing="ij")
+    return x, y
+
+
+def _normalise(kernel: torch.Tensor) -> torch.Tensor:
+    total = kernel.sum()
+    if not torch.isfinite(total) or total <= 0:
+        raise ValueError("kernel has no positive weight")
+    return kernel / total
+
+
+def _radius_profile(x: torch.Tensor, y: torch.Tensor, blades: int, rotation: float) -> torch.Tensor:
+    """Squared 'aperture radius' of each point: plain r^2 for a disk, polygon-scaled for blades."""
+    rho2 = x * x + y * y
+    if blades < 3:
+        return rho2
+    theta = torch.atan2(y, x) - math.radians(rotation)
+    sector = 2.0 * math.pi / blades
+    # A point at angle t inside a regular n-gon of circumradius r lies on the edge at
+    # distance r*cos(pi/n)/cos(t' - pi/n); scale rho so the polygon edge maps to r.
+    t = torch.remainder(theta, sector) - sector / 2.0
+    scale = torch.cos(t) / math.cos(math.pi / blades)
+    return rho2 * scale * scale
+
+
+def aperture_kernel(
+    size: int,
+    *,
+    shape: str = "soft",
+    blades: int = 0,
+    rotation: float = 0.0,
+    radius: float | None = None,
+    scale: float = 1.0,
+    sigma: float = SOFT_SIGMA,
+    phi: float = SOFT_PHI,
+    device: torch.device | str | None = None,
+    dtype: torch.dtype | None = None,
+) -> torch.Tensor:
+    """Build an aperture (bokeh) kernel.
+
+    Args:
+        size: odd side length of the kernel grid in pixels.
+        shape: ``"soft"`` (the paper's tanh disk) or ``"hard"`` (1 inside the radius).
+        blades: number of aperture blades; ``0`` (or < 3) gives a round aperture.
+        rotation: polygon rotation in degrees.
+        radius: aperture radius in grid pixels; defaults to ``size // 2`` as in the paper.
+        scale: grid spacing, in units of the full-resolution pixel. A kernel for a layer that is
+            rendered at 1/f resolution uses ``scale=f`` and ``radius`` in full-res pixels, so
+            that it samples the same continuous aperture.
+        sigma, phi: soft-edge parameters, ``k = 0.5 + 0.5 tanh(sigma (r^2 - x^2 - y^2) + phi)``.
+
+    Returns:
+        Tensor of shape ``(size, size)`` summing to 1.
+    """
+    size = _check_size(size)
+    if shape not in ("soft", "hard"):
+        raise ValueError(f"shape must be 'soft' or 'hard', got {shape!r}")
+    if blades < 0 or blades in (1, 2):
+        raise ValueError(f"blades must be 0 (round) or >= 3, got {blades}")
+    dtype = dtype or torch.get_default_dtype()
+    r = float(size // 2) if radius is None else float(radius)
+    if r < 0 or not math.isfinite(r):
+        raise ValueError(f"radius must be finite and >= 0, got {radius}")
+    x, y = _grid(size, scale, device, dtype)
+    rho2 = _radius_profile(x, y, blades, rotation)
+    if shape == "soft":
+        kernel = 0.5 + 0.5 * torch.tanh(sigma * (r * r - rho2) + phi)
+    else:
+        kernel = (rho2 <= r * r + 1e-6).to(dtype)
+    return _normalise(kernel)
+
+
+def soft_disk_kernel(
+    size: int,
+    *,
+    sigma: float = SOFT_SIGMA,
+    phi: float = SOFT_PHI,
+    device: torch.device | str | None = None,
+    dtype: torch.dtype | None = None,
+) -> torch.Tensor:
+    """The paper's soft disk, ``0.5 + 0.5 tanh(sigma (r^2 - x^2 - y^2) + phi)``, r = size // 2.
+
+    Shape: ``(size, size)``, sums to 1.
+    """
+    return aperture_kernel(size, shape="soft", sigma=sigma, phi=phi, device=device, dtype=dtype)
+
+
+def hard_disk_kernel(
+    size: int, *, device: torch.device | str | None = None, dtype: torch.dtype | None = None
+) -> torch.Tensor:
+    """A binary disk of radius ``size // 2``. Shape: ``(size, size)``, sums to 1."""
+    return aperture_kernel(size, shape="hard", device=device, dtype=dtype)
+
+
+def polygon_kernel(
+    size: int,
+    blades: int,
+    rotation: float = 0.0,
+    *,
+    soft: bool = True,
+    device: torch.device | str | None = None,
+    dtype: torch.dtype | None = None,
+) -> torch.Tensor:
+    """A regular ``blades``-gon aperture inscribed in radius ``size // 2``, rotated by degrees.
+
+    Shape: ``(size, size)``, sums to 1.
+    """
+    if blades < 3:
+        raise ValueError(f"blades must be >= 3 for a polygonal aperture, got {blades}")
+    return aperture_kernel(
+        size,
+        shape="soft" if soft else "hard",
+        blades=blades,
+        rotation=rotation,
+        device=device,
+        dtype=dtype,
+    )
+
+
+def _nearest_odd(value: float) -> int:
+    return max(1, 2 * int(math.floor((value - 1.0) / 2.0 + 0.5)) + 1)
+
+
+def kernel_sizes(
+    count: int = 15, max_size: float | None = None, schedule: str = "growing"
+) -> list[int]:
+    """Kernel sizes (odd, px) for ``count`` layers, smallest (1 = sharp) first.
+
+    ``"growing"`` follows the paper's piecewise-linear curve (steps of 2, 4, 6, 8 px), stretched
+    to ``count`` entries and ``max_size`` (default 69, the paper's schedule exactly).
+    ``"uniform"`` uses equal steps; with no ``max_size`` the step is 4 px as in the paper's
+    ablation. Sizes are non-decreasing; duplicates can occur for small ``max_size``.
+    """
+    if isinstance(count, bool) or int(count) != count or count < 1:
+        raise ValueError(f"count must be a positive integer, got {count!r}")
+    count = int(count)
+    if schedule not in ("growing", "uniform"):
+        raise ValueError(f"schedule must be 'growing' or 'uniform', got {schedule!r}")
+    if count == 1:
+        return [1]
+    if schedule == "uniform":
+        top = 1 + 4 * (count - 1) if max_size is None else float(max_size)
+    else:
+        top = PAPER_GROWING_SIZES[-1] if max_size is None else float(max_size)
+    if not math.isfinite(top) or top < 1:
+        raise ValueError(f"max_size must be finite and >= 1, got {max_size!r}")
+    if schedule == "growing" and count == len(PAPER_GROWING_SIZES) and max_size is None:
+        return list(PAPER_GROWING_SIZES)
+    sizes = []
+    n_paper = len(PAPER_GROWING_SIZES) - 1
+    for i in range(count):
+        t = i / (count - 1)
+        if schedule == "uniform":
+            value = 1 + t * (top - 1)
+        else:
+            pos = t * n_paper
+            lo = min(int(math.floor(pos)), n_paper - 1)
+            frac = pos - lo
+            paper = PAPER_GROWING_SIZES[lo] * (1 - frac) + PAPER_GROWING_SIZES[lo + 1] * frac
+            value = 1 + (paper - 1) * (top - 1) / (PAPER_GROWING_SIZES[-1] - 1)
+        sizes.append(_nearest_odd(value))
+    sizes[0] = 1
+    for i in range(1, count):
+        sizes[i] = max(sizes[i], sizes[i - 1])
+    return sizes

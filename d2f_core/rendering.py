@@ -1,0 +1,707 @@
+"""Weighted layered rendering (D2F's ``f_l``), radiance virtualisation boost and refocusing.
+
+Pure tensor code: no file I/O, no learned parameters.
+
+Two compositing orders are provided:
+
+* ``order="depth"`` (default): a signed, depth-ordered refocus. For a disparity map ``d``
+  (1 = nearest), a focal disparity ``focus`` and a blur amount ``K`` (px), a pixel's
+  circle-of-confusion (CoC) diameter is ``K * |d - focus|``. Pixels behind and in front of the
+  focal plane go to separate layers, and layers are composited far to near, so a blurred
+  foreground spills over a sharp subject as it does through a real lens.
+* ``order="paper"``: the authors' ordering by unsigned defocus ``D = |d - focus|`` (most blurred
+  layer first, the sharp layer always on top), with layer ``l`` covering ``D = l / (L - 1)`` and
+  the kernel schedule stretched so that ``D = 1`` gets a kernel of ``K`` px. With ``K = 69`` and
+  ``focus = 0`` this is exactly the paper's ``f_l(X, D)``.
+
+Both use the paper's soft layer masks ``0.5 + 0.5 tanh(gamma (1/(L-1) - |D - l/(L-1)|))`` and
+the compositing ``acc = acc (1 - K*M) + K*(M X)``. The radiance normalisation
+``f_l(R I, D) / f_l(R, D)`` is done in one pass: both share the alpha ``K*M``.
+
+Speed (see ``python -m d2f_core.bench render``): layers holding no pixels are skipped, each
+layer is blurred only inside its support box, kernels are applied by FFT with cached spectra
+(direct convolution for small kernels), and large kernels are applied at reduced resolution
+when ``quality`` allows it.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from .kernels import PAPER_GROWING_SIZES, aperture_kernel, kernel_sizes
+
+__all__ = [
+    "QUALITY_PRESETS",
+    "LayeredRenderer",
+    "coc_to_defocus",
+    "hdr_boost",
+    "highlight_mask",
+    "layer_plan",
+    "render",
+    "render_bokeh",
+]
+
+HDR_ALPHA = 3.0
+HDR_BETA = 5.0
+HDR_THRESHOLD = 0.99
+GAMMA = 100.0
+# Mask values below this are treated as empty when finding a layer's support.
+_MASK_EPS = 1e-4
+# Layers are located on a coarse grid of this many pixels before exact masks are computed.
+_TILE = 8
+_DIRECT_MAX_SIZE = 11
+
+
+@dataclass(frozen=True)
+class QualityPreset:
+    """Reduced-resolution thresholds: kernels of at least ``half`` px (``quarter`` px) are
+    applied at 1/2 (1/4) resolution. ``None`` disables the reduction."""
+
+    half: int | None
+    quarter: int | None
+
+
+QUALITY_PRESETS: dict[str, QualityPreset] = {
+    "exact": QualityPreset(None, None),
+    "high": QualityPreset(31, 61),
+    "balanced": QualityPreset(23, 45),
+    "fast": QualityPreset(13, 27),
+}
+
+
+# --------------------------------------------------------------------------------------
+# input checks
+# --------------------------------------------------------------------------------------
+
+
+def _check_tensor(name: str, x: torch.Tensor, channels: int | None) -> None:
+    if not isinstance(x, torch.Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
+    if x.ndim != 4:
+        raise ValueError(f"{name} must have shape (B, C, H, W), got {tuple(x.shape)}")
+    if channels is not None and x.shape[1] != channels:
+        raise ValueError(f"{name} must have {channels} channel(s), got shape {tuple(x.shape)}")
+    if not x.is_floating_point():
+        raise TypeError(f"{name} must be a floating-point tensor, got {x.dtype}")
+    if not bool(torch.isfinite(x).all()):
+        raise ValueError(f"{name} contains NaN or inf")
+
+
+def _check_scalar(name: str, value: float, low: float, high: float) -> float:
+    try:
+        value = float(value)
+    except (TypeError, ValueError):
+        raise TypeError(f"{name} must be a number, got {value!r}") from None
+    if not math.isfinite(value):
+        raise ValueError(f"{name} must be finite, got {value}")
+    if not low <= value <= high:
+        raise ValueError(f"{name} must be in [{low}, {high}], got {value}")
+    return value
+
+
+def _focus_tensor(focus, batch: int, ref: torch.Tensor) -> torch.Tensor:
+    if isinstance(focus, torch.Tensor):
+        f = focus.detach().to(device=ref.device, dtype=ref.dtype).reshape(-1)
+        if f.numel() == 1:
+            f = f.expand(batch)
+        if f.numel() != batch:
+            raise ValueError(f"focus must be a scalar or have {batch} values, got {f.numel()}")
+        if not bool(torch.isfinite(f).all()) or bool((f < 0).any()) or bool((f > 1).any()):
+            raise ValueError(f"focus must be finite and in [0, 1], got {f.tolist()}")
+        return f.view(batch, 1, 1, 1)
+    value = _check_scalar("focus", focus, 0.0, 1.0)
+    return torch.full((batch, 1, 1, 1), value, device=ref.device, dtype=ref.dtype)
+
+
+# --------------------------------------------------------------------------------------
+# radiance
+# --------------------------------------------------------------------------------------
+
+
+def highlight_mask(image: torch.Tensor, threshold: float = HDR_THRESHOLD) -> torch.Tensor:
+    """``M_h``: 1 where any of R, G, B is at least ``threshold``.
+
+    Shape: ``(B, 3, H, W) -> (B, 1, H, W)``.
+    """
+    return (image >= threshold).any(dim=1, keepdim=True).to(image.dtype)
+
+
+def hdr_boost(
+    image: torch.Tensor,
+    radiance: torch.Tensor | None = None,
+    *,
+    alpha: float = HDR_ALPHA,
+    beta: float = HDR_BETA,
+    threshold: float = HDR_THRESHOLD,
+    per_channel: bool = False,
+) -> torch.Tensor:
+    """Radiance weights ``R = M_h * alpha * I^beta + (1 - M_h) * R0``.
+
+    With ``per_channel=False`` (default) ``I`` is the brightest channel, so ``R`` has one
+    channel: a saturated pixel keeps its hue and the renderer blurs 5 channels instead of 7.
+    ``per_channel=True`` is the paper's literal per-channel form.
+
+    Args:
+        image: ``(B, 3, H, W)`` in [0, 1].
+        radiance: ``R0``, ``(B, 1, H, W)`` from the radiance network; ``None`` means ones.
+
+    Returns:
+        ``(B, 1, H, W)`` (or ``(B, 3, H, W)`` per channel); saturated pixels weigh up to
+        ``alpha`` times more than ``R0``.
+    """
+    mask = highlight_mask(image, threshold)  # [B,1,H,W]
+    base = torch.ones_like(mask) if radiance is None else radiance
+    level = image.clamp(0, 1)
+    if not per_channel:
+        level = level.amax(dim=1, keepdim=True)
+    return mask * alpha * level**beta + (1 - mask) * base
+
+
+# --------------------------------------------------------------------------------------
+# layer plan
+# --------------------------------------------------------------------------------------
+
+
+@dataclass
+class LayerPlan:
+    """Where each pixel sits among the layers, and the layers in compositing order.
+
+    ``coord`` is the per-pixel layer coordinate (layer ``j`` is centred on ``coord == j``),
+    ``order`` lists ``(centre, kernel size)`` back to front, ``gamma`` is the mask sharpness in
+    layer units, ``signed`` says whether a layer only takes pixels on its side of focus.
+    """
+
+    coord: torch.Tensor  # [B,1,H,W]
+    order: list[tuple[int, int]]
+    gamma: float
+    signed: bool
+
+
+def _interp(x: torch.Tensor, xp: list[float]) -> torch.Tensor:
+    """Piecewise-linear map of ``x`` onto the index of the increasing knots ``xp``."""
+    if len(xp) == 1:
+        return torch.zeros_like(x)
+    knots = torch.tensor(xp, device=x.device, dtype=x.dtype)
+    xc = x.clamp(knots[0], knots[-1])
+    idx = torch.searchsorted(knots, xc.detach().contiguous(), right=True).clamp(1, len(xp) - 1)
+    lo = knots[idx - 1]
+    hi = knots[idx]
+    return (idx - 1).to(x.dtype) + (xc - lo) / (hi - lo)
+
+
+def _unique_sizes(sizes: list[int]) -> list[int]:
+    out: list[int] = []
+    for s in sizes:
+        if not out or s > out[-1]:
+            out.append(s)
+    return out
+
+
+def coc_to_defocus(coc: torch.Tensor | np.ndarray | float):
+    """The paper's normalised defocus ``D`` in [0, 1] for a CoC diameter in px.
+
+    Inverts the paper's growing schedule: 1 px -> 0, 69 px (or more) -> 1, 23 px -> 0.5.
+    """
+    if isinstance(coc, torch.Tensor):
+        sizes = [float(s) for s in PAPER_GROWING_SIZES]
+        return _interp(coc.clamp(min=1.0), sizes) / (len(sizes) - 1)
+    arr = np.asarray(coc, dtype=np.float64)
+    d = np.interp(np.maximum(arr, 1.0), PAPER_GROWING_SIZES, np.linspace(0, 1, 15))
+    return d.astype(np.float32) if isinstance(coc, np.ndarray) else float(d)
+
+
+def layer_plan(
+    disparity: torch.Tensor,
+    focus: torch.Tensor,
+    blur: float,
+    *,
+    order: str = "depth",
+    num_layers: int = 15,
+    schedule: str = "growing",
+    gamma: float = GAMMA,
+    max_size: float = 69.0,
+) -> LayerPlan:
+    """Assign pixels to layers (back-to-front compositing order)."""
+    signed = disparity - focus  # [B,1,H,W]
+    if order == "paper":
+        sizes = kernel_sizes(num_layers, max_size=max(blur, 1.0), schedule=schedule)
+        n = len(sizes)
+        coord = signed.abs().clamp(max=1.0) * (n - 1)
+        # most blurred first: the sharp layer always ends on top (the authors' code)
+        layers = [(j, sizes[j]) for j in range(n - 1, -1, -1)]
+        return LayerPlan(coord, layers, gamma / max(n - 1, 1), False)
+    if order != "depth":
+        raise ValueError(f"order must be 'depth' or 'paper', got {order!r}")
+    coc = signed.abs() * blur
+    max_coc = float(coc.detach().max()) if coc.numel() else 0.0
+    # The schedule is in absolute px (the paper's sizes up to 69 px, stretched only for larger
+    # CoCs), cut after the first size that covers the scene's largest CoC: a small blur
+    # needs few layers.
+    full = kernel_sizes(num_layers, max_size=max(max_coc, max_size), schedule=schedule)
+    sizes = []
+    for size in _unique_sizes(full):
+        sizes.append(size)
+        if size >= max_coc:
+            break
+    # CoC below 1 px is sharp: it maps onto layer 0 like the 1-px kernel
+    knots = [float(s) for s in sizes]
+    coord = _interp(coc, knots) * torch.sign(signed)
+    n = len(sizes)
+    layers = [(j, sizes[abs(j)]) for j in range(-(n - 1), n)]
+    return LayerPlan(coord, layers, gamma / 14.0, True)
+
+
+def _layer_mask(coord: torch.Tensor, centre: int, gamma: float, signed: bool) -> torch.Tensor:
+    mask = 0.5 + 0.5 * torch.tanh(gamma * (1.0 - (coord - centre).abs()))
+    if signed and centre != 0:
+        # a layer on one side of the focal plane never takes pixels from the other side
+        side = coord > 0 if centre > 0 else coord < 0
+        mask = mask * side.to(mask.dtype)
+    return mask
+
+
+def _mask_reach(gamma: float) -> float:
+    # distance beyond |coord - centre| = 1 where the soft mask drops below _MASK_EPS
+    return math.atanh(1 - 2 * _MASK_EPS) / gamma
+
+
+# --------------------------------------------------------------------------------------
+# convolution
+# --------------------------------------------------------------------------------------
+
+
+def _fast_len(n: int) -> int:
+    """Smallest 2-3-5-smooth integer >= n (fast FFT sizes)."""
+    best = 1 << max(0, (n - 1).bit_length())
+    p5 = 1
+    while p5 < best:
+        p35 = p5
+        while p35 < best:
+            m = p35
+            while m < n:
+                m *= 2
+            best = min(best, m)
+            p35 *= 3
+        p5 *= 5
+    return best
+
+
+@dataclass(frozen=True)
+class KernelSpec:
+    """What defines an aperture kernel, independent of the layer it is used for."""
+
+    shape: str = "soft"
+    blades: int = 0
+    rotation: float = 0.0
+
+
+@functools.lru_cache(maxsize=64)
+def _kernel(spec: KernelSpec, size: int, factor: int, device: str, dtype: torch.dtype):
+    """Kernel for a full-res CoC of ``size`` px sampled on a grid ``factor`` px apart."""
+    radius = size // 2
+    half = int(math.ceil(radius / factor + 0.5)) if factor > 1 else radius
+    return aperture_kernel(
+        2 * half + 1,
+        shape=spec.shape,
+        blades=spec.blades,
+        rotation=spec.rotation,
+        radius=radius,
+        scale=float(factor),
+        device=device,
+        dtype=dtype,
+    )
+
+
+@functools.lru_cache(maxsize=256)
+def _spectrum(spec: KernelSpec, size: int, factor: int, fh: int, fw: int, device: str, dtype):
+    k = _kernel(spec, size, factor, device, dtype)
+    return torch.fft.rfft2(k, s=(fh, fw))
+
+
+def _blur_box(z: torch.Tensor, spec: KernelSpec, size: int, factor: int, method: str):
+    """Full linear convolution of ``z`` (zero outside) with the aperture kernel.
+
+    Shape: ``(B, C, h, w) -> (B, C, h + 2r, w + 2r)`` where ``r`` is the kernel radius at the
+    working resolution.
+    """
+    k = _kernel(spec, size, factor, str(z.device), z.dtype)
+    r = k.shape[-1] // 2
+    h, w = z.shape[-2:]
+    if method == "direct" or k.shape[-1] <= _DIRECT_MAX_SIZE:
+        c = z.shape[1]
+        weight = k.flip(-1, -2).expand(c, 1, -1, -1)
+        # channels-last depthwise convolution is several times faster on CPU for small kernels
+        zp = F.pad(z, (2 * r, 2 * r, 2 * r, 2 * r)).contiguous(memory_format=torch.channels_last)
+        return F.conv2d(zp, weight, groups=c).contiguous()
+    fh, fw = _fast_len(h + 2 * r), _fast_len(w + 2 * r)
+    spec_k = _spectrum(spec, size, factor, fh, fw, str(z.device), z.dtype)
+    out = torch.fft.irfft2(torch.fft.rfft2(z, s=(fh, fw)) * spec_k, s=(fh, fw))
+    return out[..., : h + 2 * r, : w + 2 * r]
+
+
+def _support_boxes(
+    plan: LayerPlan, height: int, width: int
+) -> dict[int, tuple[int, int, int, int]]:
+    """Bounding box (y0, y1, x0, x1) of each layer's mask support, on an 8-px tile grid."""
+    coord = plan.coord.detach()
+    if coord.shape[0] > 1:
+        lo_map = coord.amin(dim=0, keepdim=True)
+        hi_map = coord.amax(dim=0, keepdim=True)
+    else:
+        lo_map = hi_map = coord
+    ph, pw = (-height) % _TILE, (-width) % _TILE
+    lo = -F.max_pool2d(F.pad(-lo_map, (0, pw, 0, ph), mode="replicate"), _TILE)[0, 0]
+    hi = F.max_pool2d(F.pad(hi_map, (0, pw, 0, ph), mode="replicate"), _TILE)[0, 0]
+    reach = 1.0 + _mask_reach(plan.gamma)
+    boxes = {}
+    for centre, _ in plan.order:
+        hit = (hi > centre - reach) & (lo < centre + reach)
+        if plan.signed and centre != 0:
+            hit &= (hi > 0) if centre > 0 else (lo < 0)
+        rows = torch.nonzero(hit.any(dim=1)).flatten()
+        if rows.numel() == 0:
+            continue
+        cols = torch.nonzero(hit.any(dim=0)).flatten()
+        y0, y1 = int(rows[0]) * _TILE, min(height, (int(rows[-1]) + 1) * _TILE)
+        x0, x1 = int(cols[0]) * _TILE, min(width, (int(cols[-1]) + 1) * _TILE)
+        boxes[centre] = (y0, y1, x0, x1)
+    return boxes
+
+
+def _factor_for(size: int, quality: str) -> int:
+    preset = QUALITY_PRESETS[quality]
+    if preset.quarter is not None and size >= preset.quarter:
+        return 4
+    if preset.half is not None and size >= preset.half:
+        return 2
+    return 1
+
+
+# --------------------------------------------------------------------------------------
+# rendering
+# --------------------------------------------------------------------------------------
+
+
+def _blend(acc: torch.Tensor, part: torch.Tensor, y0: int, x0: int, grad: bool) -> torch.Tensor:
+    """Composite ``part`` (alpha in channel 0, premultiplied colour after it) over ``acc``
+    at offset (y0, x0), clipped to the frame. Returns the updated accumulator."""
+    height, width = acc.shape[-2:]
+    by0, bx0 = max(0, -y0), max(0, -x0)
+    ty0, tx0 = y0 + by0, x0 + bx0
+    ty1 = min(height, y0 + part.shape[-2])
+    tx1 = min(width, x0 + part.shape[-1])
+    if ty1 <= ty0 or tx1 <= tx0:
+        return acc
+    part = part[..., by0 : by0 + ty1 - ty0, bx0 : bx0 + tx1 - tx0]
+    keep = 1 - part[:, :1].clamp(0, 1)
+    region = acc[..., ty0:ty1, tx0:tx1]
+    if grad:
+        acc = acc.clone()
+        acc[..., ty0:ty1, tx0:tx1] = region * keep + part
+    else:
+        region.mul_(keep).add_(part)
+    return acc
+
+
+def _composite(
+    x: torch.Tensor,
+    plan: LayerPlan,
+    spec: KernelSpec,
+    *,
+    method: str,
+    quality: str,
+    full_frame: bool,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Composite the layers of ``x`` back to front. Returns (acc, alpha).
+
+    Layers whose kernel is large enough for ``quality`` are masked, blurred and composited on
+    a 1/2 or 1/4 resolution grid. A run of consecutive such layers is composited there from
+    zero into (colour, transmittance) and merged into the full-resolution accumulator once,
+    ``acc = acc * T + C``, which is exact at the coarse level because compositing is linear
+    in the accumulator.
+
+    Shape: ``x (B, C, H, W) -> acc (B, C, H, W), alpha (B, 1, H, W)``.
+    """
+    b, c, height, width = x.shape
+    grad = torch.is_grad_enabled() and (x.requires_grad or plan.coord.requires_grad)
+    acc = x.new_zeros(b, c + 1, height, width)  # channel 0 is the alpha
+    if full_frame:
+        boxes = {centre: (0, height, 0, width) for centre, _ in plan.order}
+    else:
+        boxes = _support_boxes(plan, height, width)
+    pooled: dict[int, torch.Tensor] = {}
+    group: tuple[int, torch.Tensor, torch.Tensor] | None = None  # factor, colour, transmit
+
+    def flush(acc: torch.Tensor) -> torch.Tensor:
+        nonlocal group
+        if group is None:
+            return acc
+        factor, colour, transmit = group
+        group = None
+        up = F.interpolate(
+            torch.cat([colour, transmit], dim=1),
+            scale_factor=factor,
+            mode="bilinear",
+            align_corners=False,
+        )[..., :height, :width]
+        return acc * up[:, -1:] + up[:, :-1]
+
+    for centre, size in plan.order:
+        box = boxes.get(centre)
+        if box is None:
+            continue
+        y0, y1, x0, x1 = box
+        factor = 1 if size <= 1 else _factor_for(size, quality)
+        if group is not None and group[0] != factor:
+            acc = flush(acc)
+        if factor == 1:
+            mask = _layer_mask(plan.coord[..., y0:y1, x0:x1], centre, plan.gamma, plan.signed)
+            z = torch.cat([mask, mask * x[..., y0:y1, x0:x1]], dim=1)  # [B,C+1,h,w]
+            if size <= 1:
+                acc = _blend(acc, z, y0, x0, grad)
+                continue
+            blurred = _blur_box(z, spec, size, 1, method)
+            r = (blurred.shape[-1] - z.shape[-1]) // 2
+            acc = _blend(acc, blurred, y0 - r, x0 - r, grad)
+            continue
+        # coarse layer: the box snapped to the coarse grid
+        y0, x0 = y0 - y0 % factor, x0 - x0 % factor
+        ph, pw = (-height) % factor, (-width) % factor
+        if factor not in pooled:
+            pooled[factor] = F.avg_pool2d(F.pad(x, (0, pw, 0, ph), mode="replicate"), factor)
+        if group is None:
+            lh, lw = (height + ph) // factor, (width + pw) // factor
+            group = (factor, x.new_zeros(b, c + 1, lh, lw), x.new_ones(b, 1, lh, lw))
+        y1 = min(height, y1 + (-(y1 - y0)) % factor)
+        x1 = min(width, x1 + (-(x1 - x0)) % factor)
+        mask = _layer_mask(plan.coord[..., y0:y1, x0:x1], centre, plan.gamma, plan.signed)
+        bh, bw = (-(y1 - y0)) % factor, (-(x1 - x0)) % factor
+        mask_lo = F.avg_pool2d(F.pad(mask, (0, bw, 0, bh)), factor)  # [B,1,h/f,w/f]
+        ly0, lx0 = y0 // factor, x0 // factor
+        x_lo = pooled[factor][..., ly0 : ly0 + mask_lo.shape[-2], lx0 : lx0 + mask_lo.shape[-1]]
+        z = torch.cat([mask_lo, mask_lo * x_lo], dim=1)
+        blurred = _blur_box(z, spec, size, factor, method)
+        r = (blurred.shape[-1] - z.shape[-1]) // 2
+        colour = _blend(group[1], blurred, ly0 - r, lx0 - r, grad)
+        transmit = _blend_transmit(group[2], blurred[:, :1], ly0 - r, lx0 - r, grad)
+        group = (factor, colour, transmit)
+    acc = flush(acc)
+    return acc[:, 1:], acc[:, :1]
+
+
+def _blend_transmit(
+    transmit: torch.Tensor, alpha: torch.Tensor, y0: int, x0: int, grad: bool
+) -> torch.Tensor:
+    """Multiply the transmittance by ``1 - alpha`` at offset (y0, x0), clipped to the frame."""
+    height, width = transmit.shape[-2:]
+    by0, bx0 = max(0, -y0), max(0, -x0)
+    ty0, tx0 = y0 + by0, x0 + bx0
+    ty1 = min(height, y0 + alpha.shape[-2])
+    tx1 = min(width, x0 + alpha.shape[-1])
+    if ty1 <= ty0 or tx1 <= tx0:
+        return transmit
+    keep = 1 - alpha[..., by0 : by0 + ty1 - ty0, bx0 : bx0 + tx1 - tx0].clamp(0, 1)
+    if grad:
+        transmit = transmit.clone()
+        transmit[..., ty0:ty1, tx0:tx1] = transmit[..., ty0:ty1, tx0:tx1] * keep
+    else:
+        transmit[..., ty0:ty1, tx0:tx1].mul_(keep)
+    return transmit
+
+
+def render(
+    image: torch.Tensor,
+    disparity: torch.Tensor,
+    focus: float | torch.Tensor,
+    blur: float,
+    *,
+    radiance: torch.Tensor | None = None,
+    order: str = "depth",
+    num_layers: int = 15,
+    schedule: str = "growing",
+    kernel: str = "soft",
+    blades: int = 0,
+    rotation: float = 0.0,
+    highlight_boost: bool = True,
+    method: str = "fft",
+    quality: str = "balanced",
+    gamma: float = GAMMA,
+    full_frame: bool = False,
+) -> torch.Tensor:
+    """Render bokeh with weighted layered rendering.
+
+    Args:
+        image: all-in-focus image, ``(B, 3, H, W)`` in [0, 1].
+        disparity: ``(B, 1, H, W)`` in [0, 1], 1 = nearest.
+        focus: focal disparity in [0, 1], a float or a ``(B,)`` tensor.
+        blur: ``K``, the CoC diameter in px (at this resolution) for ``|d - focus| = 1``.
+        radiance: ``R0`` from the radiance network, ``(B, 1, H, W)``; ``None`` means ones.
+        order: ``"depth"`` (occlusion-correct refocus) or ``"paper"`` (authors' ordering).
+        num_layers: kernel sizes per side of the focal plane (``L`` in the paper).
+        schedule: ``"growing"`` (paper) or ``"uniform"`` kernel-size schedule.
+        kernel: ``"soft"`` (paper's tanh disk) or ``"hard"`` disk aperture.
+        blades: aperture blades (0 = round), ``rotation`` in degrees.
+        highlight_boost: apply the HDR boost (alpha 3, beta 5) to saturated pixels.
+        method: ``"fft"`` or ``"direct"`` convolution for kernels above 7 px.
+        quality: ``"exact"``, ``"high"``, ``"balanced"`` or ``"fast"``: how large a kernel
+            must be before it is applied at 1/2 or 1/4 resolution.
+        full_frame: disable the per-layer support boxes and empty-layer skipping (reference).
+
+    Returns:
+        ``(B, 3, H, W)`` in [0, 1].
+    """
+    _check_tensor("image", image, 3)
+    _check_tensor("disparity", disparity, 1)
+    if disparity.shape[0] != image.shape[0] or disparity.shape[-2:] != image.shape[-2:]:
+        raise ValueError(
+            f"disparity shape {tuple(disparity.shape)} does not match image {tuple(image.shape)}"
+        )
+    if radiance is not None:
+        _check_tensor("radiance", radiance, 1)
+        if radiance.shape[-2:] != image.shape[-2:] or radiance.shape[0] != image.shape[0]:
+            raise ValueError(
+                f"radiance shape {tuple(radiance.shape)} does not match image {tuple(image.shape)}"
+            )
+    blur = _check_scalar("blur", blur, 0.0, 10000.0)
+    if method not in ("fft", "direct"):
+        raise ValueError(f"method must be 'fft' or 'direct', got {method!r}")
+    if quality not in QUALITY_PRESETS:
+        raise ValueError(f"quality must be one of {sorted(QUALITY_PRESETS)}, got {quality!r}")
+    if kernel not in ("soft", "hard"):
+        raise ValueError(f"kernel must be 'soft' or 'hard', got {kernel!r}")
+    if int(num_layers) != num_layers or num_layers < 1:
+        raise ValueError(f"num_layers must be a positive integer, got {num_layers!r}")
+    f = _focus_tensor(focus, image.shape[0], image)
+    disparity = disparity.clamp(0, 1)
+    if blur == 0 and order == "depth":
+        return image.clamp(0, 1)
+
+    weights = None
+    if highlight_boost:
+        if radiance is not None or bool((image >= HDR_THRESHOLD).any()):
+            weights = hdr_boost(image, radiance)
+    elif radiance is not None:
+        weights = radiance
+    if weights is None:
+        x = image
+    else:
+        # a floor keeps the normalisation defined where every weight is 0 (e.g. pure red)
+        weights = weights + 1e-4
+        x = torch.cat([weights * image, weights], dim=1)  # [B,3+Cr,H,W]
+
+    plan = layer_plan(
+        disparity,
+        f,
+        blur,
+        order=order,
+        num_layers=int(num_layers),
+        schedule=schedule,
+        gamma=gamma,
+    )
+    if all(size <= 1 for _, size in plan.order):
+        # nothing is blurred: every layer is the identity, so is the composite
+        return image.clamp(0, 1)
+    spec = KernelSpec(kernel, int(blades), float(rotation))
+    acc, alpha = _composite(x, plan, spec, method=method, quality=quality, full_frame=full_frame)
+    if weights is None:
+        out = acc / alpha.clamp(min=1e-6)
+        covered = alpha
+    else:
+        out = acc[:, :3] / acc[:, 3:].clamp(min=1e-8)
+        covered = acc[:, 3:]
+    # pixels no layer reached (cannot happen with soft masks, but stay defined) keep the input
+    out = torch.where(covered > 1e-6, out, image)
+    return out.clamp(0, 1)
+
+
+def _to_tensor_image(image, name: str) -> torch.Tensor:
+    arr = np.asarray(image)
+    if arr.ndim != 3 or arr.shape[2] != 3:
+        raise ValueError(f"{name} must have shape (H, W, 3), got {arr.shape}")
+    if arr.shape[0] < 1 or arr.shape[1] < 1:
+        raise ValueError(f"{name} is empty: shape {arr.shape}")
+    if arr.dtype == np.uint8:
+        arr = arr.astype(np.float32) / 255.0
+    elif np.issubdtype(arr.dtype, np.floating):
+        arr = arr.astype(np.float32)
+        if not np.isfinite(arr).all():
+            raise ValueError(f"{name} contains NaN or inf")
+        if arr.min() < 0 or arr.max() > 1:
+            raise ValueError(
+                f"{name} float values must be in [0, 1], got [{arr.min():.3g}, {arr.max():.3g}]"
+            )
+    else:
+        raise TypeError(f"{name} must be uint8 or float, got {arr.dtype}")
+    return torch.from_numpy(np.ascontiguousarray(arr)).permute(2, 0, 1)[None]
+
+
+def _to_tensor_disparity(disparity, shape: tuple[int, int]) -> torch.Tensor:
+    arr = np.asarray(disparity)
+    if arr.ndim == 3 and arr.shape[2] == 1:
+        arr = arr[..., 0]
+    if arr.ndim != 2:
+        raise ValueError(f"disparity must have shape (H, W), got {arr.shape}")
+    if arr.shape != shape:
+        raise ValueError(f"disparity shape {arr.shape} does not match image shape {shape}")
+    if not np.issubdtype(arr.dtype, np.number):
+        raise TypeError(f"disparity must be numeric, got {arr.dtype}")
+    arr = arr.astype(np.float32)
+    if not np.isfinite(arr).all():
+        raise ValueError("disparity contains NaN or inf")
+    if arr.min() < 0 or arr.max() > 1:
+        raise ValueError(f"disparity must be in [0, 1], got [{arr.min():.3g}, {arr.max():.3g}]")
+    return torch.from_numpy(np.ascontiguousarray(arr))[None, None]
+
+
+def render_bokeh(image, disparity, focus: float, blur: float, **options) -> np.ndarray:
+    """Render refocused bokeh for one image (numpy in, numpy out).
+
+    Args:
+        image: ``H x W x 3``, float32 in [0, 1] or uint8.
+        disparity: ``H x W`` in [0, 1], 1 = nearest.
+        focus: focal disparity in [0, 1].
+        blur: ``K``, CoC diameter in px for ``|d - focus| = 1``, at the image's resolution.
+        **options: passed to :func:`render` (``order``, ``num_layers``, ``kernel``, ``blades``,
+            ``rotation``, ``highlight_boost``, ``quality``, ``method``...).
+
+    Returns:
+        ``H x W x 3`` float32 in [0, 1].
+    """
+    img = _to_tensor_image(image, "image")
+    disp = _to_tensor_disparity(disparity, tuple(img.shape[-2:]))
+    _check_scalar("focus", focus, 0.0, 1.0)
+    with torch.no_grad():
+        out = render(img, disp, focus, blur, **options)
+    return out[0].permute(1, 2, 0).contiguous().numpy()
+
+
+class LayeredRenderer(nn.Module):
+    """Module form of :func:`render` with fixed options, for repeated renders.
+
+    Kernel spectra are cached across calls (keyed by kernel, size and FFT shape).
+
+    Shape: ``image (B, 3, H, W), disparity (B, 1, H, W) -> (B, 3, H, W)``.
+    """
+
+    def __init__(self, **options) -> None:
+        super().__init__()
+        self.options = dict(options)
+        # validates the options once, on a 1-pixel image
+        render(torch.zeros(1, 3, 1, 1), torch.zeros(1, 1, 1, 1), 0.0, 1.0, **self.options)
+
+    def forward(
+        self,
+        image: torch.Tensor,
+        disparity: torch.Tensor,
+        focus: float | torch.Tensor,
+        blur: float,
+        radiance: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        return render(image, disparity, focus, blur, radiance=radiance, **self.options)

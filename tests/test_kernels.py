@@ -1,0 +1,101 @@
+import math
+
+import pytest
+import torch
+
+from d2f_core.kernels import (
+    PAPER_GROWING_SIZES,
+    aperture_kernel,
+    hard_disk_kernel,
+    kernel_sizes,
+    polygon_kernel,
+    soft_disk_kernel,
+)
+
+
+class TestKernels:
+    @pytest.mark.parametrize("size", [1, 3, 7, 23, 69])
+    @pytest.mark.parametrize(
+        "build",
+        [soft_disk_kernel, hard_disk_kernel, lambda s, **kw: polygon_kernel(s, 6, 15.0, **kw)],
+    )
+    def test_sums_to_one_and_shape(self, size, build):
+        k = build(size)
+        assert k.shape == (size, size)
+        assert torch.isclose(k.sum(), torch.tensor(1.0), atol=1e-6)
+        assert (k >= 0).all()
+
+    def test_device_and_dtype(self):
+        k = soft_disk_kernel(9, device="cpu", dtype=torch.float64)
+        assert k.dtype == torch.float64 and k.device.type == "cpu"
+        assert hard_disk_kernel(5, dtype=torch.float16).dtype == torch.float16
+
+    def test_soft_disk_known_values(self):
+        # r = 3: centre weight 0.5 + 0.5 tanh(0.25 * 9 + 0.5), corner outside the disk
+        raw = 0.5 + 0.5 * math.tanh(0.25 * 9 + 0.5)
+        corner = 0.5 + 0.5 * math.tanh(0.25 * (9 - 18) + 0.5)
+        k = soft_disk_kernel(7, dtype=torch.float64)
+        assert k[3, 3] / k[0, 0] == pytest.approx(raw / corner, rel=1e-9)
+
+    def test_hard_disk_is_binary_disk(self):
+        k = hard_disk_kernel(7)
+        inside = k > 0
+        yy, xx = torch.meshgrid(torch.arange(-3, 4), torch.arange(-3, 4), indexing="ij")
+        assert torch.equal(inside, (xx**2 + yy**2) <= 9)
+        assert torch.allclose(k[inside], torch.full_like(k[inside], 1 / inside.sum()))
+
+    def test_size_one_is_identity(self):
+        assert soft_disk_kernel(1).item() == pytest.approx(1.0)
+
+    def test_polygon_has_blade_symmetry(self):
+        k = polygon_kernel(31, 6, 0.0, dtype=torch.float64)
+        # a hexagon is symmetric under 180 degree rotation; a pentagon is not
+        assert torch.allclose(k, k.flip(0, 1), atol=1e-12)
+        p = polygon_kernel(31, 5, 0.0, soft=False)
+        assert not torch.allclose(p, p.flip(1))
+        # a polygon covers less area than its circumscribed disk
+        assert (polygon_kernel(31, 6, soft=False) > 0).sum() < (hard_disk_kernel(31) > 0).sum()
+
+    def test_polygon_rotation_by_one_sector_is_identity(self):
+        a = polygon_kernel(25, 5, 10.0, dtype=torch.float64)
+        b = polygon_kernel(25, 5, 10.0 + 72.0, dtype=torch.float64)
+        assert torch.allclose(a, b, atol=1e-9)
+
+    def test_bad_arguments(self):
+        with pytest.raises(ValueError, match="odd"):
+            soft_disk_kernel(4)
+        with pytest.raises(ValueError, match="odd"):
+            hard_disk_kernel(0)
+        with pytest.raises(ValueError, match="blades"):
+            polygon_kernel(9, 2)
+        with pytest.raises(ValueError, match="shape"):
+            aperture_kernel(9, shape="square")
+
+
+class TestSchedules:
+    def test_paper_growing(self):
+        assert kernel_sizes() == [1, 3, 5, 7, 11, 15, 19, 23, 27, 33, 39, 45, 53, 61, 69]
+        assert tuple(kernel_sizes(15, 69)) == PAPER_GROWING_SIZES
+
+    def test_paper_uniform_steps_of_four(self):
+        assert kernel_sizes(15, schedule="uniform") == list(range(1, 58, 4))
+
+    @pytest.mark.parametrize("count", [5, 11, 19, 31])
+    @pytest.mark.parametrize("top", [19, 49, 69, 89])
+    @pytest.mark.parametrize("schedule", ["growing", "uniform"])
+    def test_configurable(self, count, top, schedule):
+        sizes = kernel_sizes(count, top, schedule)
+        assert len(sizes) == count
+        assert sizes[0] == 1 and abs(sizes[-1] - top) <= 1
+        assert all(s % 2 == 1 for s in sizes)
+        assert all(b >= a for a, b in zip(sizes, sizes[1:]))
+
+    def test_growing_steps_grow(self):
+        steps = [b - a for a, b in zip(PAPER_GROWING_SIZES, PAPER_GROWING_SIZES[1:])]
+        assert steps == sorted(steps)
+
+    def test_bad_schedule(self):
+        with pytest.raises(ValueError, match="schedule"):
+            kernel_sizes(15, schedule="log")
+        with pytest.raises(ValueError, match="count"):
+            kernel_sizes(0)

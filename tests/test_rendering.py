@@ -1,0 +1,303 @@
+import numpy as np
+import pytest
+import torch
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from d2f_core import LayeredRenderer, render, render_bokeh
+from d2f_core.metrics import psnr
+from d2f_core.rendering import _layer_mask, coc_to_defocus, hdr_boost, layer_plan
+
+
+def _ramp(h=48, w=64, lo=0.0, hi=1.0):
+    x = torch.linspace(lo, hi, w).expand(h, w)
+    return x[None, None].clone()
+
+
+def _texture(h=48, w=64, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return torch.rand(1, 3, h, w, generator=g) * 0.9
+
+
+class TestKnownAnswers:
+    def test_zero_blur_returns_input_exactly(self):
+        img = _texture()
+        for order in ("depth", "paper"):
+            out = render(img, _ramp(), 0.3, 0.0, order=order)
+            assert torch.equal(out, img)
+
+    def test_disparity_at_focus_returns_input_exactly(self):
+        img = _texture()
+        disp = torch.full((1, 1, 48, 64), 0.42)
+        out = render(img, disp, 0.42, 80.0)
+        assert torch.equal(out, img)
+
+    @pytest.mark.parametrize("order", ["depth", "paper"])
+    @pytest.mark.parametrize("quality", ["exact", "fast"])
+    def test_constant_image_stays_constant(self, order, quality):
+        colour = torch.tensor([0.2, 0.5, 0.8]).view(1, 3, 1, 1)
+        img = colour.expand(1, 3, 40, 56).clone()
+        g = torch.Generator().manual_seed(1)
+        disp = torch.rand(1, 1, 40, 56, generator=g)
+        out = render(img, disp, 0.5, 60.0, order=order, quality=quality)
+        assert torch.allclose(out, img, atol=1e-5)
+
+    def test_radiance_normalisation_keeps_flat_colour(self):
+        # a random radiance map would tint a flat region without the f_l(R I) / f_l(R) division
+        colour = torch.tensor([0.3, 0.6, 0.1]).view(1, 3, 1, 1)
+        img = colour.expand(1, 3, 40, 40).clone()
+        g = torch.Generator().manual_seed(2)
+        radiance = torch.rand(1, 1, 40, 40, generator=g) * 0.99 + 0.01
+        disp = torch.rand(1, 1, 40, 40, generator=g)
+        out = render(img, disp, 0.0, 40.0, radiance=radiance)
+        assert torch.allclose(out.mean(dim=(2, 3)), colour.view(1, 3), atol=1e-5)
+        assert torch.allclose(out, img, atol=1e-5)
+
+    @pytest.mark.parametrize("kernel,expected", [("hard", 23), ("soft", 23)])
+    def test_point_light_gives_disc_of_right_diameter(self, kernel, expected):
+        img = torch.zeros(1, 3, 61, 61)
+        img[..., 30, 30] = 0.9
+        disp = torch.ones(1, 1, 61, 61)
+        out = render(img, disp, 0.0, 23.0, kernel=kernel, quality="exact")[0, 0]
+        row = out[30]
+        lit = (row > 0.5 * row.max()).nonzero().flatten()
+        assert int(lit[-1] - lit[0] + 1) == expected
+        # round: the same extent vertically, and energy is conserved by the normalisation
+        col = out[:, 30]
+        lit_v = (col > 0.5 * col.max()).nonzero().flatten()
+        assert int(lit_v[-1] - lit_v[0] + 1) == expected
+        assert out.sum().item() == pytest.approx(0.9, rel=1e-4)
+
+    def test_polygon_aperture_gives_polygon(self):
+        img = torch.zeros(1, 3, 61, 61)
+        img[..., 30, 30] = 1.0
+        disp = torch.ones(1, 1, 61, 61)
+        disc = render(img, disp, 0.0, 33.0, kernel="hard", quality="exact")[0, 0] > 1e-5
+        hexa = render(img, disp, 0.0, 33.0, kernel="hard", blades=6, quality="exact")[0, 0] > 1e-5
+        assert hexa.sum() < disc.sum()
+        assert (hexa & ~disc).sum() == 0
+
+
+class TestOcclusion:
+    def _bar_scene(self):
+        h, w = 64, 96
+        g = torch.Generator().manual_seed(3)
+        img = 0.2 + 0.3 * torch.rand(1, 3, h, w, generator=g)  # textured far background
+        disp = torch.full((1, 1, h, w), 0.1)
+        img[..., :, 44:52] = 1.0  # near, bright vertical bar
+        disp[..., :, 44:52] = 1.0
+        return img, disp
+
+    def test_foreground_spills_over_sharp_background_in_depth_order(self):
+        img, disp = self._bar_scene()
+        depth = render(img, disp, 0.1, 30.0, order="depth", quality="exact")
+        paper = render(img, disp, 0.1, 30.0, order="paper", quality="exact")
+        beside = (slice(None), slice(None), slice(8, 56), slice(38, 44))  # 1-6 px left of the bar
+        spill_depth = (depth[beside] - img[beside]).mean().item()
+        spill_paper = (paper[beside] - img[beside]).mean().item()
+        # measured: depth order brightens the background beside the bar by ~0.3, the paper's
+        # order keeps the in-focus background on top (~0.0)
+        assert spill_depth > 0.15
+        assert abs(spill_paper) < 0.02
+        # the far background away from the bar stays sharp in both
+        far = (slice(None), slice(None), slice(8, 56), slice(0, 20))
+        assert psnr(depth[far], img[far]) > 40
+
+    def test_background_does_not_spill_over_sharp_foreground(self):
+        img, disp = self._bar_scene()
+        out = render(img, disp, 1.0, 30.0, order="depth", quality="exact")
+        bar = (slice(None), slice(None), slice(8, 56), slice(45, 51))
+        assert psnr(out[bar], img[bar]) > 40
+
+    def test_front_and_back_never_share_a_layer(self):
+        disp = _ramp(8, 200)
+        plan = layer_plan(disp, torch.tensor(0.5).view(1, 1, 1, 1), 60.0)
+        signed = disp - 0.5
+        for centre, _ in plan.order:
+            mask = _layer_mask(plan.coord, centre, plan.gamma, plan.signed)
+            if centre > 0:
+                assert (mask[signed <= 0] == 0).all()
+            elif centre < 0:
+                assert (mask[signed >= 0] == 0).all()
+
+    def test_layers_composite_far_to_near(self):
+        plan = layer_plan(_ramp(), torch.tensor(0.5).view(1, 1, 1, 1), 60.0)
+        centres = [c for c, _ in plan.order]
+        assert centres == sorted(centres)
+        paper = layer_plan(_ramp(), torch.tensor(0.0).view(1, 1, 1, 1), 69.0, order="paper")
+        assert [c for c, _ in paper.order] == list(range(14, -1, -1))
+        assert [s for _, s in paper.order][::-1] == [
+            1,
+            3,
+            5,
+            7,
+            11,
+            15,
+            19,
+            23,
+            27,
+            33,
+            39,
+            45,
+            53,
+            61,
+            69,
+        ]
+
+    def test_small_blur_needs_few_layers(self):
+        focus = torch.tensor(0.5).view(1, 1, 1, 1)
+        few = layer_plan(_ramp(), focus, 10.0)
+        many = layer_plan(_ramp(), focus, 120.0)
+        assert len(few.order) < len(many.order)
+        assert max(s for _, s in few.order) <= 7
+
+
+class TestHighlights:
+    def test_boost_makes_brighter_disc(self):
+        img = torch.full((1, 3, 61, 61), 0.1)
+        img[..., 29:32, 29:32] = 1.0
+        disp = torch.ones(1, 1, 61, 61)
+        on = render(img, disp, 0.0, 23.0, highlight_boost=True, quality="exact")
+        off = render(img, disp, 0.0, 23.0, highlight_boost=False, quality="exact")
+        disc = (slice(None), slice(None), slice(24, 37), slice(24, 37))
+        # a 3x3 highlight in a 23-px disc (~415 px): with weight 3 the disc mean is
+        # (0.1 * 406 + 3 * 9) / (406 + 27) = 0.156, without (0.1 * 406 + 9) / 415 = 0.120
+        assert on[disc].mean().item() == pytest.approx(0.156, abs=0.006)
+        assert off[disc].mean().item() == pytest.approx(0.120, abs=0.006)
+        # still a disc: the boost changes brightness, not the extent
+        assert on[..., 30, :5].max() < 0.11 and on[..., 30, -5:].max() < 0.11
+
+    def test_boost_keeps_hue_of_white_highlight(self):
+        img = torch.full((1, 3, 41, 41), 0.1)
+        img[..., 20, 20] = 1.0
+        disp = torch.ones(1, 1, 41, 41)
+        out = render(img, disp, 0.0, 15.0, quality="exact")[0, :, 20, 20]
+        assert torch.allclose(out, out.mean().expand(3), atol=1e-6)
+
+    def test_hdr_boost_formula(self):
+        img = torch.tensor([1.0, 0.5, 0.2]).view(1, 3, 1, 1)
+        r0 = torch.full((1, 1, 1, 1), 0.4)
+        assert hdr_boost(img, r0).item() == pytest.approx(3.0)
+        per = hdr_boost(img, r0, per_channel=True).flatten()
+        assert torch.allclose(per, 3 * torch.tensor([1.0, 0.5, 0.2]) ** 5)
+        dim = torch.full((1, 3, 1, 1), 0.5)
+        assert hdr_boost(dim, r0).item() == pytest.approx(0.4)
+
+
+class TestImplementations:
+    @pytest.mark.parametrize("order", ["depth", "paper"])
+    def test_fft_crop_skip_equals_direct_full_frame(self, order):
+        img = _texture(40, 52, seed=4).double()
+        disp = torch.rand(1, 1, 40, 52, generator=torch.Generator().manual_seed(5)).double()
+        fast = render(img, disp, 0.6, 45.0, order=order, quality="exact")
+        ref = render(
+            img, disp, 0.6, 45.0, order=order, quality="exact", method="direct", full_frame=True
+        )
+        assert torch.allclose(fast, ref, atol=1e-9)
+
+    @pytest.mark.parametrize("quality", ["high", "balanced", "fast"])
+    def test_reduced_resolution_stays_close_to_exact(self, quality):
+        img = _texture(96, 128, seed=6)
+        yy = torch.linspace(0, 1, 96).view(1, 1, 96, 1).expand(1, 1, 96, 128)
+        disp = yy + 0.1 * torch.rand(1, 1, 96, 128, generator=torch.Generator().manual_seed(7))
+        disp = disp.clamp(0, 1)
+        ref = render(img.double(), disp.double(), 0.3, 90.0, quality="exact")
+        out = render(img, disp, 0.3, 90.0, quality=quality)
+        assert psnr(out, ref) >= 45.0
+
+    def test_module_equals_function(self):
+        img, disp = _texture(), _ramp()
+        mod = LayeredRenderer(order="depth", blades=5, rotation=12.0)
+        assert torch.equal(
+            mod(img, disp, 0.4, 33.0), render(img, disp, 0.4, 33.0, blades=5, rotation=12.0)
+        )
+
+    def test_batch_matches_single(self):
+        img = torch.cat([_texture(seed=1), _texture(seed=2)])
+        disp = torch.cat([_ramp(), 1 - _ramp()])
+        out = render(img, disp, torch.tensor([0.2, 0.7]), 30.0)
+        assert torch.allclose(out[:1], render(img[:1], disp[:1], 0.2, 30.0), atol=1e-6)
+        assert torch.allclose(out[1:], render(img[1:], disp[1:], 0.7, 30.0), atol=1e-6)
+
+    def test_gradcheck(self):
+        g = torch.Generator().manual_seed(8)
+        img = (torch.rand(1, 3, 9, 9, generator=g, dtype=torch.float64) * 0.8).requires_grad_()
+        disp = torch.rand(1, 1, 9, 9, generator=g, dtype=torch.float64).requires_grad_()
+        r0 = (torch.rand(1, 1, 9, 9, generator=g, dtype=torch.float64) + 0.1).requires_grad_()
+
+        def fn(i, d, r):
+            return render(i, d, 0.5, 8.0, radiance=r, quality="exact")
+
+        assert torch.autograd.gradcheck(fn, (img, disp, r0), eps=1e-6, atol=1e-5)
+
+    def test_coc_to_defocus(self):
+        assert coc_to_defocus(1.0) == 0.0
+        assert coc_to_defocus(69.0) == pytest.approx(1.0)
+        assert coc_to_defocus(23.0) == pytest.approx(0.5)
+        t = coc_to_defocus(torch.tensor([0.0, 23.0, 500.0]))
+        assert torch.allclose(t, torch.tensor([0.0, 0.5, 1.0]))
+
+
+class TestNumpyAPI:
+    def test_uint8_and_float_agree(self):
+        rng = np.random.default_rng(0)
+        img8 = rng.integers(0, 256, (30, 40, 3), dtype=np.uint8)
+        disp = rng.random((30, 40)).astype(np.float32)
+        a = render_bokeh(img8, disp, 0.5, 20.0)
+        b = render_bokeh(img8.astype(np.float32) / 255, disp, 0.5, 20.0)
+        assert a.dtype == np.float32 and a.shape == (30, 40, 3)
+        np.testing.assert_allclose(a, b, atol=1e-6)
+
+    @pytest.mark.parametrize(
+        "kwargs,match",
+        [
+            ({"focus": -0.1}, "focus"),
+            ({"focus": 1.5}, "focus"),
+            ({"focus": float("nan")}, "focus"),
+            ({"focus": float("inf")}, "focus"),
+            ({"blur": -1.0}, "blur"),
+            ({"blur": float("nan")}, "blur"),
+            ({"disparity": np.zeros((10, 12), np.float32)}, "shape"),
+            ({"disparity": np.full((12, 16), np.nan, np.float32)}, "NaN"),
+            ({"disparity": np.full((12, 16), np.inf, np.float32)}, "NaN or inf"),
+            ({"disparity": np.full((12, 16), 2.0, np.float32)}, r"\[0, 1\]"),
+            ({"image": np.zeros((12, 16), np.float32)}, "image"),
+            ({"image": np.full((12, 16, 3), np.nan, np.float32)}, "NaN"),
+            ({"image": np.full((12, 16, 3), 1.5, np.float32)}, r"\[0, 1\]"),
+            ({"order": "random"}, "order"),
+            ({"quality": "ultra"}, "quality"),
+        ],
+    )
+    def test_bad_inputs_raise_value_error(self, kwargs, match):
+        args = {
+            "image": np.zeros((12, 16, 3), np.float32),
+            "disparity": np.zeros((12, 16), np.float32),
+            "focus": 0.5,
+            "blur": 10.0,
+        }
+        args.update(kwargs)
+        with pytest.raises(ValueError, match=match):
+            render_bokeh(**args)
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    h=st.integers(1, 24),
+    w=st.integers(1, 24),
+    focus=st.floats(0, 1),
+    blur=st.floats(0, 200),
+    order=st.sampled_from(["depth", "paper"]),
+    quality=st.sampled_from(["exact", "balanced", "fast"]),
+    seed=st.integers(0, 2**16),
+    saturate=st.booleans(),
+)
+def test_output_finite_and_in_range(h, w, focus, blur, order, quality, seed, saturate):
+    rng = np.random.default_rng(seed)
+    img = rng.random((h, w, 3)).astype(np.float32)
+    if saturate:
+        img[rng.random((h, w)) < 0.2] = 1.0
+    disp = rng.random((h, w)).astype(np.float32)
+    out = render_bokeh(img, disp, focus, blur, order=order, quality=quality)
+    assert out.shape == (h, w, 3)
+    assert np.isfinite(out).all()
+    assert out.min() >= 0.0 and out.max() <= 1.0
