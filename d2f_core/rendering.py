@@ -57,6 +57,8 @@ _MASK_EPS = 1e-4
 # Layers are located on a coarse grid of this many pixels before exact masks are computed.
 _TILE = 8
 _DIRECT_MAX_SIZE = 11
+# Where a layer's other side is moved to in layer units: far enough that its mask is 0.
+_FAR = 1e4
 
 
 @dataclass(frozen=True)
@@ -183,6 +185,24 @@ class LayerPlan:
     gamma: float
     signed: bool
 
+    def __post_init__(self) -> None:
+        self._sides: dict[int, torch.Tensor] = {}
+
+    def side_coord(self, centre: int) -> torch.Tensor:
+        """``coord`` with the pixels on the other side of focus pushed out of reach.
+
+        A layer on one side of the focal plane never takes pixels from the other side: their
+        mask underflows to exactly 0.
+        """
+        if not self.signed or centre == 0:
+            return self.coord
+        side = 1 if centre > 0 else -1
+        if side not in self._sides:
+            far = torch.full_like(self.coord, -_FAR * side)
+            keep = self.coord > 0 if side > 0 else self.coord < 0
+            self._sides[side] = torch.where(keep, self.coord, far)
+        return self._sides[side]
+
 
 def _interp(x: torch.Tensor, xp: list[float]) -> torch.Tensor:
     """Piecewise-linear map of ``x`` onto the index of the increasing knots ``xp``."""
@@ -258,13 +278,14 @@ def layer_plan(
     return LayerPlan(coord, layers, gamma / 14.0, True)
 
 
-def _layer_mask(coord: torch.Tensor, centre: int, gamma: float, signed: bool) -> torch.Tensor:
-    mask = 0.5 + 0.5 * torch.tanh(gamma * (1.0 - (coord - centre).abs()))
-    if signed and centre != 0:
-        # a layer on one side of the focal plane never takes pixels from the other side
-        side = coord > 0 if centre > 0 else coord < 0
-        mask = mask * side.to(mask.dtype)
-    return mask
+def _layer_mask(coord: torch.Tensor, centre: int, gamma: float, grad: bool = True) -> torch.Tensor:
+    """Soft layer mask ``0.5 + 0.5 tanh(gamma (1 - |coord - centre|))`` (``coord`` in layer
+    units, already side-gated by :meth:`LayerPlan.side_coord`)."""
+    # 0.5 + 0.5 tanh(x) == sigmoid(2 x); in place when no gradient is needed (hot path)
+    if grad:
+        return torch.sigmoid(2 * gamma * (1.0 - (coord - centre).abs()))
+    t = coord - centre
+    return t.abs_().mul_(-2 * gamma).add_(2 * gamma).sigmoid_()
 
 
 def _mask_reach(gamma: float) -> float:
@@ -338,7 +359,15 @@ def _blur_box(z: torch.Tensor, spec: KernelSpec, size: int, factor: int, method:
         c = z.shape[1]
         weight = k.flip(-1, -2).expand(c, 1, -1, -1)
         # channels-last depthwise convolution is several times faster on CPU for small kernels
-        zp = F.pad(z, (2 * r, 2 * r, 2 * r, 2 * r)).contiguous(memory_format=torch.channels_last)
+        if z.requires_grad:
+            zp = F.pad(z, (2 * r, 2 * r, 2 * r, 2 * r)).contiguous(
+                memory_format=torch.channels_last
+            )
+        else:
+            zp = z.new_zeros(z.shape[0], c, h + 4 * r, w + 4 * r).contiguous(
+                memory_format=torch.channels_last
+            )
+            zp[..., 2 * r : 2 * r + h, 2 * r : 2 * r + w] = z
         return F.conv2d(zp, weight, groups=c).contiguous()
     fh, fw = _fast_len(h + 2 * r), _fast_len(w + 2 * r)
     spec_k = _spectrum(spec, size, factor, fh, fw, str(z.device), z.dtype)
@@ -410,6 +439,16 @@ def _blend(acc: torch.Tensor, part: torch.Tensor, y0: int, x0: int, grad: bool) 
     return acc
 
 
+def _premultiply(mask: torch.Tensor, x: torch.Tensor, grad: bool) -> torch.Tensor:
+    """``[mask, mask * x]`` along channels. Shape: ``(B,1,h,w), (B,C,h,w) -> (B,C+1,h,w)``."""
+    if grad:
+        return torch.cat([mask, mask * x], dim=1)
+    z = mask.new_empty(mask.shape[0], x.shape[1] + 1, *mask.shape[-2:])
+    z[:, :1] = mask
+    torch.mul(x, mask, out=z[:, 1:])
+    return z
+
+
 def _composite(
     x: torch.Tensor,
     plan: LayerPlan,
@@ -461,9 +500,10 @@ def _composite(
         factor = 1 if size <= 1 else _factor_for(size, quality)
         if group is not None and group[0] != factor:
             acc = flush(acc)
+        coord = plan.side_coord(centre)
         if factor == 1:
-            mask = _layer_mask(plan.coord[..., y0:y1, x0:x1], centre, plan.gamma, plan.signed)
-            z = torch.cat([mask, mask * x[..., y0:y1, x0:x1]], dim=1)  # [B,C+1,h,w]
+            mask = _layer_mask(coord[..., y0:y1, x0:x1], centre, plan.gamma, grad)
+            z = _premultiply(mask, x[..., y0:y1, x0:x1], grad)  # [B,C+1,h,w]
             if size <= 1:
                 acc = _blend(acc, z, y0, x0, grad)
                 continue
@@ -481,12 +521,12 @@ def _composite(
             group = (factor, x.new_zeros(b, c + 1, lh, lw), x.new_ones(b, 1, lh, lw))
         y1 = min(height, y1 + (-(y1 - y0)) % factor)
         x1 = min(width, x1 + (-(x1 - x0)) % factor)
-        mask = _layer_mask(plan.coord[..., y0:y1, x0:x1], centre, plan.gamma, plan.signed)
+        mask = _layer_mask(coord[..., y0:y1, x0:x1], centre, plan.gamma, grad)
         bh, bw = (-(y1 - y0)) % factor, (-(x1 - x0)) % factor
         mask_lo = F.avg_pool2d(F.pad(mask, (0, bw, 0, bh)), factor)  # [B,1,h/f,w/f]
         ly0, lx0 = y0 // factor, x0 // factor
         x_lo = pooled[factor][..., ly0 : ly0 + mask_lo.shape[-2], lx0 : lx0 + mask_lo.shape[-1]]
-        z = torch.cat([mask_lo, mask_lo * x_lo], dim=1)
+        z = _premultiply(mask_lo, x_lo, grad)
         blurred = _blur_box(z, spec, size, factor, method)
         r = (blurred.shape[-1] - z.shape[-1]) // 2
         colour = _blend(group[1], blurred, ly0 - r, lx0 - r, grad)

@@ -114,7 +114,7 @@ class TestOcclusion:
         plan = layer_plan(disp, torch.tensor(0.5).view(1, 1, 1, 1), 60.0)
         signed = disp - 0.5
         for centre, _ in plan.order:
-            mask = _layer_mask(plan.coord, centre, plan.gamma, plan.signed)
+            mask = _layer_mask(plan.side_coord(centre), centre, plan.gamma)
             if centre > 0:
                 assert (mask[signed <= 0] == 0).all()
             elif centre < 0:
