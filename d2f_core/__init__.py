@@ -9,37 +9,39 @@ Stages, each in its own module:
 - :mod:`d2f_core.losses`, :mod:`d2f_core.data`, :mod:`d2f_core.train`,
   :mod:`d2f_core.evaluate`, :mod:`d2f_core.synth`: training and evaluation.
 - :mod:`d2f_core.io`: the only module that reads and writes files.
+
+Names are imported on first use, so ``import d2f_core`` (and ``d2f --help``) stays fast.
 """
 
 from __future__ import annotations
 
 import importlib
 
-from .kernels import hard_disk_kernel, kernel_sizes, polygon_kernel, soft_disk_kernel
-from .rendering import LayeredRenderer, coc_to_defocus, hdr_boost, render, render_bokeh
-
 __version__ = "0.1.0"
 
-_LAZY = {"D2F": "pipeline", "Scene": "pipeline", "Result": "pipeline"}
+_LAZY = {
+    "D2F": "pipeline",
+    "Scene": "pipeline",
+    "Result": "pipeline",
+    "LayeredRenderer": "rendering",
+    "coc_to_defocus": "rendering",
+    "hdr_boost": "rendering",
+    "render": "rendering",
+    "render_bokeh": "rendering",
+    "hard_disk_kernel": "kernels",
+    "kernel_sizes": "kernels",
+    "polygon_kernel": "kernels",
+    "soft_disk_kernel": "kernels",
+}
 
-__all__ = [
-    "D2F",
-    "LayeredRenderer",
-    "Result",
-    "Scene",
-    "coc_to_defocus",
-    "hard_disk_kernel",
-    "hdr_boost",
-    "kernel_sizes",
-    "polygon_kernel",
-    "render",
-    "render_bokeh",
-    "soft_disk_kernel",
-]
+__all__ = sorted(_LAZY)
 
 
 def __getattr__(name: str):
-    # the pipeline pulls in the networks; import it only when asked for
     if name in _LAZY:
         return getattr(importlib.import_module(f".{_LAZY[name]}", __name__), name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(list(globals()) + __all__)

@@ -72,9 +72,9 @@ class QualityPreset:
 
 QUALITY_PRESETS: dict[str, QualityPreset] = {
     "exact": QualityPreset(None, None),
-    "high": QualityPreset(31, 61),
-    "balanced": QualityPreset(23, 45),
-    "fast": QualityPreset(13, 27),
+    "high": QualityPreset(23, 45),
+    "balanced": QualityPreset(15, 39),
+    "fast": QualityPreset(11, 23),
 }
 
 
@@ -368,7 +368,8 @@ def _blur_box(z: torch.Tensor, spec: KernelSpec, size: int, factor: int, method:
                 memory_format=torch.channels_last
             )
             zp[..., 2 * r : 2 * r + h, 2 * r : 2 * r + w] = z
-        return F.conv2d(zp, weight, groups=c).contiguous()
+        # left channels-last: blending reads it as it is, a copy would cost more
+        return F.conv2d(zp, weight, groups=c)
     fh, fw = _fast_len(h + 2 * r), _fast_len(w + 2 * r)
     spec_k = _spectrum(spec, size, factor, fh, fw, str(z.device), z.dtype)
     out = torch.fft.irfft2(torch.fft.rfft2(z, s=(fh, fw)) * spec_k, s=(fh, fw))
@@ -475,7 +476,6 @@ def _composite(
         boxes = {centre: (0, height, 0, width) for centre, _ in plan.order}
     else:
         boxes = _support_boxes(plan, height, width)
-    pooled: dict[int, torch.Tensor] = {}
     group: tuple[int, torch.Tensor, torch.Tensor] | None = None  # factor, colour, transmit
 
     def flush(acc: torch.Tensor) -> torch.Tensor:
@@ -498,6 +498,9 @@ def _composite(
             continue
         y0, y1, x0, x1 = box
         factor = 1 if size <= 1 else _factor_for(size, quality)
+        if spec.blades and factor > 2:
+            # a 1/4-resolution grid rounds off a polygon's corners: visible in highlights
+            factor = 2
         if group is not None and group[0] != factor:
             acc = flush(acc)
         coord = plan.side_coord(centre)
@@ -511,22 +514,18 @@ def _composite(
             r = (blurred.shape[-1] - z.shape[-1]) // 2
             acc = _blend(acc, blurred, y0 - r, x0 - r, grad)
             continue
-        # coarse layer: the box snapped to the coarse grid
+        # coarse layer: the box snapped to the coarse grid; the premultiplied layer is pooled,
+        # so colour from other layers in the same cell never leaks into this one
         y0, x0 = y0 - y0 % factor, x0 - x0 % factor
-        ph, pw = (-height) % factor, (-width) % factor
-        if factor not in pooled:
-            pooled[factor] = F.avg_pool2d(F.pad(x, (0, pw, 0, ph), mode="replicate"), factor)
         if group is None:
-            lh, lw = (height + ph) // factor, (width + pw) // factor
+            lh, lw = -(-height // factor), -(-width // factor)
             group = (factor, x.new_zeros(b, c + 1, lh, lw), x.new_ones(b, 1, lh, lw))
-        y1 = min(height, y1 + (-(y1 - y0)) % factor)
-        x1 = min(width, x1 + (-(x1 - x0)) % factor)
         mask = _layer_mask(coord[..., y0:y1, x0:x1], centre, plan.gamma, grad)
+        z = _premultiply(mask, x[..., y0:y1, x0:x1], grad)
         bh, bw = (-(y1 - y0)) % factor, (-(x1 - x0)) % factor
-        mask_lo = F.avg_pool2d(F.pad(mask, (0, bw, 0, bh)), factor)  # [B,1,h/f,w/f]
+        # zero padding past the frame edge: the pooled alpha there is partial, as it should be
+        z = F.avg_pool2d(F.pad(z, (0, bw, 0, bh)), factor)  # [B,C+1,h/f,w/f]
         ly0, lx0 = y0 // factor, x0 // factor
-        x_lo = pooled[factor][..., ly0 : ly0 + mask_lo.shape[-2], lx0 : lx0 + mask_lo.shape[-1]]
-        z = _premultiply(mask_lo, x_lo, grad)
         blurred = _blur_box(z, spec, size, factor, method)
         r = (blurred.shape[-1] - z.shape[-1]) // 2
         colour = _blend(group[1], blurred, ly0 - r, lx0 - r, grad)
@@ -549,8 +548,9 @@ def _blend_transmit(
         return transmit
     keep = 1 - alpha[..., by0 : by0 + ty1 - ty0, bx0 : bx0 + tx1 - tx0].clamp(0, 1)
     if grad:
+        updated = transmit[..., ty0:ty1, tx0:tx1] * keep
         transmit = transmit.clone()
-        transmit[..., ty0:ty1, tx0:tx1] = transmit[..., ty0:ty1, tx0:tx1] * keep
+        transmit[..., ty0:ty1, tx0:tx1] = updated
     else:
         transmit[..., ty0:ty1, tx0:tx1].mul_(keep)
     return transmit

@@ -230,6 +230,20 @@ class TestImplementations:
 
         assert torch.autograd.gradcheck(fn, (img, disp, r0), eps=1e-6, atol=1e-5)
 
+    @pytest.mark.parametrize("quality", ["exact", "fast"])
+    def test_gradients_flow_through_reduced_resolution_layers(self, quality):
+        g = torch.Generator().manual_seed(9)
+        img = torch.rand(2, 3, 48, 48, generator=g).requires_grad_()
+        disp = torch.rand(2, 1, 48, 48, generator=g).requires_grad_()
+        r0 = torch.rand(2, 1, 48, 48, generator=g).requires_grad_()
+        out = render(img, disp, torch.tensor([0.2, 0.9]), 60.0, radiance=r0, quality=quality)
+        out.square().mean().backward()
+        for t in (img, disp, r0):
+            assert t.grad is not None and torch.isfinite(t.grad).all() and t.grad.abs().sum() > 0
+        with torch.no_grad():
+            same = render(img, disp, torch.tensor([0.2, 0.9]), 60.0, radiance=r0, quality=quality)
+        assert torch.allclose(out, same, atol=1e-6)
+
     def test_coc_to_defocus(self):
         assert coc_to_defocus(1.0) == 0.0
         assert coc_to_defocus(69.0) == pytest.approx(1.0)
