@@ -1,0 +1,445 @@
+"""Depth and disparity map files: reading, hole filling, normalising, writing.
+
+Everything the renderer sees is *normalised disparity*: an HxW float32 map in [0, 1] where
+1 is the nearest point of the scene. ``load_depth`` gets there from 8/16-bit PNG (or any
+grey image Pillow reads), ``.npy``, PFM and float TIFF, whether the file stores metric depth
+(``kind="depth"``, converted with 1/depth) or something proportional to disparity
+(``kind="disparity"``). Holes (0, NaN, inf) are filled edge-aware, never left at zero.
+"""
+
+from __future__ import annotations
+
+import io
+import logging
+import os
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from PIL import Image
+
+from .image import atomic_write, open_pil, read_source_bytes, resize_float, to_uint8
+
+logger = logging.getLogger(__name__)
+
+DEPTH_EXTENSIONS = frozenset({".png", ".npy", ".pfm", ".tif", ".tiff", ".jpg", ".jpeg", ".webp"})
+# Robust range: measured on the Kinect sample, 0.17% of its pixels are bogus 1-7 cm readings;
+# the 0.5 / 99.5 percentiles ignore such flying pixels.
+ROBUST_PERCENTILES = (0.5, 99.5)
+
+
+# --------------------------------------------------------------------------- PFM
+
+
+def read_pfm(src: str | os.PathLike | bytes) -> np.ndarray:
+    """Read a Portable Float Map.
+
+    Returns:
+        float32 array, HxW (``Pf``) or HxWx3 (``PF``), top row first (PFM stores bottom-up).
+
+    Raises:
+        ValueError: bad header or too little data.
+    """
+    data = read_source_bytes(src)
+    name = "<bytes>" if isinstance(src, (bytes, bytearray, memoryview)) else os.fspath(src)
+    tokens: list[bytes] = []
+    pos = 0
+    while len(tokens) < 4:
+        while pos < len(data) and data[pos : pos + 1].isspace():
+            pos += 1
+        if pos < len(data) and data[pos : pos + 1] == b"#":  # comment line
+            pos = data.find(b"\n", pos) + 1 or len(data)
+            continue
+        start = pos
+        while pos < len(data) and not data[pos : pos + 1].isspace():
+            pos += 1
+        if start == pos:
+            raise ValueError(f"{name}: truncated PFM header")
+        tokens.append(data[start:pos])
+    pos += 1  # exactly one whitespace byte separates the header from the samples
+    magic = tokens[0]
+    if magic not in (b"PF", b"Pf"):
+        raise ValueError(f"{name}: not a PFM file (magic {magic[:8]!r})")
+    try:
+        width, height, scale = int(tokens[1]), int(tokens[2]), float(tokens[3])
+    except ValueError as exc:
+        raise ValueError(f"{name}: bad PFM header {b' '.join(tokens)!r}") from exc
+    if width <= 0 or height <= 0 or scale == 0.0:
+        raise ValueError(f"{name}: bad PFM size {width}x{height} or scale {scale}")
+    channels = 3 if magic == b"PF" else 1
+    count = width * height * channels
+    dtype = np.dtype("<f4" if scale < 0 else ">f4")
+    if len(data) - pos < count * 4:
+        raise ValueError(
+            f"{name}: truncated PFM: {len(data) - pos} data bytes, expected {count * 4}"
+        )
+    arr = np.frombuffer(data, dtype=dtype, count=count, offset=pos).astype(np.float32)
+    arr = arr.reshape(height, width, channels)[::-1]
+    return np.ascontiguousarray(arr[..., 0] if channels == 1 else arr)
+
+
+def write_pfm(path: str | os.PathLike, array: np.ndarray) -> Path:
+    """Write an HxW (``Pf``) or HxWx3 (``PF``) float array as little-endian PFM."""
+    a = np.asarray(array, dtype=np.float32)
+    if a.ndim == 3 and a.shape[2] == 1:
+        a = a[..., 0]
+    if a.ndim == 2:
+        magic = b"Pf"
+    elif a.ndim == 3 and a.shape[2] == 3:
+        magic = b"PF"
+    else:
+        raise ValueError(f"array: expected HxW or HxWx3, got shape {a.shape}")
+    h, w = a.shape[:2]
+    header = magic + b"\n%d %d\n-1.0\n" % (w, h)
+    body = np.ascontiguousarray(a[::-1]).astype("<f4").tobytes()
+    out = Path(path)
+    atomic_write(out, lambda fh: fh.write(header + body))
+    return out
+
+
+# --------------------------------------------------------------------------- raw reading
+
+
+def _grey_from_pil(im: Image.Image, name: str) -> np.ndarray:
+    mode = im.mode
+    if mode in ("L", "I", "F") or mode.startswith("I;16"):
+        return np.asarray(im).astype(np.float64)
+    if mode in ("LA", "La"):
+        return np.asarray(im)[..., 0].astype(np.float64)
+    if mode == "P":
+        return np.asarray(im.convert("L")).astype(np.float64)
+    if mode in ("RGB", "RGBA"):
+        a = np.asarray(im)[..., :3].astype(np.float64)
+        # JPEG chroma noise on a grey map stays far below this; a colour map does not.
+        spread = float(np.percentile(np.abs(a - a[..., :1]).max(axis=2), 99))
+        if spread > 16:
+            raise ValueError(
+                f"{name}: depth map has colour (channels differ by {spread:.0f} levels); "
+                "expected a single-channel map (a colour-mapped visualisation cannot be read)"
+            )
+        return a.mean(axis=2)
+    raise ValueError(f"{name}: unsupported depth image mode {mode!r}")
+
+
+def read_depth_array(src: str | os.PathLike | bytes) -> np.ndarray:
+    """Read the raw values of a depth/disparity file as HxW float64 (no normalisation).
+
+    Formats: ``.npy``, ``.pfm``, TIFF (float, 16/32-bit int), PNG 8/16-bit and any grey
+    image Pillow reads. Bytes sources are sniffed by content.
+    """
+    name = "<bytes>" if isinstance(src, (bytes, bytearray, memoryview)) else os.fspath(src)
+    data = read_source_bytes(src)
+    if data.startswith(b"\x93NUMPY"):
+        try:
+            arr = np.load(io.BytesIO(data), allow_pickle=False)
+        except ValueError as exc:
+            raise ValueError(f"{name}: unreadable .npy file: {exc}") from exc
+    elif data[:2] in (b"PF", b"Pf") and data[2:3].isspace():
+        arr = read_pfm(data if name == "<bytes>" else src)
+    else:
+        arr = None
+        try:
+            im = open_pil(data, name)
+            with im:
+                im.load()
+                arr = _grey_from_pil(im, name)
+        except ValueError:
+            if data[:4] not in (b"II*\x00", b"MM\x00*"):
+                raise
+        except (OSError, SyntaxError, EOFError) as exc:
+            if data[:4] not in (b"II*\x00", b"MM\x00*"):
+                raise ValueError(f"{name}: truncated or corrupt depth image: {exc}") from exc
+        if arr is None:
+            # Float TIFFs with several samples or tiles that Pillow cannot decode.
+            try:
+                import tifffile
+            except ImportError as exc:
+                msg = f"{name}: cannot decode this TIFF (tifffile is not installed)"
+                raise ValueError(msg) from exc
+            try:
+                arr = tifffile.imread(io.BytesIO(data))
+            except Exception as exc:
+                raise ValueError(f"{name}: cannot decode TIFF depth map: {exc}") from exc
+    arr = np.asarray(arr)
+    if arr.dtype == np.bool_ or not np.issubdtype(arr.dtype, np.number):
+        raise ValueError(f"{name}: depth map has non-numeric dtype {arr.dtype}")
+    arr = np.squeeze(arr)
+    if arr.ndim == 3 and arr.shape[2] in (3, 4):
+        arr = arr[..., 0]
+    if arr.ndim != 2:
+        raise ValueError(f"{name}: expected a 2-D depth map, got shape {arr.shape}")
+    return arr.astype(np.float64)
+
+
+# --------------------------------------------------------------------------- hole filling
+
+
+def _pool2(a: np.ndarray) -> np.ndarray:
+    """Sum of 2x2 blocks (odd sizes padded with zeros). Works on HxW and HxWxC."""
+    h, w = a.shape[:2]
+    pad = [(0, h % 2), (0, w % 2)] + [(0, 0)] * (a.ndim - 2)
+    a = np.pad(a, pad)
+    return a[0::2, 0::2] + a[1::2, 0::2] + a[0::2, 1::2] + a[1::2, 1::2]
+
+
+def _coarse_taps(idx: np.ndarray, n_coarse: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Bilinear taps from fine indices into the 2x coarser axis (pixel centres aligned)."""
+    x = idx / 2.0 - 0.25
+    i0 = np.floor(x).astype(np.int64)
+    frac = x - i0
+    return np.clip(i0, 0, n_coarse - 1), np.clip(i0 + 1, 0, n_coarse - 1), frac
+
+
+def _push_pull(
+    values: np.ndarray, weight: np.ndarray, guide: np.ndarray | None, sigma: float
+) -> np.ndarray:
+    """Fill pixels with weight < 1 from coarser levels; recursion ends when nothing is missing.
+
+    The pull step is a joint-bilateral upsampling: each coarse neighbour counts in proportion
+    to how close its mean guide colour is to the pixel's own, so fill values come from the
+    same surface rather than leaking across object edges.
+    """
+    if weight.min() >= 1.0:
+        return values
+    h, w = values.shape[:2]
+    cw = _pool2(weight)
+    cv = _pool2(values * weight) / np.maximum(cw, 1e-12)
+    cw = np.minimum(cw, 1.0)
+    cg = None
+    if guide is not None:
+        cg = _pool2(guide) / _pool2(np.ones((h, w, 1)))
+    if cw.shape == (1, 1) and cw[0, 0] <= 0:
+        raise ValueError("no valid pixels to fill from")
+    coarse = _push_pull(cv, cw, cg, sigma)
+    ch, cwid = coarse.shape
+    # Only pixels that need filling are pulled: holes are usually a small fraction.
+    ys, xs = np.nonzero(weight < 1.0)
+    r0, r1, fr = _coarse_taps(ys, ch)
+    c0, c1, fc = _coarse_taps(xs, cwid)
+    num = np.zeros(ys.shape)
+    den = np.zeros(ys.shape)
+    for ri, wr in ((r0, 1.0 - fr), (r1, fr)):
+        for ci, wc in ((c0, 1.0 - fc), (c1, fc)):
+            tap = wr * wc
+            if guide is not None:
+                diff = guide[ys, xs] - cg[ri, ci]
+                tap = tap * (np.exp(-(diff**2).sum(axis=1) / (2.0 * sigma**2)) + 1e-6)
+            num += tap * coarse[ri, ci]
+            den += tap
+    out = values.copy()
+    wk = weight[ys, xs]
+    out[ys, xs] = wk * values[ys, xs] + (1.0 - wk) * num / np.maximum(den, 1e-300)
+    return out
+
+
+def fill_holes(
+    values: np.ndarray,
+    valid: np.ndarray,
+    guide: np.ndarray | None = None,
+    *,
+    sigma: float = 0.1,
+) -> np.ndarray:
+    """Fill invalid pixels of a map from the valid ones, following image edges when a guide is
+    given (push-pull pyramid with joint-bilateral pull).
+
+    Args:
+        values: HxW map (values at invalid pixels are ignored).
+        valid: HxW bool mask of trustworthy pixels.
+        guide: optional HxWx3 (or HxW) image in [0, 1] at the map's resolution.
+        sigma: colour distance (in [0, 1] units) at which a neighbour's weight drops to 0.6.
+
+    Returns:
+        HxW float64 map equal to ``values`` on valid pixels.
+
+    Raises:
+        ValueError: no valid pixel at all.
+    """
+    v = np.asarray(values, dtype=np.float64)
+    m = np.asarray(valid, dtype=bool)
+    if v.shape != m.shape or v.ndim != 2:
+        raise ValueError(f"values/valid: expected equal HxW shapes, got {v.shape} and {m.shape}")
+    if not m.any():
+        raise ValueError("depth map has no valid pixels (all holes)")
+    if m.all():
+        return v
+    g = None
+    if guide is not None:
+        g = np.asarray(guide, dtype=np.float64)
+        if g.ndim == 2:
+            g = g[..., None]
+        if g.shape[:2] != v.shape:
+            g = resize_float(g.astype(np.float32), v.shape, "bilinear").astype(np.float64)
+            if g.ndim == 2:
+                g = g[..., None]
+    out = _push_pull(np.where(m, v, 0.0), m.astype(np.float64), g, sigma)
+    return np.where(m, v, out)
+
+
+# --------------------------------------------------------------------------- normalising
+
+
+def normalize_disparity(
+    disparity: np.ndarray, valid: np.ndarray | None = None, *, robust: bool = True
+) -> np.ndarray:
+    """Min-max (or robust-percentile) normalise to [0, 1], clipped. HxW float32.
+
+    A constant map has no range; it becomes 0.5 everywhere (with a warning).
+    """
+    d = np.asarray(disparity, dtype=np.float64)
+    sample = d[valid] if valid is not None else d[np.isfinite(d)]
+    if sample.size == 0:
+        raise ValueError("disparity map has no valid pixels")
+    if robust and sample.size >= 1000:
+        lo, hi = np.percentile(sample, ROBUST_PERCENTILES)
+    else:
+        lo, hi = float(sample.min()), float(sample.max())
+    if not hi - lo > 1e-12 * max(abs(hi), 1.0):
+        logger.warning("depth map is constant; using disparity 0.5 everywhere")
+        return np.full(d.shape, 0.5, np.float32)
+    return np.clip((d - lo) / (hi - lo), 0.0, 1.0).astype(np.float32)
+
+
+def depth_to_disparity(
+    raw: np.ndarray,
+    *,
+    kind: Literal["disparity", "depth"] = "disparity",
+    near: Literal["bright", "dark"] | None = None,
+    size: tuple[int, int] | None = None,
+    guide: np.ndarray | None = None,
+    zero_is_hole: bool | None = None,
+    robust: bool = True,
+    name: str = "depth",
+) -> np.ndarray:
+    """Turn raw depth/disparity values into normalised disparity (1 = nearest).
+
+    Args:
+        raw: HxW values as stored in a file.
+        kind: ``"depth"``: values are distances (converted with 1/depth);
+            ``"disparity"``: values grow linearly with disparity (inverse depth).
+        near: which end is near. For disparity ``"bright"`` (default: large = near) or
+            ``"dark"`` (map stored inverted); depth maps are always near = small (``"dark"``).
+        size: (H, W) of the result (the image's resolution); None keeps the map's size.
+        guide: the photo (HxWx3 in [0, 1], any size) to make hole filling follow its edges.
+        zero_is_hole: treat exact zeros as missing. Default: yes for depth (a distance of 0
+            is never valid); no for disparity, where 0 is the farthest value of a normalised
+            map. Pass True for stereo ground truth such as Middlebury (0 = unknown).
+        robust: normalise between the 0.5 and 99.5 percentiles instead of min/max.
+        name: used in error messages.
+
+    Returns:
+        HxW float32 in [0, 1], 1 = nearest, at ``size``.
+
+    Raises:
+        ValueError: bad arguments, all pixels missing, aspect ratio far from ``size``.
+    """
+    if kind not in ("disparity", "depth"):
+        raise ValueError(f"kind: expected 'disparity' or 'depth', got {kind!r}")
+    if near is None:
+        near = "bright" if kind == "disparity" else "dark"
+    if near not in ("bright", "dark"):
+        raise ValueError(f"near: expected 'bright' or 'dark', got {near!r}")
+    if kind == "depth" and near == "bright":
+        raise ValueError(
+            "near: a depth map has small values near the camera (near='dark'); "
+            "for a map where bright means near, use kind='disparity'"
+        )
+    a = np.asarray(raw, dtype=np.float64)
+    if a.ndim != 2 or a.size == 0:
+        raise ValueError(f"{name}: expected a non-empty HxW map, got shape {a.shape}")
+    if size is not None:
+        h, w = int(size[0]), int(size[1])
+        if h < 1 or w < 1:
+            raise ValueError(f"size: expected positive (H, W), got {size}")
+        ar_map, ar_img = a.shape[1] / a.shape[0], w / h
+        if abs(np.log(ar_map / ar_img)) > 0.05 and max(a.shape) > 1 and max(h, w) > 1:
+            hint = ""
+            if abs(np.log(ar_map * ar_img)) <= 0.05:
+                hint = " (it looks rotated by 90 degrees relative to the image)"
+            raise ValueError(
+                f"{name}: depth map is {a.shape[1]}x{a.shape[0]} but the image is {w}x{h}: "
+                f"aspect ratios differ{hint}"
+            )
+    valid = np.isfinite(a)
+    if kind == "depth":
+        valid &= a > 0
+    elif zero_is_hole:  # None -> False for disparity
+        valid &= a != 0
+    n_holes = int(valid.size - valid.sum())
+    if not valid.any():
+        raise ValueError(f"{name}: depth map has no valid pixels (all zero, NaN or inf)")
+    disp = np.where(valid, a, 0.0)
+    if kind == "depth":
+        disp = np.where(valid, 1.0 / np.where(valid, a, 1.0), 0.0)
+    if n_holes:
+        logger.info("%s: filling %d missing pixels (%.1f%%)", name, n_holes, 100 * n_holes / a.size)
+        disp = fill_holes(disp, valid, guide)
+    out = normalize_disparity(disp, valid, robust=robust)
+    if near == "dark" and kind == "disparity":
+        out = 1.0 - out
+    if size is not None and out.shape != (size[0], size[1]):
+        out = np.clip(resize_float(out, (int(size[0]), int(size[1])), "bilinear"), 0.0, 1.0)
+    return np.ascontiguousarray(out, dtype=np.float32)
+
+
+def load_depth(
+    path: str | os.PathLike | bytes,
+    *,
+    kind: Literal["disparity", "depth"] = "disparity",
+    near: Literal["bright", "dark"] | None = None,
+    size: tuple[int, int] | None = None,
+    guide: np.ndarray | None = None,
+    zero_is_hole: bool | None = None,
+    robust: bool = True,
+) -> np.ndarray:
+    """Load a depth or disparity map file as normalised disparity.
+
+    Reads PNG 8/16-bit (and other grey images), ``.npy``, PFM and float TIFF, then applies
+    :func:`depth_to_disparity` (see there for the arguments).
+
+    Returns:
+        HxW float32 in [0, 1], 1 = nearest, at ``size`` (the image's (H, W)) when given.
+    """
+    name = "<bytes>" if isinstance(path, (bytes, bytearray, memoryview)) else os.fspath(path)
+    raw = read_depth_array(path)
+    return depth_to_disparity(
+        raw,
+        kind=kind,
+        near=near,
+        size=size,
+        guide=guide,
+        zero_is_hole=zero_is_hole,
+        robust=robust,
+        name=name,
+    )
+
+
+def save_depth(path: str | os.PathLike, disparity: np.ndarray) -> Path:
+    """Write a normalised map (HxW in [0, 1]) by extension.
+
+    ``.png``: 16-bit grey (0..65535); ``.npy``: float32; ``.pfm``: float32;
+    ``.tif``/``.tiff``: 32-bit float; ``.jpg``/``.webp``: 8-bit grey (lossy, for viewing).
+    """
+    out = Path(path)
+    a = np.asarray(disparity)
+    if a.ndim != 2:
+        raise ValueError(f"disparity: expected an HxW map, got shape {a.shape}")
+    ext = out.suffix.lower()
+    a32 = np.nan_to_num(a.astype(np.float32), nan=0.0, posinf=1.0, neginf=0.0)
+    if ext == ".npy":
+        atomic_write(out, lambda fh: np.save(fh, a32))
+    elif ext == ".pfm":
+        write_pfm(out, a32)
+    elif ext == ".png":
+        a16 = np.round(np.clip(a32, 0.0, 1.0) * 65535.0).astype(np.uint16)
+        img = Image.fromarray(a16)
+        atomic_write(out, lambda fh: img.save(fh, format="PNG"))
+    elif ext in (".tif", ".tiff"):
+        img = Image.fromarray(a32)
+        atomic_write(out, lambda fh: img.save(fh, format="TIFF"))
+    elif ext in (".jpg", ".jpeg", ".webp"):
+        img = Image.fromarray(to_uint8(np.clip(a32, 0, 1)))
+        fmt = "JPEG" if ext != ".webp" else "WEBP"
+        atomic_write(out, lambda fh: img.save(fh, format=fmt, quality=95))
+    else:
+        raise ValueError(f"path: unknown depth extension {ext!r} (use .png .npy .pfm .tif)")
+    return out

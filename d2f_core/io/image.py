@@ -1,0 +1,727 @@
+"""Image reading and writing: every photo enters and leaves the project through here.
+
+``load_image`` turns any supported file (JPEG, PNG 8/16-bit, TIFF, WebP, HEIC/HEIF with
+pillow-heif) into an upright ``HxWx3`` float32 array in [0, 1]. ``save_image`` writes such an
+array back, keeping the source's ICC profile and EXIF (minus the orientation tag, because the
+pixels are already upright).
+
+Every decoding problem surfaces as a ``ValueError`` that names the file and the problem;
+Pillow's own exceptions never escape.
+"""
+
+from __future__ import annotations
+
+import io
+import logging
+import os
+import struct
+import tempfile
+import warnings
+import zlib
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal, Union
+
+import numpy as np
+from PIL import Image, ImageCms, UnidentifiedImageError
+
+logger = logging.getLogger(__name__)
+
+ImageSource = Union[str, os.PathLike, bytes, bytearray, memoryview]  # noqa: UP007 (runtime alias)
+
+EXIF_ORIENTATION = 0x0112
+# Same threshold as Pillow's DecompressionBombError (2 x MAX_IMAGE_PIXELS, about 179 MP).
+MAX_DECODE_PIXELS = 2 * 89_478_485
+
+SAVE_FORMATS = {
+    ".png": "PNG",
+    ".jpg": "JPEG",
+    ".jpeg": "JPEG",
+    ".tif": "TIFF",
+    ".tiff": "TIFF",
+    ".webp": "WEBP",
+}
+# Extensions a batch run treats as photos (HEIC needs pillow-heif at read time).
+READ_EXTENSIONS = frozenset(
+    {".jpg", ".jpeg", ".jpe", ".png", ".tif", ".tiff", ".webp", ".heic", ".heif", ".bmp", ".mpo"}
+)
+# HEIF brands only: Pillow reads AVIF itself, so it must not require pillow-heif.
+_HEIF_BRANDS = {b"heic", b"heix", b"hevc", b"hevx", b"heim", b"heis", b"mif1", b"msf1"}
+_DECODE_ERRORS = (OSError, SyntaxError, ValueError, EOFError, struct.error, zlib.error, IndexError)
+_heif_registered = False
+
+
+@dataclass
+class ImageInfo:
+    """What ``load_image_with_info`` learned about a file and did to its pixels.
+
+    Attributes:
+        name: the path as given, or ``"<bytes>"``.
+        format: Pillow's format name (``"JPEG"``, ``"PNG"``, ``"HEIF"`` ...).
+        mode: the decoded mode before conversion (``"RGB"``, ``"I;16"``, ``"CMYK"`` ...).
+        bit_depth: bits per channel of the stored samples (8, 16 or 32).
+        original_size: (H, W) of the upright image before any resize.
+        size: (H, W) of the returned array.
+        orientation: EXIF orientation that was applied (1 = none).
+        icc_profile: ICC profile bytes that describe the returned pixels, or None.
+        exif: EXIF bytes with the orientation tag removed, or None.
+        xmp: raw XMP packet of the main image, or None.
+        conversions: human-readable list of every conversion applied, in order.
+    """
+
+    name: str
+    format: str | None = None
+    mode: str | None = None
+    bit_depth: int = 8
+    original_size: tuple[int, int] = (0, 0)
+    size: tuple[int, int] = (0, 0)
+    orientation: int = 1
+    icc_profile: bytes | None = None
+    exif: bytes | None = None
+    xmp: bytes | None = None
+    conversions: list[str] = field(default_factory=list)
+
+    @property
+    def resized(self) -> bool:
+        return self.size != self.original_size
+
+
+def source_name(src: ImageSource) -> str:
+    """Printable name of an image source for messages."""
+    if isinstance(src, (bytes, bytearray, memoryview)):
+        return "<bytes>"
+    return os.fspath(src)
+
+
+def read_source_bytes(src: ImageSource) -> bytes:
+    """Whole content of a path or bytes source; ``ValueError`` for empty or unreadable input."""
+    name = source_name(src)
+    if isinstance(src, (bytes, bytearray, memoryview)):
+        data = bytes(src)
+    else:
+        if not isinstance(src, (str, os.PathLike)):
+            raise TypeError(f"src: expected a path or bytes, got {type(src).__name__}")
+        path = Path(src)
+        if not path.exists():
+            raise FileNotFoundError(f"{name}: no such file")
+        if path.is_dir():
+            raise ValueError(f"{name}: is a directory, not an image file")
+        try:
+            data = path.read_bytes()
+        except OSError as exc:
+            raise ValueError(f"{name}: cannot read file: {exc.strerror or exc}") from exc
+    if len(data) == 0:
+        raise ValueError(f"{name}: file is empty (0 bytes)")
+    return data
+
+
+def is_heif(data: bytes) -> bool:
+    """True when ``data`` starts like an ISO-BMFF HEIF/HEIC/AVIF file."""
+    return len(data) >= 12 and data[4:8] == b"ftyp" and data[8:12] in _HEIF_BRANDS
+
+
+def ensure_heif_support(name: str = "<bytes>") -> None:
+    """Register pillow-heif's opener once; ``ValueError`` with install hint if it is missing."""
+    global _heif_registered
+    if _heif_registered:
+        return
+    try:
+        import pillow_heif
+    except ImportError as exc:
+        raise ValueError(
+            f"{name}: HEIC/HEIF images need the optional package pillow-heif "
+            "(pip install pillow-heif, or pip install 'd2f[heif]')"
+        ) from exc
+    pillow_heif.register_heif_opener()
+    _heif_registered = True
+
+
+def open_pil(data: bytes, name: str) -> Image.Image:
+    """Open (not decode) an image from bytes, translating every failure into ``ValueError``."""
+    if is_heif(data):
+        ensure_heif_support(name)
+    try:
+        with warnings.catch_warnings():
+            # Pillow warns above 89 MP; the hard limit below is what protects us.
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            im = Image.open(io.BytesIO(data))
+    except Image.DecompressionBombError as exc:
+        raise ValueError(f"{name}: refused as a possible decompression bomb: {exc}") from exc
+    except UnidentifiedImageError as exc:
+        raise ValueError(f"{name}: not an image file (unknown or unsupported format)") from exc
+    except _DECODE_ERRORS as exc:
+        raise ValueError(f"{name}: corrupt image header: {exc}") from exc
+    w, h = im.size
+    if w <= 0 or h <= 0:
+        raise ValueError(f"{name}: image has no pixels ({w}x{h})")
+    if w * h > MAX_DECODE_PIXELS:
+        raise ValueError(
+            f"{name}: refused as a possible decompression bomb: {w}x{h} = {w * h} pixels "
+            f"exceeds the limit of {MAX_DECODE_PIXELS}"
+        )
+    return im
+
+
+# --------------------------------------------------------------------------- orientation
+
+
+def exif_orientation(im: Image.Image) -> int:
+    """EXIF orientation (1..8) of a Pillow image; 1 when absent or invalid."""
+    try:
+        value = im.getexif().get(EXIF_ORIENTATION, 1)
+    except Exception:  # a malformed EXIF block must not stop the photo from loading
+        return 1
+    try:
+        value = int(value)
+    except (TypeError, ValueError):
+        return 1
+    return value if 1 <= value <= 8 else 1
+
+
+def apply_orientation(array: np.ndarray, orientation: int) -> np.ndarray:
+    """Make an array upright according to an EXIF orientation value.
+
+    Matches ``PIL.ImageOps.exif_transpose``. Works on HxW and HxWxC arrays.
+    """
+    a = array
+    if orientation == 2:
+        a = a[:, ::-1]
+    elif orientation == 3:
+        a = a[::-1, ::-1]
+    elif orientation == 4:
+        a = a[::-1]
+    elif orientation == 5:
+        a = a.swapaxes(0, 1)
+    elif orientation == 6:
+        a = np.rot90(a, -1)
+    elif orientation == 7:
+        a = np.rot90(a, 2).swapaxes(0, 1)
+    elif orientation == 8:
+        a = np.rot90(a, 1)
+    return np.ascontiguousarray(a)
+
+
+def strip_orientation(exif: bytes | Image.Exif | None) -> bytes | None:
+    """EXIF bytes with the orientation tag removed (pixels are stored upright)."""
+    if exif is None:
+        return None
+    try:
+        if isinstance(exif, Image.Exif):
+            ex = exif
+        else:
+            ex = Image.Exif()
+            ex.load(bytes(exif))
+        if EXIF_ORIENTATION in ex:
+            del ex[EXIF_ORIENTATION]
+        out = ex.tobytes()
+    except Exception as exc:  # keep the photo, lose only its broken EXIF
+        logger.warning("dropping unreadable EXIF block: %s", exc)
+        return None
+    return out if len(out) > 8 else None
+
+
+# --------------------------------------------------------------------------- 16-bit PNG
+
+
+def _png_chunks(data: bytes):
+    pos = 8
+    while pos + 8 <= len(data):
+        (length,) = struct.unpack(">I", data[pos : pos + 4])
+        ctype = data[pos + 4 : pos + 8]
+        body = data[pos + 8 : pos + 8 + length]
+        if len(body) < length:
+            raise ValueError("truncated PNG chunk")
+        yield ctype, body
+        pos += 12 + length
+        if ctype == b"IEND":
+            return
+
+
+def _paeth(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    p = a + b - c
+    pa, pb, pc = np.abs(p - a), np.abs(p - b), np.abs(p - c)
+    return np.where((pa <= pb) & (pa <= pc), a, np.where(pb <= pc, b, c))
+
+
+def _png_unfilter(raw: np.ndarray, h: int, w: int, bpp: int) -> np.ndarray:
+    """Undo PNG scanline filters. Returns (h, w, bpp) uint8.
+
+    Average and Paeth depend on the left, upper and upper-left pixels, so rows cannot be
+    decoded independently; sweeping anti-diagonals decodes every pixel whose neighbours are
+    done in one vectorised step (h + w steps instead of h * w).
+    """
+    stride = w * bpp
+    if raw.size < h * (stride + 1):
+        raise ValueError("truncated PNG image data")
+    rows = raw[: h * (stride + 1)].reshape(h, stride + 1)
+    ftype = rows[:, 0].astype(np.int32)
+    if (ftype > 4).any():
+        raise ValueError("corrupt PNG filter type")
+    filt = rows[:, 1:].reshape(h, w, bpp).astype(np.int32)
+    out = np.zeros((h + 1, w + 1, bpp), np.int32)  # zero row/column = PNG's "outside" pixels
+    if not ((ftype == 3) | (ftype == 4)).any():
+        for i in range(h):
+            if ftype[i] == 0:
+                out[i + 1, 1:] = filt[i]
+            elif ftype[i] == 1:
+                out[i + 1, 1:] = np.cumsum(filt[i], axis=0) & 0xFF
+            else:
+                out[i + 1, 1:] = (filt[i] + out[i, 1:]) & 0xFF
+        return out[1:, 1:].astype(np.uint8)
+    for t in range(h + w - 1):
+        i = np.arange(max(0, t - w + 1), min(h - 1, t) + 1)
+        j = t - i
+        a = out[i + 1, j]
+        b = out[i, j + 1]
+        c = out[i, j]
+        ft = ftype[i][:, None]
+        pred = np.where(ft == 1, a, np.where(ft == 2, b, np.where(ft == 3, (a + b) >> 1, 0)))
+        paeth_rows = ft[:, 0] == 4
+        if paeth_rows.any():
+            pred[paeth_rows] = _paeth(a[paeth_rows], b[paeth_rows], c[paeth_rows])
+        out[i + 1, j + 1] = (filt[i, j] + pred) & 0xFF
+    return out[1:, 1:].astype(np.uint8)
+
+
+def decode_png16(data: bytes) -> tuple[np.ndarray, bytes | None] | None:
+    """Decode a non-interlaced 16-bit colour PNG (RGB, RGBA, grey+alpha) at full precision.
+
+    Pillow reduces these to 8 bits. Returns (HxWxC uint16, eXIf bytes or None), or None when
+    the file is not of this kind (the caller then uses Pillow).
+    """
+    if not data.startswith(b"\x89PNG\r\n\x1a\n"):
+        return None
+    chunks = list(_png_chunks(data))
+    if not chunks or chunks[0][0] != b"IHDR":
+        raise ValueError("PNG without IHDR chunk")
+    w, h, depth, ctype, _, _, interlace = struct.unpack(">IIBBBBB", chunks[0][1][:13])
+    channels = {2: 3, 4: 2, 6: 4}.get(ctype)
+    if depth != 16 or channels is None:
+        return None
+    if interlace:
+        logger.info("interlaced 16-bit PNG: decoded by Pillow at 8-bit precision")
+        return None
+    idat = b"".join(body for ctype_, body in chunks if ctype_ == b"IDAT")
+    exif = next((body for ctype_, body in chunks if ctype_ == b"eXIf"), None)
+    inflater = zlib.decompressobj()
+    try:
+        raw = inflater.decompress(idat)
+    except zlib.error as exc:
+        raise ValueError(f"corrupt PNG image data: {exc}") from exc
+    if not inflater.eof:
+        raise ValueError("truncated PNG image data (compressed stream ends early)")
+    bytes_ = _png_unfilter(np.frombuffer(raw, np.uint8), h, w, channels * 2)
+    pixels = bytes_.reshape(h, w, channels, 2)
+    arr = (pixels[..., 0].astype(np.uint16) << 8) | pixels[..., 1]
+    if exif is not None and not exif.startswith(b"Exif\x00\x00"):
+        exif = b"Exif\x00\x00" + exif
+    return arr, exif
+
+
+# --------------------------------------------------------------------------- conversions
+
+
+def _composite_over_white(rgb: np.ndarray, alpha: np.ndarray, conv: list[str]) -> np.ndarray:
+    if alpha.min() >= 1.0:
+        conv.append("dropped an all-opaque alpha channel")
+        return rgb
+    conv.append("composited transparent pixels over white")
+    logger.info("image has transparency: composited over white")
+    a = alpha[..., None]
+    return rgb * a + (1.0 - a)
+
+
+def _to_float_rgb(im: Image.Image, conv: list[str]) -> tuple[np.ndarray, bytes | None]:
+    """Convert any Pillow mode to HxWx3 float32 in [0, 1]. Also returns the ICC profile that
+    describes the result (changed when CMYK is converted to sRGB)."""
+    icc = im.info.get("icc_profile") or None
+    mode = im.mode
+    if mode == "P":
+        target = "RGBA" if "transparency" in im.info else "RGB"
+        im = im.convert(target)
+        conv.append(f"palette -> {target}")
+    elif mode == "PA":
+        im = im.convert("RGBA")
+        conv.append("palette+alpha -> RGBA")
+    elif mode == "1":
+        im = im.convert("L")
+        conv.append("1-bit -> grayscale")
+    elif mode in ("RGBa", "La"):
+        im = im.convert("RGBA" if mode == "RGBa" else "LA")
+        conv.append("premultiplied alpha -> straight alpha")
+    elif mode == "CMYK":
+        converted = None
+        if icc:
+            try:
+                src = ImageCms.ImageCmsProfile(io.BytesIO(icc))
+                dst = ImageCms.createProfile("sRGB")
+                converted = ImageCms.profileToProfile(im, src, dst, outputMode="RGB")
+                icc = ImageCms.ImageCmsProfile(dst).tobytes()
+                conv.append("CMYK -> sRGB via the embedded ICC profile")
+            except Exception as exc:  # broken profile: naive conversion is still usable
+                logger.warning("CMYK ICC conversion failed (%s); using a naive conversion", exc)
+        if converted is None:
+            converted = im.convert("RGB")
+            icc = None
+            conv.append("CMYK -> RGB (naive, no ICC profile)")
+        im = converted
+    elif mode in ("YCbCr", "LAB", "HSV", "RGBX"):
+        im = im.convert("RGB")
+        conv.append(f"{mode} -> RGB")
+
+    mode = im.mode
+    if mode == "RGB":
+        rgb = np.asarray(im, dtype=np.float32)
+        rgb *= 1.0 / 255.0
+        return rgb, icc
+    if mode == "RGBA":
+        a = np.asarray(im, dtype=np.float32) / 255.0
+        return _composite_over_white(a[..., :3], a[..., 3], conv), icc
+    if mode == "L":
+        g = np.asarray(im, dtype=np.float32) / 255.0
+        conv.append("grayscale -> RGB")
+        return np.repeat(g[..., None], 3, axis=2), icc
+    if mode == "LA":
+        a = np.asarray(im, dtype=np.float32) / 255.0
+        conv.append("grayscale -> RGB")
+        rgb = np.repeat(a[..., :1], 3, axis=2)
+        return _composite_over_white(rgb, a[..., 1], conv), icc
+    if mode.startswith("I;16"):
+        g = np.asarray(im).astype(np.float32) / 65535.0
+        conv.append("16-bit grayscale -> RGB")
+        return np.repeat(g[..., None], 3, axis=2), icc
+    if mode == "I":
+        g = np.asarray(im).astype(np.float64)
+        hi = float(g.max()) if g.size else 0.0
+        scale = 65535.0 if hi <= 65535.0 else hi
+        conv.append(f"32-bit integer grayscale scaled by 1/{scale:g} -> RGB")
+        g = np.clip(g / scale, 0.0, 1.0).astype(np.float32)
+        return np.repeat(g[..., None], 3, axis=2), icc
+    if mode == "F":
+        g = np.asarray(im).astype(np.float32)
+        g = np.where(np.isfinite(g), g, 0.0)
+        hi = float(g.max()) if g.size else 0.0
+        if hi > 1.0:
+            g = g / hi
+            conv.append(f"float grayscale scaled by 1/{hi:g}")
+        conv.append("float grayscale -> RGB")
+        g = np.clip(g, 0.0, 1.0).astype(np.float32)
+        return np.repeat(g[..., None], 3, axis=2), icc
+    try:
+        rgb = im.convert("RGB")
+    except _DECODE_ERRORS as exc:
+        raise ValueError(f"unsupported image mode {mode!r}") from exc
+    conv.append(f"{mode} -> RGB (generic conversion)")
+    return np.asarray(rgb, dtype=np.float32) / 255.0, icc
+
+
+def _png16_to_float_rgb(arr: np.ndarray, conv: list[str]) -> np.ndarray:
+    a = arr.astype(np.float32) / 65535.0
+    if a.shape[2] == 2:
+        conv.append("16-bit grayscale -> RGB")
+        return _composite_over_white(np.repeat(a[..., :1], 3, axis=2), a[..., 1], conv)
+    if a.shape[2] == 4:
+        return _composite_over_white(a[..., :3], a[..., 3], conv)
+    return a
+
+
+# --------------------------------------------------------------------------- resizing
+
+
+def fit_size(width: int, height: int, max_pixels: int) -> tuple[int, int]:
+    """Largest (w, h) with the same aspect ratio and w * h <= max_pixels."""
+    if width * height <= max_pixels:
+        return width, height
+    scale = (max_pixels / float(width * height)) ** 0.5
+    w = max(1, int(width * scale))
+    h = max(1, int(height * scale))
+    while w * h > max_pixels and (w > 1 or h > 1):
+        if w >= h:
+            w -= 1
+        else:
+            h -= 1
+    return w, h
+
+
+def resize_float(array: np.ndarray, size: tuple[int, int], resample: str = "lanczos") -> np.ndarray:
+    """Resize a float HxW or HxWxC array to ``size`` = (H, W), antialiased when shrinking."""
+    filt = {
+        "lanczos": Image.Resampling.LANCZOS,
+        "bilinear": Image.Resampling.BILINEAR,
+        "nearest": Image.Resampling.NEAREST,
+    }[resample]
+    h, w = size
+    if array.shape[:2] == (h, w):
+        return array.astype(np.float32, copy=False)
+    if array.ndim == 2:
+        img = Image.fromarray(np.ascontiguousarray(array, dtype=np.float32))
+        return np.asarray(img.resize((w, h), filt), dtype=np.float32)
+    chans = [resize_float(array[..., c], size, resample) for c in range(array.shape[2])]
+    return np.stack(chans, axis=-1)
+
+
+# --------------------------------------------------------------------------- loading
+
+
+def _check_limits(max_pixels: int | None, on_too_large: str) -> None:
+    if max_pixels is not None:
+        if isinstance(max_pixels, bool) or not isinstance(max_pixels, (int, np.integer)):
+            raise TypeError(f"max_pixels: expected an int or None, got {type(max_pixels).__name__}")
+        if max_pixels < 1:
+            raise ValueError(f"max_pixels: must be >= 1, got {max_pixels}")
+    if on_too_large not in ("resize", "error"):
+        raise ValueError(f"on_too_large: expected 'resize' or 'error', got {on_too_large!r}")
+
+
+def decode_image(
+    data: bytes,
+    name: str,
+    *,
+    max_pixels: int | None = None,
+    on_too_large: Literal["resize", "error"] = "resize",
+) -> tuple[np.ndarray, ImageInfo]:
+    """Decode image bytes (see ``load_image_with_info``); ``name`` is used in messages."""
+    _check_limits(max_pixels, on_too_large)
+    info = ImageInfo(name=name)
+    conv = info.conversions
+    im = open_pil(data, name)
+    info.format = im.format
+    info.mode = im.mode
+    info.xmp = im.info.get("xmp") or None
+    w, h = im.size
+    orientation = exif_orientation(im)
+    info.orientation = orientation
+    upright = (w, h) if orientation < 5 else (h, w)
+    info.original_size = (upright[1], upright[0])
+    target = None
+    if max_pixels is not None and w * h > max_pixels:
+        if on_too_large == "error":
+            raise ValueError(
+                f"{name}: image is {w}x{h} = {w * h} pixels, more than max_pixels={max_pixels}"
+            )
+        target = fit_size(w, h, max_pixels)
+
+    try:
+        png16 = decode_png16(data) if im.format == "PNG" else None
+        if png16 is not None:
+            arr16, exif_raw = png16
+            info.bit_depth = 16
+            rgb = _png16_to_float_rgb(arr16, conv)
+            icc = im.info.get("icc_profile") or None
+        else:
+            if target is not None and im.format in ("JPEG", "MPO"):
+                # DCT-domain downscale: decoding a 48 MP JPEG at 1/4 is ~10x cheaper.
+                im.draft(im.mode, target)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+                im.load()
+            exif_raw = im.info.get("exif") or None
+            info.bit_depth = 32 if im.mode in ("I", "F") else 8
+            if im.mode.startswith("I;16"):
+                info.bit_depth = 16
+            if target is not None and im.mode in ("RGB", "L", "RGBA", "LA"):
+                im = im.resize(target, Image.Resampling.LANCZOS, reducing_gap=3.0)
+            rgb, icc = _to_float_rgb(im, conv)
+    except ValueError as exc:
+        msg = str(exc)
+        raise ValueError(msg if msg.startswith(name) else f"{name}: {msg}") from exc
+    except _DECODE_ERRORS as exc:
+        kind = im.format or "image"
+        raise ValueError(f"{name}: truncated or corrupt {kind} data: {exc}") from exc
+    except MemoryError as exc:
+        raise ValueError(
+            f"{name}: not enough memory to decode {w}x{h} pixels; pass max_pixels"
+        ) from exc
+    finally:
+        im.close()
+
+    if target is not None:
+        if rgb.shape[:2] != (target[1], target[0]):
+            rgb = resize_float(rgb, (target[1], target[0]))
+        conv.append(f"resized from {w}x{h} to {target[0]}x{target[1]} (max_pixels={max_pixels})")
+        logger.info(
+            "%s: %dx%d exceeds max_pixels=%d, resized to %dx%d",
+            name,
+            w,
+            h,
+            max_pixels,
+            target[0],
+            target[1],
+        )
+    if orientation != 1:
+        rgb = apply_orientation(rgb, orientation)
+        conv.append(f"applied EXIF orientation {orientation}")
+    rgb = np.clip(rgb, 0.0, 1.0, out=np.ascontiguousarray(rgb, dtype=np.float32))
+    info.icc_profile = icc
+    info.exif = strip_orientation(exif_raw)
+    info.size = (rgb.shape[0], rgb.shape[1])
+    return rgb, info
+
+
+def load_image_with_info(
+    src: ImageSource,
+    *,
+    max_pixels: int | None = None,
+    on_too_large: Literal["resize", "error"] = "resize",
+) -> tuple[np.ndarray, ImageInfo]:
+    """Load a photo as an upright RGB float array, with what was learned and done.
+
+    Args:
+        src: a path or the file's bytes.
+        max_pixels: cap on H * W of the result; None = no cap.
+        on_too_large: ``"resize"`` shrinks (aspect kept, logged) an image above the cap,
+            ``"error"`` raises ``ValueError`` instead.
+
+    Returns:
+        (image, info): image is HxWx3 float32 in [0, 1], upright (EXIF orientation applied),
+        transparency composited over white; info is an :class:`ImageInfo`.
+
+    Raises:
+        FileNotFoundError: the path does not exist.
+        ValueError: empty, truncated, corrupt, unsupported or oversized input; HEIC without
+            pillow-heif. The message starts with the file name.
+    """
+    name = source_name(src)
+    data = read_source_bytes(src)
+    return decode_image(data, name, max_pixels=max_pixels, on_too_large=on_too_large)
+
+
+def load_image(
+    src: ImageSource,
+    *,
+    max_pixels: int | None = None,
+    on_too_large: Literal["resize", "error"] = "resize",
+) -> np.ndarray:
+    """Load a photo as an upright HxWx3 float32 array in [0, 1].
+
+    See :func:`load_image_with_info` for arguments and errors.
+    """
+    return load_image_with_info(src, max_pixels=max_pixels, on_too_large=on_too_large)[0]
+
+
+# --------------------------------------------------------------------------- saving
+
+
+def to_uint8(array: np.ndarray, name: str = "array") -> np.ndarray:
+    """HxWx3 / HxW float [0, 1] or uint8 array -> uint8 (rounded, clipped)."""
+    a = np.asarray(array)
+    if a.ndim == 3 and a.shape[2] == 1:
+        a = a[..., 0]
+    if a.ndim not in (2, 3) or (a.ndim == 3 and a.shape[2] not in (3, 4)):
+        raise ValueError(f"{name}: expected an HxW or HxWx3 array, got shape {a.shape}")
+    if a.shape[0] == 0 or a.shape[1] == 0:
+        raise ValueError(f"{name}: empty image of shape {a.shape}")
+    if a.dtype == np.uint8:
+        return a
+    if a.dtype == np.bool_:
+        return a.astype(np.uint8) * 255
+    if not np.issubdtype(a.dtype, np.floating):
+        raise TypeError(f"{name}: expected float [0, 1] or uint8 values, got dtype {a.dtype}")
+    if not np.isfinite(a).all():
+        raise ValueError(f"{name}: contains NaN or infinite values")
+    # clip, scale and add 0.5 in one float32 buffer: rounds half up, 2x faster than np.round
+    buf = np.clip(a, 0.0, 1.0, dtype=np.float32)
+    buf *= 255.0
+    buf += 0.5
+    return buf.astype(np.uint8)
+
+
+def same_file(a: str | os.PathLike, b: str | os.PathLike) -> bool:
+    """True when two paths name the same file (existing or not)."""
+    pa, pb = Path(a), Path(b)
+    try:
+        if pa.exists() and pb.exists():
+            return os.path.samefile(pa, pb)
+    except OSError:
+        pass
+    return pa.resolve() == pb.resolve()
+
+
+def _umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def atomic_write(path: Path, write) -> None:
+    """Call ``write(file_object)`` on a temp file next to ``path``, then rename it into place,
+    so that a failure never leaves a half-written output."""
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            write(fh)
+        # mkstemp creates 0600 files; give the output the permissions open() would have
+        os.chmod(tmp, 0o666 & ~_umask())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def save_image(
+    path: str | os.PathLike,
+    array: np.ndarray,
+    *,
+    quality: int = 95,
+    icc_profile: bytes | None = None,
+    exif: bytes | Image.Exif | None = None,
+    protect: str | os.PathLike | Sequence[str | os.PathLike] | None = None,
+) -> Path:
+    """Write an RGB (or grey) image; the format follows the extension.
+
+    Args:
+        path: ``.png``, ``.jpg``/``.jpeg``, ``.tif``/``.tiff`` or ``.webp``.
+        array: HxWx3 (or HxW) float in [0, 1] (clipped, rounded) or uint8.
+        quality: JPEG/WebP quality 1..100.
+        icc_profile: ICC profile bytes to embed (e.g. the input's), or None.
+        exif: EXIF bytes or ``PIL.Image.Exif`` to embed; its orientation tag is dropped
+            because the pixels are already upright.
+        protect: path(s) that must not be overwritten (e.g. the input photo).
+
+    Returns:
+        The written path.
+
+    Raises:
+        ValueError: unknown extension, bad array, or ``path`` is a protected file.
+    """
+    out = Path(path)
+    fmt = SAVE_FORMATS.get(out.suffix.lower())
+    if fmt is None:
+        known = ", ".join(sorted(SAVE_FORMATS))
+        raise ValueError(f"path: cannot save {out.name!r}: unknown extension (use one of {known})")
+    if not 1 <= int(quality) <= 100:
+        raise ValueError(f"quality: expected 1..100, got {quality}")
+    if protect is not None:
+        protected = [protect] if isinstance(protect, (str, os.PathLike)) else list(protect)
+        for p in protected:
+            if same_file(out, p):
+                raise ValueError(f"path: refusing to overwrite the input file {os.fspath(p)!r}")
+    if out.is_dir():
+        raise ValueError(f"path: {os.fspath(out)!r} is a directory")
+    if not out.parent.exists():
+        raise ValueError(f"path: directory {os.fspath(out.parent)!r} does not exist")
+    pixels = to_uint8(array, "array")
+    if pixels.ndim == 3 and pixels.shape[2] == 4:
+        pixels = pixels[..., :3]
+    img = Image.fromarray(pixels)
+    params: dict = {}
+    if icc_profile:
+        params["icc_profile"] = icc_profile
+    exif_bytes = strip_orientation(exif)
+    if exif_bytes:
+        params["exif"] = exif_bytes
+    if fmt == "JPEG":
+        params.update(quality=int(quality), optimize=True)
+        if quality >= 90:
+            params["subsampling"] = 0  # 4:4:4 keeps thin in-focus detail at high quality
+    elif fmt == "WEBP":
+        params.update(quality=int(quality), method=4)
+    elif fmt == "PNG":
+        params.update(compress_level=6)
+    elif fmt == "TIFF":
+        # Uncompressed: Pillow's own TIFF writer keeps the EXIF sub-IFDs, the libtiff
+        # (compressing) writer rejects them.
+        params.update(compression="raw")
+    atomic_write(out, lambda fh: img.save(fh, format=fmt, **params))
+    return out

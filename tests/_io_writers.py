@@ -1,0 +1,226 @@
+"""Test helpers that build image files the project must read: a Google Lens Blur JPEG with
+standard + extended XMP, an Apple-style portrait MPO, 16-bit colour PNGs with every
+scanline filter, and a PNG header that claims a huge size.
+
+Written from the format specifications so that the readers are tested against independent
+writers, not against themselves.
+"""
+
+from __future__ import annotations
+
+import base64
+import hashlib
+import io
+import random
+import struct
+import zlib
+
+import numpy as np
+from PIL import Image
+
+XMP_STD_SIG = b"http://ns.adobe.com/xap/1.0/\x00"
+XMP_EXT_SIG = b"http://ns.adobe.com/xmp/extension/\x00"
+
+
+# --------------------------------------------------------------------------- PNG
+
+
+def _chunk(ctype: bytes, body: bytes) -> bytes:
+    crc = zlib.crc32(ctype + body) & 0xFFFFFFFF
+    return struct.pack(">I", len(body)) + ctype + body + struct.pack(">I", crc)
+
+
+def _paeth(a: int, b: int, c: int) -> int:
+    p = a + b - c
+    pa, pb, pc = abs(p - a), abs(p - b), abs(p - c)
+    if pa <= pb and pa <= pc:
+        return a
+    return b if pb <= pc else c
+
+
+def png16_bytes(array: np.ndarray, filters: list[int] | None = None, exif: bytes = b"") -> bytes:
+    """Encode an HxWxC uint16 array (C = 2, 3 or 4) as a 16-bit PNG.
+
+    ``filters`` gives the PNG filter type (0..4) of each row (cycled); this exercises every
+    unfilter path of the reader. Slow pure-Python filtering: keep images small.
+    """
+    h, w, c = array.shape
+    ctype = {2: 4, 3: 2, 4: 6}[c]
+    bpp = 2 * c
+    rows = array.astype(">u2").reshape(h, w * c).view(np.uint8).reshape(h, w * bpp)
+    filters = filters or [0]
+    out = bytearray()
+    prev = np.zeros(w * bpp, np.int64)
+    for i in range(h):
+        cur = rows[i].astype(np.int64)
+        f = filters[i % len(filters)]
+        line = np.zeros_like(cur)
+        for x in range(w * bpp):
+            a = cur[x - bpp] if x >= bpp else 0
+            b = prev[x]
+            cc = prev[x - bpp] if x >= bpp else 0
+            pred = [0, a, b, (a + b) // 2, _paeth(int(a), int(b), int(cc))][f]
+            line[x] = (cur[x] - pred) & 0xFF
+        out.append(f)
+        out += line.astype(np.uint8).tobytes()
+        prev = cur
+    ihdr = struct.pack(">IIBBBBB", w, h, 16, ctype, 0, 0, 0)
+    data = b"\x89PNG\r\n\x1a\n" + _chunk(b"IHDR", ihdr)
+    if exif:
+        data += _chunk(b"eXIf", exif[6:] if exif.startswith(b"Exif\x00\x00") else exif)
+    return data + _chunk(b"IDAT", zlib.compress(bytes(out))) + _chunk(b"IEND", b"")
+
+
+def png_bomb_header(width: int = 100_000, height: int = 100_000) -> bytes:
+    """A tiny PNG whose header claims ``width`` x ``height`` 8-bit grey pixels."""
+    ihdr = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)
+    idat = zlib.compress(b"\x00" * 1024)
+    return (
+        b"\x89PNG\r\n\x1a\n" + _chunk(b"IHDR", ihdr) + _chunk(b"IDAT", idat) + _chunk(b"IEND", b"")
+    )
+
+
+# --------------------------------------------------------------------------- Lens Blur
+
+
+def encode_gdepth(z: np.ndarray, near: float, far: float, fmt: str, bits: int = 8) -> bytes:
+    """Google depth-map encoding of metric depth ``z`` as a PNG (8 or 16-bit)."""
+    if fmt == "RangeInverse":
+        dn = far * (z - near) / (z * (far - near))
+    else:
+        dn = (z - near) / (far - near)
+    dn = np.clip(dn, 0.0, 1.0)
+    if bits == 16:
+        img = Image.fromarray(np.round(dn * 65535).astype(np.uint16))
+    else:
+        img = Image.fromarray(np.round(dn * 255).astype(np.uint8))
+    buf = io.BytesIO()
+    img.save(buf, "PNG")
+    return buf.getvalue()
+
+
+def _jpeg(array: np.ndarray, quality: int = 95) -> bytes:
+    buf = io.BytesIO()
+    Image.fromarray(array).save(buf, "JPEG", quality=quality, subsampling=0)
+    return buf.getvalue()
+
+
+def lensblur_jpeg(
+    photo: np.ndarray,
+    rendered: np.ndarray,
+    z: np.ndarray,
+    *,
+    near: float,
+    far: float,
+    fmt: str = "RangeInverse",
+    bits: int = 8,
+    focal_distance: float | None = None,
+    focal_point: tuple[float, float] | None = None,
+    chunk_size: int = 65000,
+    shuffle: bool = False,
+    drop_chunk: bool = False,
+    seed: int = 0,
+) -> bytes:
+    """Build a Lens Blur JPEG: main image ``rendered`` (uint8 HxWx3), the original ``photo``
+    in GImage:Data, depth ``z`` in GDepth:Data, focus in GFocus.
+
+    The extended XMP is split into APP1 chunks of ``chunk_size`` bytes (<= 65400); they can
+    be written in shuffled order, or one left out to simulate a damaged file.
+    """
+    depth_png = encode_gdepth(z, near, far, fmt, bits)
+    ext = (
+        '<x:xmpmeta xmlns:x="adobe:ns:meta/">'
+        '<rdf:RDF xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#">'
+        '<rdf:Description rdf:about=""'
+        ' xmlns:GImage="http://ns.google.com/photos/1.0/image/"'
+        ' xmlns:GDepth="http://ns.google.com/photos/1.0/depthmap/"'
+        f' GImage:Data="{base64.b64encode(_jpeg(photo)).decode()}"'
+        f' GDepth:Data="{base64.b64encode(depth_png).decode()}"/>'
+        "</rdf:RDF></x:xmpmeta>"
+    ).encode()
+    guid = hashlib.md5(ext).hexdigest().upper().encode()
+    focus_attrs = ""
+    if focal_distance is not None:
+        focus_attrs += f' GFocus:FocalDistance="{focal_distance}"'
+    if focal_point is not None:
+        focus_attrs += (
+            f' GFocus:FocalPointX="{focal_point[0]}" GFocus:FocalPointY="{focal_point[1]}"'
+        )
+    std = (
+        '<x:xmpmeta xmlns:x="adobe:ns:meta/">'
+        '<rdf:RDF xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#">'
+        '<rdf:Description rdf:about=""'
+        ' xmlns:GFocus="http://ns.google.com/photos/1.0/focus/"'
+        ' xmlns:GImage="http://ns.google.com/photos/1.0/image/"'
+        ' xmlns:GDepth="http://ns.google.com/photos/1.0/depthmap/"'
+        ' xmlns:xmpNote="http://ns.adobe.com/xmp/note/"'
+        f'{focus_attrs} GImage:Mime="image/jpeg" GDepth:Format="{fmt}"'
+        f' GDepth:Near="{near}" GDepth:Far="{far}" GDepth:Mime="image/png"'
+        f' xmpNote:HasExtendedXMP="{guid.decode()}"/>'
+        "</rdf:RDF></x:xmpmeta>"
+    ).encode()
+    segments = [
+        b"\xff\xe1" + struct.pack(">H", 2 + len(XMP_STD_SIG) + len(std)) + XMP_STD_SIG + std
+    ]
+    parts = []
+    for offset in range(0, len(ext), chunk_size):
+        body = XMP_EXT_SIG + guid + struct.pack(">II", len(ext), offset)
+        body += ext[offset : offset + chunk_size]
+        parts.append(b"\xff\xe1" + struct.pack(">H", 2 + len(body)) + body)
+    if shuffle:
+        random.Random(seed).shuffle(parts)
+    if drop_chunk:
+        parts = parts[:-1]
+    main = _jpeg(rendered)
+    return main[:2] + b"".join(segments + parts) + main[2:]
+
+
+# --------------------------------------------------------------------------- Apple MPO
+
+
+def apple_mpo(
+    photo: np.ndarray,
+    disparity_u8: np.ndarray,
+    *,
+    float_min: float,
+    float_max: float,
+    focus_region: tuple[float, float, float, float] | None = None,
+    aux_type: str = "disparity",
+) -> bytes:
+    """An Apple-style portrait MPO: frame 0 the photo (with an MWG Focus region), frame 1 an
+    8-bit disparity map described by ``apdi`` XMP."""
+    regions = ""
+    if focus_region is not None:
+        x, y, w, h = focus_region
+        regions = (
+            "<mwg-rs:Regions rdf:parseType='Resource'><mwg-rs:RegionList><rdf:Seq>"
+            "<rdf:li rdf:parseType='Resource'><mwg-rs:Area rdf:parseType='Resource'>"
+            f"<stArea:y>{y}</stArea:y><stArea:w>{w}</stArea:w><stArea:x>{x}</stArea:x>"
+            f"<stArea:h>{h}</stArea:h><stArea:unit>normalized</stArea:unit></mwg-rs:Area>"
+            "<mwg-rs:Type>Focus</mwg-rs:Type></rdf:li></rdf:Seq></mwg-rs:RegionList>"
+            "</mwg-rs:Regions>"
+        )
+    primary_xmp = (
+        '<x:xmpmeta xmlns:x="adobe:ns:meta/">'
+        '<rdf:RDF xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#">'
+        '<rdf:Description rdf:about=""'
+        ' xmlns:mwg-rs="http://www.metadataworkinggroup.com/schemas/regions/"'
+        ' xmlns:stArea="http://ns.adobe.com/xmp/sType/Area#">'
+        f"{regions}</rdf:Description></rdf:RDF></x:xmpmeta>"
+    ).encode()
+    depth_xmp = (
+        '<x:xmpmeta xmlns:x="adobe:ns:meta/">'
+        '<rdf:RDF xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#">'
+        '<rdf:Description rdf:about="" xmlns:apdi="http://ns.apple.com/pixeldatainfo/1.0/">'
+        f"<apdi:AuxiliaryImageType>{aux_type}</apdi:AuxiliaryImageType>"
+        f"<apdi:FloatMinValue>{float_min}</apdi:FloatMinValue>"
+        f"<apdi:FloatMaxValue>{float_max}</apdi:FloatMaxValue>"
+        "<apdi:IntMinValue>0</apdi:IntMinValue><apdi:IntMaxValue>255</apdi:IntMaxValue>"
+        "</rdf:Description></rdf:RDF></x:xmpmeta>"
+    ).encode()
+    main = Image.fromarray(photo)
+    depth = Image.fromarray(disparity_u8)
+    depth.encoderinfo = {"xmp": depth_xmp, "quality": 100}
+    buf = io.BytesIO()
+    main.save(buf, "MPO", save_all=True, append_images=[depth], xmp=primary_xmp, quality=95)
+    return buf.getvalue()
