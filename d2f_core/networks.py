@@ -1,0 +1,484 @@
+"""The three learned networks of D2F: defocus ``f_d``, radiance ``f_r`` and fusion ``f_p``.
+
+Architectures are picked by name from the registry dicts :data:`DEFOCUS_NETS`,
+:data:`RADIANCE_NETS` and :data:`FUSION_NETS`. Nothing here reads files except
+:meth:`DefocusNet.load_imagenet`, which takes an explicit local path; nothing downloads.
+
+- :class:`DefocusNet` is a MiDaS-style encoder-decoder (encoder, four feature-fusion refine
+  blocks built from residual conv units, output head). Its output goes through a sigmoid,
+  so it is disparity-like in [0, 1] with 1 = nearest. The paper learns it without depth
+  supervision, only through the bokeh loss.
+- :class:`RadianceNet` is the authors' per-pixel network (1x1 convs 3->16->16->1, sigmoid).
+- :class:`FusionNet` predicts the soft sharp-region mask ``M_s`` from ``(1 - defocus, gray)``.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Mapping
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+__all__ = [
+    "DEFOCUS_NETS",
+    "FUSION_NETS",
+    "RADIANCE_NETS",
+    "DefocusNet",
+    "FusionNet",
+    "RadianceNet",
+    "ResNeXt50Encoder",
+    "LiteEncoder",
+    "build_defocus_net",
+    "build_fusion_net",
+    "build_radiance_net",
+    "count_parameters",
+    "rgb_to_gray",
+]
+
+logger = logging.getLogger(__name__)
+
+_IMAGENET_MEAN = (0.485, 0.456, 0.406)
+_IMAGENET_STD = (0.229, 0.224, 0.225)
+
+
+def count_parameters(module: nn.Module, trainable_only: bool = False) -> int:
+    """Number of parameters of ``module`` (all, or only those with ``requires_grad``)."""
+    return sum(p.numel() for p in module.parameters() if p.requires_grad or not trainable_only)
+
+
+def rgb_to_gray(image: Tensor) -> Tensor:
+    """ITU-R BT.601 luma of an RGB image.
+
+    Shape: (B, 3, H, W) in [0, 1] -> (B, 1, H, W) in [0, 1].
+    """
+    if image.ndim != 4 or image.shape[1] != 3:
+        raise ValueError(f"image must have shape [B,3,H,W], got {tuple(image.shape)}")
+    r, g, b = image[:, 0:1], image[:, 1:2], image[:, 2:3]
+    return 0.299 * r + 0.587 * g + 0.114 * b
+
+
+def _check_image(image: Tensor, name: str = "image") -> None:
+    if not isinstance(image, Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(image).__name__}")
+    if image.ndim != 4 or image.shape[1] != 3:
+        raise ValueError(f"{name} must have shape [B,3,H,W], got {tuple(image.shape)}")
+
+
+# --------------------------------------------------------------------------------------
+# Encoders. Both return four feature maps at strides 4, 8, 16, 32.
+# --------------------------------------------------------------------------------------
+
+
+class _Bottleneck(nn.Module):
+    """ResNeXt bottleneck; attribute names follow torchvision so its weights load as-is."""
+
+    expansion = 4
+
+    def __init__(
+        self, inplanes: int, planes: int, stride: int, groups: int, base_width: int
+    ) -> None:
+        super().__init__()
+        width = int(planes * (base_width / 64.0)) * groups
+        out = planes * self.expansion
+        self.conv1 = nn.Conv2d(inplanes, width, 1, bias=False)
+        self.bn1 = nn.BatchNorm2d(width)
+        self.conv2 = nn.Conv2d(width, width, 3, stride, 1, groups=groups, bias=False)
+        self.bn2 = nn.BatchNorm2d(width)
+        self.conv3 = nn.Conv2d(width, out, 1, bias=False)
+        self.bn3 = nn.BatchNorm2d(out)
+        self.relu = nn.ReLU(inplace=True)
+        self.downsample: nn.Module | None = None
+        if stride != 1 or inplanes != out:
+            self.downsample = nn.Sequential(
+                nn.Conv2d(inplanes, out, 1, stride, bias=False), nn.BatchNorm2d(out)
+            )
+
+    def forward(self, x: Tensor) -> Tensor:
+        identity = x if self.downsample is None else self.downsample(x)
+        y = self.relu(self.bn1(self.conv1(x)))
+        y = self.relu(self.bn2(self.conv2(y)))
+        y = self.bn3(self.conv3(y))
+        return self.relu(y + identity)
+
+
+class ResNeXt50Encoder(nn.Module):
+    """ResNeXt-50 (32x4d) backbone without the classifier.
+
+    Parameter names match torchvision's ``resnext50_32x4d`` (minus ``fc``), so an
+    ImageNet state dict loads through :meth:`DefocusNet.load_imagenet`.
+
+    Shape: (B, 3, H, W) normalised -> [(B,256,H/4,W/4), (B,512,H/8,W/8),
+    (B,1024,H/16,W/16), (B,2048,H/32,W/32)].
+    """
+
+    channels = (256, 512, 1024, 2048)
+
+    def __init__(self, groups: int = 32, width_per_group: int = 4) -> None:
+        super().__init__()
+        self.conv1 = nn.Conv2d(3, 64, 7, 2, 3, bias=False)
+        self.bn1 = nn.BatchNorm2d(64)
+        self.relu = nn.ReLU(inplace=True)
+        self.maxpool = nn.MaxPool2d(3, 2, 1)
+        inplanes = 64
+        stages = []
+        for planes, blocks, stride in ((64, 3, 1), (128, 4, 2), (256, 6, 2), (512, 3, 2)):
+            layers = []
+            for i in range(blocks):
+                layers.append(
+                    _Bottleneck(inplanes, planes, stride if i == 0 else 1, groups, width_per_group)
+                )
+                inplanes = planes * _Bottleneck.expansion
+            stages.append(nn.Sequential(*layers))
+        self.layer1, self.layer2, self.layer3, self.layer4 = stages
+        for m in self.modules():
+            if isinstance(m, nn.Conv2d):
+                nn.init.kaiming_normal_(m.weight, mode="fan_out", nonlinearity="relu")
+        # Zero-init the last BN of each block: every block starts as identity, which
+        # keeps a randomly initialised 50-layer encoder trainable from scratch.
+        for m in self.modules():
+            if isinstance(m, _Bottleneck):
+                nn.init.zeros_(m.bn3.weight)
+
+    def forward(self, x: Tensor) -> list[Tensor]:
+        x = self.maxpool(self.relu(self.bn1(self.conv1(x))))
+        f1 = self.layer1(x)
+        f2 = self.layer2(f1)
+        f3 = self.layer3(f2)
+        f4 = self.layer4(f3)
+        return [f1, f2, f3, f4]
+
+
+class _InvertedResidual(nn.Module):
+    """MobileNetV2-style block: 1x1 expand, 3x3 depthwise, 1x1 project."""
+
+    def __init__(self, cin: int, cout: int, stride: int, expand: int) -> None:
+        super().__init__()
+        hidden = cin * expand
+        self.use_residual = stride == 1 and cin == cout
+        self.block = nn.Sequential(
+            nn.Conv2d(cin, hidden, 1, bias=False),
+            nn.BatchNorm2d(hidden),
+            nn.ReLU6(inplace=True),
+            nn.Conv2d(hidden, hidden, 3, stride, 1, groups=hidden, bias=False),
+            nn.BatchNorm2d(hidden),
+            nn.ReLU6(inplace=True),
+            nn.Conv2d(hidden, cout, 1, bias=False),
+            nn.BatchNorm2d(cout),
+        )
+
+    def forward(self, x: Tensor) -> Tensor:
+        y = self.block(x)
+        return x + y if self.use_residual else y
+
+
+class LiteEncoder(nn.Module):
+    """Small MobileNetV2-like encoder for CPU inference (about 1 M parameters).
+
+    Shape: (B, 3, H, W) normalised -> four maps at strides 4, 8, 16, 32 with
+    :attr:`channels` channels.
+    """
+
+    channels = (24, 48, 96, 192)
+
+    def __init__(self, expand: int = 4) -> None:
+        super().__init__()
+        self.stem = nn.Sequential(
+            nn.Conv2d(3, 16, 3, 2, 1, bias=False), nn.BatchNorm2d(16), nn.ReLU(inplace=True)
+        )
+        cin = 16
+        stages = []
+        for cout, blocks in zip(self.channels, (2, 3, 4, 3), strict=True):
+            layers = []
+            for i in range(blocks):
+                layers.append(_InvertedResidual(cin, cout, 2 if i == 0 else 1, expand))
+                cin = cout
+            stages.append(nn.Sequential(*layers))
+        self.stages = nn.ModuleList(stages)
+        for m in self.modules():
+            if isinstance(m, nn.Conv2d):
+                nn.init.kaiming_normal_(m.weight, mode="fan_out", nonlinearity="relu")
+
+    def forward(self, x: Tensor) -> list[Tensor]:
+        x = self.stem(x)
+        feats = []
+        for stage in self.stages:
+            x = stage(x)
+            feats.append(x)
+        return feats
+
+
+# --------------------------------------------------------------------------------------
+# MiDaS-style decoder.
+# --------------------------------------------------------------------------------------
+
+
+def _conv3x3(cin: int, cout: int, separable: bool, bias: bool = True) -> nn.Module:
+    if not separable:
+        return nn.Conv2d(cin, cout, 3, 1, 1, bias=bias)
+    return nn.Sequential(
+        nn.Conv2d(cin, cin, 3, 1, 1, groups=cin, bias=False), nn.Conv2d(cin, cout, 1, bias=bias)
+    )
+
+
+class _ResidualConvUnit(nn.Module):
+    """Pre-activation residual unit of RefineNet/MiDaS: x + conv(relu(conv(relu(x))))."""
+
+    def __init__(self, features: int, separable: bool) -> None:
+        super().__init__()
+        self.conv1 = _conv3x3(features, features, separable)
+        self.conv2 = _conv3x3(features, features, separable)
+
+    def forward(self, x: Tensor) -> Tensor:
+        y = self.conv1(F.relu(x))
+        y = self.conv2(F.relu(y))
+        return x + y
+
+
+class _FeatureFusionBlock(nn.Module):
+    """Adds the refined skip feature, refines again, upsamples x2 (MiDaS FeatureFusionBlock)."""
+
+    def __init__(self, features: int, separable: bool, has_skip: bool) -> None:
+        super().__init__()
+        self.skip_unit = _ResidualConvUnit(features, separable) if has_skip else None
+        self.out_unit = _ResidualConvUnit(features, separable)
+
+    def forward(self, x: Tensor, skip: Tensor | None = None) -> Tensor:
+        if skip is not None and self.skip_unit is not None:
+            if skip.shape[-2:] != x.shape[-2:]:
+                x = F.interpolate(x, size=skip.shape[-2:], mode="bilinear", align_corners=False)
+            x = x + self.skip_unit(skip)
+        x = self.out_unit(x)
+        return F.interpolate(x, scale_factor=2.0, mode="bilinear", align_corners=True)
+
+
+class DefocusNet(nn.Module):
+    """Monocular disparity network ``f_d`` (encoder + 4 refine blocks + head, sigmoid).
+
+    Args:
+        variant: ``"resnext50"`` (paper: ResNeXt50 32x4d encoder, 256 decoder features) or
+            ``"lite"`` (MobileNetV2-like encoder, separable decoder; about 1.5 M parameters).
+
+    The input is an RGB image in [0, 1]; ImageNet normalisation happens inside. Any input
+    size works: the image is padded to a multiple of 32 and the output cropped back.
+
+    Shape: (B, 3, H, W) in [0, 1] -> (B, 1, H, W) in [0, 1], 1 = nearest.
+    """
+
+    def __init__(self, variant: str = "lite") -> None:
+        super().__init__()
+        if variant == "resnext50":
+            self.encoder: nn.Module = ResNeXt50Encoder()
+            features, separable = 256, False
+        elif variant == "lite":
+            self.encoder = LiteEncoder()
+            features, separable = 64, True
+        else:
+            raise ValueError(f"variant must be 'resnext50' or 'lite', got {variant!r}")
+        self.variant = variant
+        channels = self.encoder.channels
+        self.register_buffer(
+            "mean", torch.tensor(_IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False
+        )
+        self.register_buffer("std", torch.tensor(_IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
+        self.project = nn.ModuleList(_conv3x3(c, features, separable, bias=False) for c in channels)
+        self.refine = nn.ModuleList(
+            _FeatureFusionBlock(features, separable, has_skip=i < 3) for i in range(4)
+        )
+        if variant == "resnext50":
+            # MiDaS head: conv, x2 upsample to full resolution, conv, relu, 1x1.
+            self.head = nn.Sequential(
+                nn.Conv2d(features, features // 2, 3, 1, 1),
+                nn.Upsample(scale_factor=2.0, mode="bilinear", align_corners=True),
+                nn.Conv2d(features // 2, 32, 3, 1, 1),
+                nn.ReLU(inplace=True),
+                nn.Conv2d(32, 1, 1),
+            )
+        else:
+            # The lite head stays at stride 2 and upsamples the single logit channel:
+            # full-resolution 3x3 convs would cost more than the whole encoder.
+            self.head = nn.Sequential(
+                _conv3x3(features, 32, separable=True),
+                nn.ReLU(inplace=True),
+                nn.Conv2d(32, 1, 1),
+                nn.Upsample(scale_factor=2.0, mode="bilinear", align_corners=True),
+            )
+
+    def forward(self, image: Tensor) -> Tensor:
+        _check_image(image)
+        h, w = image.shape[-2:]
+        ph, pw = (-h) % 32, (-w) % 32
+        x = (image - self.mean) / self.std  # [B,3,H,W]
+        if ph or pw:
+            x = F.pad(x, (0, pw, 0, ph), mode="replicate")
+        feats = self.encoder(x)
+        f1, f2, f3, f4 = (proj(f) for proj, f in zip(self.project, feats, strict=True))
+        y = self.refine[3](f4)  # [B,F,H/16,W/16]
+        y = self.refine[2](y, f3)  # [B,F,H/8,W/8]
+        y = self.refine[1](y, f2)  # [B,F,H/4,W/4]
+        y = self.refine[0](y, f1)  # [B,F,H/2,W/2]
+        logits = self.head(y)[..., :h, :w]  # [B,1,H,W]
+        return torch.sigmoid(logits)
+
+    def load_imagenet(self, path: str | Path) -> None:
+        """Load ImageNet weights into the ResNeXt50 encoder from a LOCAL state-dict file.
+
+        Accepts torchvision's ``resnext50_32x4d`` state dict (optionally wrapped in
+        ``{"state_dict": ...}`` / ``{"model": ...}`` and with ``module.``, ``encoder.`` or
+        ``backbone.`` key prefixes); the classifier ``fc.*`` is ignored.
+
+        Raises:
+            FileNotFoundError: ``path`` does not exist.
+            ValueError: the file is not a readable state dict, or its keys/shapes do not
+                match a ResNeXt50 32x4d.
+        """
+        if self.variant != "resnext50":
+            raise ValueError(f"load_imagenet needs variant 'resnext50', this is {self.variant!r}")
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"ImageNet weights file not found: {path}")
+        try:
+            raw = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception as exc:  # pickle/zip errors come in many types
+            raise ValueError(f"cannot read ImageNet weights from {path}: {exc}") from exc
+        state = _unwrap_state_dict(raw, path)
+        mapped = {}
+        for key, value in state.items():
+            for prefix in ("module.", "encoder.", "backbone."):
+                if key.startswith(prefix):
+                    key = key[len(prefix) :]
+            if key.startswith("fc.") or key.endswith("num_batches_tracked"):
+                continue
+            mapped[key] = value
+        own = self.encoder.state_dict()
+        own = {k: v for k, v in own.items() if not k.endswith("num_batches_tracked")}
+        missing = sorted(set(own) - set(mapped))
+        unexpected = sorted(set(mapped) - set(own))
+        if missing or unexpected:
+            raise ValueError(
+                f"{path} is not a ResNeXt50 32x4d state dict: {len(missing)} missing keys "
+                f"(e.g. {missing[:3]}), {len(unexpected)} unexpected keys (e.g. {unexpected[:3]})"
+            )
+        bad = [k for k, v in own.items() if tuple(mapped[k].shape) != tuple(v.shape)]
+        if bad:
+            raise ValueError(
+                f"{path}: shape mismatch for {len(bad)} tensors, e.g. {bad[0]}: "
+                f"{tuple(mapped[bad[0]].shape)} vs expected {tuple(own[bad[0]].shape)}"
+            )
+        self.encoder.load_state_dict(mapped, strict=False)
+        logger.info("loaded ImageNet encoder weights from %s", path)
+
+
+def _unwrap_state_dict(raw: object, path: Path) -> Mapping[str, Tensor]:
+    if isinstance(raw, Mapping):
+        for key in ("state_dict", "model"):
+            if key in raw and isinstance(raw[key], Mapping):
+                raw = raw[key]
+                break
+    if not isinstance(raw, Mapping) or not all(
+        isinstance(k, str) and isinstance(v, Tensor) for k, v in raw.items()
+    ):
+        raise ValueError(f"{path} does not hold a state dict of tensors")
+    return raw
+
+
+# --------------------------------------------------------------------------------------
+# Radiance and fusion networks.
+# --------------------------------------------------------------------------------------
+
+
+class RadianceNet(nn.Module):
+    """Radiance virtualisation ``f_r``: per-pixel 1x1 convs 3->16->16->1 and a sigmoid.
+
+    Shape: (B, 3, H, W) in [0, 1] -> R0 (B, 1, H, W) in (0, 1).
+    """
+
+    def __init__(self, hidden: int = 16) -> None:
+        super().__init__()
+        self.net = nn.Sequential(
+            nn.Conv2d(3, hidden, 1),
+            nn.ReLU(inplace=True),
+            nn.Conv2d(hidden, hidden, 1),
+            nn.ReLU(inplace=True),
+            nn.Conv2d(hidden, 1, 1),
+        )
+
+    def forward(self, image: Tensor) -> Tensor:
+        _check_image(image)
+        return torch.sigmoid(self.net(image))
+
+
+class FusionNet(nn.Module):
+    """Deep Poisson fusion ``f_p``: soft sharp-region mask from focus prior and gray image.
+
+    Args:
+        variant: ``"paper"`` (conv3x3 2->64->16->16->1, about 12.8 k MAC per pixel) or
+            ``"lite"`` (conv3x3 2->4->4, 1x1 4->1, 220 MAC per pixel: 58x cheaper, which
+            matters at 12 MP; 4-wide layers also run about 2x faster per MAC on CPU than
+            8-wide ones, measured with channels-last weights).
+
+    Shape: focus (B, 1, H, W) = ``1 - defocus`` in [0, 1], gray (B, 1, H, W) in [0, 1]
+    -> M_s (B, 1, H, W) in [0, 1] (1 = keep the sharp input).
+    """
+
+    #: How many pixels of context each output pixel sees, per side (stacked 3x3 convs).
+    halo: int
+
+    def __init__(self, variant: str = "lite") -> None:
+        super().__init__()
+        if variant == "paper":
+            widths, last_k = (2, 64, 16, 16), 3
+        elif variant == "lite":
+            widths, last_k = (2, 4, 4), 1
+        else:
+            raise ValueError(f"variant must be 'paper' or 'lite', got {variant!r}")
+        self.variant = variant
+        layers: list[nn.Module] = []
+        for cin, cout in zip(widths[:-1], widths[1:], strict=True):
+            layers += [nn.Conv2d(cin, cout, 3, 1, 1), nn.ReLU(inplace=True)]
+        layers.append(nn.Conv2d(widths[-1], 1, last_k, 1, last_k // 2))
+        self.net = nn.Sequential(*layers)
+        self.halo = (len(widths) - 1) + last_k // 2
+
+    def forward(self, focus: Tensor, gray: Tensor) -> Tensor:
+        if focus.ndim != 4 or focus.shape[1] != 1:
+            raise ValueError(f"focus must have shape [B,1,H,W], got {tuple(focus.shape)}")
+        if gray.shape != focus.shape:
+            raise ValueError(
+                f"gray must have the shape of focus {tuple(focus.shape)}, got {tuple(gray.shape)}"
+            )
+        return torch.sigmoid(self.net(torch.cat([focus, gray], dim=1)))
+
+
+DEFOCUS_NETS: dict[str, Callable[[], nn.Module]] = {
+    "lite": lambda: DefocusNet("lite"),
+    "resnext50": lambda: DefocusNet("resnext50"),
+}
+RADIANCE_NETS: dict[str, Callable[[], nn.Module]] = {"paper": RadianceNet}
+FUSION_NETS: dict[str, Callable[[], nn.Module]] = {
+    "paper": lambda: FusionNet("paper"),
+    "lite": lambda: FusionNet("lite"),
+}
+
+
+def _build(registry: Mapping[str, Callable[[], nn.Module]], name: str, what: str) -> nn.Module:
+    if name not in registry:
+        raise ValueError(f"unknown {what} variant {name!r}; choose one of {sorted(registry)}")
+    return registry[name]()
+
+
+def build_defocus_net(name: str = "lite") -> DefocusNet:
+    """Defocus network from :data:`DEFOCUS_NETS` (``"lite"`` or ``"resnext50"``)."""
+    return _build(DEFOCUS_NETS, name, "defocus")  # type: ignore[return-value]
+
+
+def build_radiance_net(name: str = "paper") -> RadianceNet:
+    """Radiance network from :data:`RADIANCE_NETS`."""
+    return _build(RADIANCE_NETS, name, "radiance")  # type: ignore[return-value]
+
+
+def build_fusion_net(name: str = "lite") -> FusionNet:
+    """Fusion network from :data:`FUSION_NETS` (``"paper"`` or ``"lite"``)."""
+    return _build(FUSION_NETS, name, "fusion")  # type: ignore[return-value]

@@ -1,0 +1,868 @@
+"""The D2F pipeline: networks once per image (:meth:`D2F.prepare`), then cheap refocus renders.
+
+Inference (:meth:`D2F.render`), numbered as in the paper:
+
+1. ``I_lr``: the photo at ``render_scale`` (0.5), long side capped at ``max_render_side``.
+2. Disparity ``d`` from the defocus network at ``network_size`` (or a given map), upsampled
+   to ``I_lr``'s size. Unlike the paper, which bakes the training focus into ``D = |D_d - f|``,
+   the signed disparity is cached, so refocusing is a change of ``focus`` only.
+3. ``R0`` from the radiance network on ``I_lr``.
+4.-5. ``B_lr = rendering.render(I_lr, d, focus, K_lr, radiance=R0)`` (HDR boost inside,
+   depth-ordered compositing by default).
+6. Deep Poisson fusion at full resolution: ``B_up = bilinear(B_lr)``,
+   ``M = max(M_s, P)``, ``B_hr = M * I_hr + (1 - M) * B_up``.
+
+About the mask ``M``:
+
+* ``M_s = f_p(1 - D, gray(I_hr)) * [D < fusion_gate]`` where ``D = coc_to_defocus(CoC at the
+  low-res pass)``. The hard gate is part of the model (training uses it too), so running
+  ``f_p`` only on the image tiles that hold pixels with ``D < fusion_gate`` is exact, and a
+  12 MP fusion costs only what the in-focus part of the frame costs.
+* ``P`` is an in-focus prior: 1 where the full-resolution CoC is at most ``sharp_coc`` px
+  (default 1 px), falling linearly to 0 at twice that. The paper's thresholded/learned mask
+  can leave no sharp region at all; with ``P`` every pixel whose CoC is below a pixel is
+  guaranteed to show the sharp input, whatever ``f_p`` predicts.
+
+Checkpoints are ``{"config", "state_dict", "version"}`` files written by :meth:`D2F.save`.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import time
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from . import rendering
+from .kernels import PAPER_GROWING_SIZES
+from .networks import build_defocus_net, build_fusion_net, build_radiance_net, rgb_to_gray
+
+__all__ = ["CHECKPOINT_VERSION", "D2F", "D2FConfig", "Result", "Scene", "default_weights_path"]
+
+logger = logging.getLogger(__name__)
+
+CHECKPOINT_VERSION = 1
+_FUSION_TILE = 256
+
+
+def default_weights_path() -> Path:
+    """``$D2F_WEIGHTS`` if set, else ``assets/weights/d2f_lite.pt`` in the repository."""
+    env = os.environ.get("D2F_WEIGHTS")
+    if env:
+        return Path(env)
+    return Path(__file__).resolve().parents[1] / "assets" / "weights" / "d2f_lite.pt"
+
+
+@dataclass
+class D2FConfig:
+    """Architecture and inference settings; saved inside every checkpoint.
+
+    Attributes:
+        defocus: defocus network variant (``"lite"`` or ``"resnext50"``).
+        radiance: radiance network variant (``"paper"``).
+        fusion: fusion network variant (``"lite"`` or ``"paper"``).
+        network_size: long side (px) the defocus network runs at in :meth:`D2F.prepare`.
+        render_scale: scale of the low-resolution rendering pass (paper: 0.5).
+        max_render_side: cap on the long side of the low-resolution pass (px).
+        order: compositing order passed to ``rendering.render`` (``"depth"`` or ``"paper"``).
+        train_focus: focal disparity used for training pairs without ``params`` (EBB!
+            focuses on the nearest subject, so 1.0 = nearest).
+        train_blur: ``K`` (px at the pair's full resolution) for pairs without ``params``;
+            138 px at EBB!'s 1024x1536 is the paper's 69-px largest kernel at half size.
+        fusion_theta: threshold on ``D`` of the binary in-focus mask ``M_b`` (stage-2 target).
+        fusion_gate: ``M_s`` is forced to 0 where ``D >= fusion_gate``.
+        sharp_coc: full-res CoC (px) below which a pixel always stays sharp.
+    """
+
+    defocus: str = "lite"
+    radiance: str = "paper"
+    fusion: str = "lite"
+    network_size: int = 768
+    render_scale: float = 0.5
+    max_render_side: int = 1024
+    order: str = "depth"
+    train_focus: float = 1.0
+    train_blur: float = 138.0
+    fusion_theta: float = 0.25
+    fusion_gate: float = 0.3
+    sharp_coc: float = 1.0
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            value = getattr(self, f.name)
+            kind = (
+                f.type
+                if isinstance(f.type, type)
+                else {"str": str, "int": int}.get(str(f.type), float)
+            )
+            if kind is float and isinstance(value, int) and not isinstance(value, bool):
+                value = float(value)
+                setattr(self, f.name, value)
+            if not isinstance(value, kind) or isinstance(value, bool):
+                raise TypeError(f"config.{f.name} must be {kind.__name__}, got {value!r}")
+        if self.order not in ("depth", "paper"):
+            raise ValueError(f"config.order must be 'depth' or 'paper', got {self.order!r}")
+        if not 0 < self.render_scale <= 1:
+            raise ValueError(f"config.render_scale must be in (0, 1], got {self.render_scale}")
+        if self.network_size < 32 or self.max_render_side < 16:
+            raise ValueError("config.network_size must be >= 32 and max_render_side >= 16")
+        if not 0 <= self.train_focus <= 1:
+            raise ValueError(f"config.train_focus must be in [0, 1], got {self.train_focus}")
+        if not (self.train_blur >= 0 and self.sharp_coc > 0 and 0 < self.fusion_gate <= 1):
+            raise ValueError("config.train_blur >= 0, sharp_coc > 0, 0 < fusion_gate <= 1")
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> D2FConfig:
+        """Build from a dict; unknown keys raise ``ValueError``."""
+        if not isinstance(data, dict):
+            raise TypeError(f"config must be a dict, got {type(data).__name__}")
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise ValueError(f"unknown config keys {unknown}; known keys are {sorted(known)}")
+        return cls(**data)
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+@dataclass
+class Scene:
+    """Everything :meth:`D2F.render` needs for one photo, computed once by :meth:`D2F.prepare`.
+
+    Attributes:
+        image: full-resolution photo, ``[1, 3, H, W]`` float32 in [0, 1].
+        image_lr: low-resolution pass input, ``[1, 3, h, w]`` in [0, 1].
+        disparity_lr: ``[1, 1, h, w]`` in [0, 1], 1 = nearest.
+        radiance_lr: ``R0`` before the HDR boost, ``[1, 1, h, w]`` in (0, 1).
+        size: ``(H, W)`` of the full-resolution photo.
+        disparity_source: ``"network"`` or ``"given"``.
+        cache: derived tensors (full-res disparity, preview-size inputs), filled lazily.
+    """
+
+    image: Tensor
+    image_lr: Tensor
+    disparity_lr: Tensor
+    radiance_lr: Tensor
+    size: tuple[int, int]
+    disparity_source: str = "network"
+    given_disparity: Tensor | None = field(default=None, repr=False)
+    cache: dict[Any, Any] = field(default_factory=dict, repr=False)
+
+    def disparity_full_tensor(self) -> Tensor:
+        """Disparity at full resolution, ``[1, 1, H, W]`` in [0, 1] (cached).
+
+        The given map when one was passed to ``prepare`` (resized to the photo), else the
+        network's map upsampled bilinearly.
+        """
+        if "disparity_full" not in self.cache:
+            src = self.given_disparity if self.given_disparity is not None else self.disparity_lr
+            with torch.no_grad():
+                self.cache["disparity_full"] = _resize(src, self.size).clamp(0, 1)
+        return self.cache["disparity_full"]
+
+    def disparity_tile_range(self, tile: int) -> tuple[Tensor, Tensor]:
+        """Min and max of the full-res disparity over ``tile`` x ``tile`` blocks (cached).
+
+        Shape: two ``[ceil(H / tile), ceil(W / tile)]`` tensors.
+        """
+        key = ("tile_range", tile)
+        if key not in self.cache:
+            with torch.no_grad():
+                d = self.disparity_full_tensor()
+                hi = F.max_pool2d(d, tile, tile, ceil_mode=True)[0, 0]
+                lo = -F.max_pool2d(-d, tile, tile, ceil_mode=True)[0, 0]
+            self.cache[key] = (lo, hi)
+        return self.cache[key]
+
+    def disparity_full(self) -> np.ndarray:
+        """Disparity at full resolution as ``H x W`` float32 numpy in [0, 1] (1 = nearest)."""
+        return self.disparity_full_tensor()[0, 0].detach().cpu().numpy()
+
+
+@dataclass
+class Result:
+    """One render (numpy, float32).
+
+    Attributes:
+        bokeh: ``H x W x 3`` in [0, 1] (preview size when ``max_side`` was given).
+        bokeh_lr: ``h x w x 3`` in [0, 1], the low-resolution rendering pass.
+        disparity: ``h x w`` in [0, 1], 1 = nearest.
+        defocus: ``h x w`` in [0, 1], the paper's normalised defocus of each pixel
+            (``rendering.coc_to_defocus`` of its CoC at the low-res pass).
+        fusion_mask: ``H x W`` in [0, 1], weight of the sharp input in ``bokeh`` (zeros when
+            fusion is off or in preview).
+        timings: milliseconds per stage.
+    """
+
+    bokeh: np.ndarray
+    bokeh_lr: np.ndarray
+    disparity: np.ndarray
+    defocus: np.ndarray
+    fusion_mask: np.ndarray
+    timings: dict[str, float]
+
+
+# --------------------------------------------------------------------------------------
+# helpers
+# --------------------------------------------------------------------------------------
+
+
+def _resize(x: Tensor, size: tuple[int, int]) -> Tensor:
+    """Bilinear resize, antialiased when shrinking. Shape: (B, C, h, w) -> (B, C, *size)."""
+    if tuple(x.shape[-2:]) == tuple(size):
+        return x
+    shrink = size[0] < x.shape[-2] or size[1] < x.shape[-1]
+    return F.interpolate(x, size=size, mode="bilinear", align_corners=False, antialias=shrink)
+
+
+def _scaled_size(size: tuple[int, int], scale: float, max_side: int | None) -> tuple[int, int]:
+    h, w = size
+    if max_side is not None:
+        scale = min(scale, max_side / max(h, w))
+    return max(1, round(h * scale)), max(1, round(w * scale))
+
+
+def _size_ratio(small: tuple[int, int], big: tuple[int, int]) -> float:
+    return 0.5 * (small[0] / big[0] + small[1] / big[1])
+
+
+def _image_to_tensor(image: Any) -> Tensor:
+    if isinstance(image, Tensor):
+        x = image
+        if x.ndim == 3:
+            x = x[None]
+        if x.ndim != 4 or x.shape[:2] != (1, 3):
+            raise ValueError(f"image tensor must have shape [1,3,H,W], got {tuple(image.shape)}")
+        if x.dtype == torch.uint8:
+            x = x.float() / 255.0
+        elif not x.is_floating_point():
+            raise TypeError(f"image tensor must be uint8 or float, got {x.dtype}")
+        x = x.detach().float()
+    elif isinstance(image, np.ndarray):
+        if image.ndim != 3 or image.shape[2] != 3:
+            raise ValueError(f"image must have shape (H, W, 3), got {image.shape}")
+        if image.dtype == np.uint8:
+            x = torch.from_numpy(np.ascontiguousarray(image)).permute(2, 0, 1)[None]
+            x = x.float().div_(255.0)
+        elif np.issubdtype(image.dtype, np.floating):
+            x = torch.from_numpy(np.ascontiguousarray(image, dtype=np.float32))
+            x = x.permute(2, 0, 1)[None]
+        else:
+            raise TypeError(f"image must be uint8 or float, got {image.dtype}")
+    else:
+        raise TypeError(f"image must be a numpy array or torch tensor, got {type(image).__name__}")
+    if min(x.shape[-2:]) < 1:
+        raise ValueError(f"image is empty: shape {tuple(x.shape)}")
+    if not bool(torch.isfinite(x).all()):
+        raise ValueError("image contains NaN or inf")
+    lo, hi = float(x.min()), float(x.max())
+    if lo < 0 or hi > 1:
+        raise ValueError(f"image float values must be in [0, 1], got [{lo:.3g}, {hi:.3g}]")
+    return x.contiguous()
+
+
+def _disparity_to_tensor(disparity: Any) -> Tensor:
+    if isinstance(disparity, Tensor):
+        d = disparity.detach()
+    elif isinstance(disparity, np.ndarray):
+        if not np.issubdtype(disparity.dtype, np.number) or disparity.dtype == np.bool_:
+            raise TypeError(f"disparity must be numeric, got {disparity.dtype}")
+        d = torch.from_numpy(np.ascontiguousarray(disparity, dtype=np.float32))
+    else:
+        raise TypeError(
+            f"disparity must be a numpy array or torch tensor, got {type(disparity).__name__}"
+        )
+    while d.ndim > 2 and d.shape[0] == 1:
+        d = d[0]
+    if d.ndim == 3 and d.shape[-1] == 1:
+        d = d[..., 0]
+    if d.ndim != 2 or min(d.shape) < 1:
+        raise ValueError(f"disparity must have shape (H, W), got {tuple(disparity.shape)}")
+    d = d.float()
+    if not bool(torch.isfinite(d).all()):
+        raise ValueError("disparity contains NaN or inf")
+    lo, hi = float(d.min()), float(d.max())
+    if lo < -1e-3 or hi > 1 + 1e-3:
+        raise ValueError(f"disparity must be in [0, 1], got [{lo:.3g}, {hi:.3g}]")
+    return d.clamp(0, 1)[None, None].contiguous()
+
+
+def _check_focus_blur(focus: Any, blur: Any) -> tuple[float, float]:
+    try:
+        f, b = float(focus), float(blur)
+    except (TypeError, ValueError):
+        raise TypeError(f"focus and blur must be numbers, got {focus!r}, {blur!r}") from None
+    if not math.isfinite(f) or not 0 <= f <= 1:
+        raise ValueError(f"focus must be in [0, 1], got {focus!r}")
+    if not math.isfinite(b) or b < 0:
+        raise ValueError(f"blur must be a finite number >= 0 (px), got {blur!r}")
+    return f, b
+
+
+def _per_sample(value: float | Tensor, batch: int, ref: Tensor) -> Tensor:
+    """Scalar or ``[B]`` -> ``[B, 1, 1, 1]`` on ``ref``'s device and dtype."""
+    t = torch.as_tensor(value, dtype=ref.dtype, device=ref.device).reshape(-1)
+    if t.numel() == 1:
+        t = t.expand(batch)
+    if t.numel() != batch:
+        raise ValueError(f"expected a scalar or {batch} values, got {t.numel()}")
+    return t.reshape(batch, 1, 1, 1)
+
+
+def _to_numpy_image(x: Tensor) -> np.ndarray:
+    return x[0].permute(1, 2, 0).contiguous().cpu().numpy()
+
+
+def _ms(t0: float) -> float:
+    return (time.perf_counter() - t0) * 1000.0
+
+
+# --------------------------------------------------------------------------------------
+# the model
+# --------------------------------------------------------------------------------------
+
+
+class D2F(nn.Module):
+    """Defocus-to-Focus: defocus, radiance and fusion networks plus the layered renderer.
+
+    Use :meth:`from_pretrained`, :meth:`from_checkpoint` or :meth:`from_config`; all return
+    the model in ``eval()`` mode. ``prepare`` runs the networks once per photo and ``render``
+    refocuses cheaply; ``forward_stage1`` / ``forward_stage2`` are the differentiable
+    training forwards.
+    """
+
+    def __init__(self, config: D2FConfig | dict[str, Any] | None = None) -> None:
+        super().__init__()
+        if config is None:
+            config = D2FConfig()
+        elif isinstance(config, dict):
+            config = D2FConfig.from_dict(config)
+        elif not isinstance(config, D2FConfig):
+            raise TypeError(f"config must be a D2FConfig or dict, got {type(config).__name__}")
+        self.config = config
+        self.defocus_net = build_defocus_net(config.defocus)
+        self.radiance_net = build_radiance_net(config.radiance)
+        # channels-last weights make the few-channel full-res convs 3-10x faster on CPU
+        self.fusion_net = build_fusion_net(config.fusion).to(memory_format=torch.channels_last)
+
+    @property
+    def device(self) -> torch.device:
+        return next(self.parameters()).device
+
+    # ---------------------------------------------------------------- construction / io
+
+    @classmethod
+    def from_config(cls, config: D2FConfig | dict[str, Any] | None = None) -> D2F:
+        """Randomly initialised model in ``eval()`` mode."""
+        return cls(config).eval()
+
+    @classmethod
+    def from_checkpoint(cls, path: str | Path, map_location: str | torch.device = "cpu") -> D2F:
+        """Load a ``{"config", "state_dict", "version"}`` checkpoint (extra keys are ignored).
+
+        Raises:
+            FileNotFoundError: ``path`` does not exist.
+            ValueError: the file is corrupt or truncated, lacks the expected keys, has a newer
+                version, or its weights do not match its config.
+        """
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"checkpoint not found: {path}")
+        try:
+            ckpt = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception as exc:  # zip/pickle errors come in many types
+            raise ValueError(f"checkpoint {path} is corrupt or truncated: {exc}") from exc
+        if not isinstance(ckpt, dict) or not {"config", "state_dict"} <= set(ckpt):
+            keys = sorted(ckpt) if isinstance(ckpt, dict) else type(ckpt).__name__
+            raise ValueError(f"checkpoint {path} must hold 'config' and 'state_dict', got {keys}")
+        version = ckpt.get("version", CHECKPOINT_VERSION)
+        if not isinstance(version, int) or version > CHECKPOINT_VERSION:
+            raise ValueError(
+                f"checkpoint {path} has version {version!r}; this code reads up to "
+                f"{CHECKPOINT_VERSION}"
+            )
+        try:
+            model = cls(ckpt["config"])
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"checkpoint {path} has an invalid config: {exc}") from exc
+        state = ckpt["state_dict"]
+        if not isinstance(state, dict):
+            raise ValueError(f"checkpoint {path}: state_dict is not a dict")
+        own = model.state_dict()
+        missing = sorted(set(own) - set(state))
+        unexpected = sorted(set(state) - set(own))
+        mismatched = [
+            k
+            for k in own
+            if k in state
+            and (not isinstance(state[k], Tensor) or tuple(state[k].shape) != tuple(own[k].shape))
+        ]
+        if missing or unexpected or mismatched:
+            raise ValueError(
+                f"checkpoint {path} does not match its config {model.config.to_dict()}: "
+                f"missing {missing[:3]}{'...' if len(missing) > 3 else ''}, "
+                f"unexpected {unexpected[:3]}{'...' if len(unexpected) > 3 else ''}, "
+                f"wrong shape {mismatched[:3]}{'...' if len(mismatched) > 3 else ''}"
+            )
+        model.load_state_dict(state)
+        return model.to(map_location).eval()
+
+    @classmethod
+    def from_pretrained(cls, path: str | Path | None = None) -> D2F:
+        """Load the shipped weights (``assets/weights/d2f_lite.pt``, or ``$D2F_WEIGHTS``).
+
+        Raises:
+            FileNotFoundError: naming the missing weights file.
+        """
+        path = Path(path) if path is not None else default_weights_path()
+        if not path.is_file():
+            raise FileNotFoundError(
+                f"D2F weights not found: {path} (train them with d2f-train, or point "
+                f"D2F_WEIGHTS / the path argument at a checkpoint)"
+            )
+        return cls.from_checkpoint(path)
+
+    def checkpoint(self) -> dict[str, Any]:
+        """The checkpoint dict ``{"config", "state_dict", "version"}`` (tensors on CPU)."""
+        state = {k: v.detach().cpu().contiguous() for k, v in self.state_dict().items()}
+        return {"config": self.config.to_dict(), "state_dict": state, "version": CHECKPOINT_VERSION}
+
+    def save(self, path: str | Path) -> None:
+        """Write :meth:`checkpoint` to ``path`` (parent folders are created)."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        torch.save(self.checkpoint(), path)
+
+    # ---------------------------------------------------------------- networks
+
+    def predict_disparity(self, image: Tensor) -> Tensor:
+        """Defocus network at ``config.network_size``, resized back to the input size.
+
+        Shape: (B, 3, h, w) in [0, 1] -> (B, 1, h, w) in [0, 1].
+        """
+        size = tuple(image.shape[-2:])
+        net_size = _scaled_size(size, 1.0, self.config.network_size)
+        d = self.defocus_net(_resize(image, net_size))  # [B,1,hn,wn]
+        return _resize(d, size).clamp(0, 1)
+
+    def fusion_mask(
+        self,
+        image: Tensor,
+        disparity: Tensor,
+        focus: float | Tensor,
+        blur: float | Tensor,
+        lr_ratio: float,
+    ) -> tuple[Tensor, Tensor]:
+        """Soft fusion mask ``M = max(M_s, P)`` at full resolution (dense, differentiable).
+
+        Args:
+            image: ``I_hr``, ``(B, 3, H, W)`` in [0, 1].
+            disparity: full-resolution disparity ``(B, 1, H, W)`` in [0, 1].
+            focus: focal disparity, float or ``[B]``.
+            blur: ``K`` in px at full resolution, float or ``[B]``.
+            lr_ratio: size of the low-res pass over full size (the defocus ``D`` fed to
+                ``f_p`` is the paper's normalised defocus of the CoC at the low-res pass).
+
+        Returns:
+            ``(M, M_s)``, both ``(B, 1, H, W)`` in [0, 1].
+        """
+        cfg = self.config
+        b = image.shape[0]
+        f = _per_sample(focus, b, image)
+        k = _per_sample(blur, b, image)
+        coc = k * (disparity - f).abs()  # [B,1,H,W] full-res px
+        prior = ((2.0 * cfg.sharp_coc - coc) / cfg.sharp_coc).clamp(0, 1)
+        defocus = _coc_to_defocus(coc * lr_ratio)
+        gate = (defocus < cfg.fusion_gate).to(image.dtype)
+        m_s = self.fusion_net(1.0 - defocus, rgb_to_gray(image)) * gate
+        return torch.maximum(m_s, prior), m_s
+
+    def _fuse_tiled(
+        self, scene: Scene, bokeh_up: Tensor, focus: float, blur: float, lr_ratio: float
+    ) -> tuple[Tensor, Tensor]:
+        """``B_hr = lerp(B_up, I_hr, M)`` computed tile by tile (inference), in place.
+
+        Each 256-px tile is classified from the range of the disparity inside it (cached per
+        scene): far from focus (``M = 0``: keep ``B_up``), entirely sharp (``CoC <= sharp_coc``
+        everywhere: ``M = 1``), or mixed, where ``M`` is computed per pixel, running ``f_p``
+        only if some pixel can pass its gate. The result equals the dense
+        :meth:`fusion_mask` blend; the cost follows the in-focus part of the frame.
+
+        Returns:
+            ``(bokeh, mask)``: ``(1, 3, H, W)`` (``bokeh_up``, modified) and ``(1, 1, H, W)``.
+        """
+        cfg = self.config
+        height, width = scene.size
+        t = _FUSION_TILE
+        lo, hi = scene.disparity_tile_range(t)  # [gh,gw]
+        # CoC range of each tile: distance of [lo, hi] to the focal plane
+        coc_lo = blur * torch.clamp(torch.maximum(lo - focus, focus - hi), min=0.0)
+        coc_hi = blur * torch.maximum((hi - focus).abs(), (lo - focus).abs())
+        gate_coc = _defocus_to_coc(cfg.fusion_gate) / lr_ratio * 1.01
+        sharp = cfg.sharp_coc
+        all_sharp = coc_hi <= sharp
+        needs_net = (coc_lo < gate_coc) & (coc_hi > sharp)
+        needs_pixels = ((coc_lo < 2 * sharp) | needs_net) & ~all_sharp
+        mask = torch.zeros((1, 1, height, width), device=bokeh_up.device, dtype=bokeh_up.dtype)
+        image, d_full = scene.image, scene.disparity_full_tensor()
+        halo = self.fusion_net.halo
+        for row in range(lo.shape[0]):
+            y0, y1 = row * t, min(height, (row + 1) * t)
+            for c in torch.nonzero(all_sharp[row]).flatten().tolist():
+                x0, x1 = c * t, min(width, (c + 1) * t)
+                mask[..., y0:y1, x0:x1] = 1.0
+                bokeh_up[..., y0:y1, x0:x1] = image[..., y0:y1, x0:x1]
+            for c0, c1 in _runs(torch.nonzero(needs_pixels[row]).flatten().tolist()):
+                x0, x1 = c0 * t, min(width, (c1 + 1) * t)
+                use_net = bool(needs_net[row, c0 : c1 + 1].any())
+                pad = halo if use_net else 0
+                ya, yb = max(0, y0 - pad), min(height, y1 + pad)
+                xa, xb = max(0, x0 - pad), min(width, x1 + pad)
+                coc = blur * (d_full[..., ya:yb, xa:xb] - focus).abs()  # [1,1,h',w']
+                m = ((2.0 * sharp - coc) / sharp).clamp_(0, 1)
+                if use_net:
+                    defocus = _coc_to_defocus(coc * lr_ratio)
+                    m_s = self.fusion_net(
+                        (1.0 - defocus).contiguous(memory_format=torch.channels_last),
+                        rgb_to_gray(image[..., ya:yb, xa:xb]).contiguous(
+                            memory_format=torch.channels_last
+                        ),
+                    )
+                    m_s = m_s * (defocus < cfg.fusion_gate).to(m_s.dtype)
+                    m = torch.maximum(m, m_s)
+                m = m[..., y0 - ya : y1 - ya, x0 - xa : x1 - xa]
+                mask[..., y0:y1, x0:x1] = m
+                region = bokeh_up[..., y0:y1, x0:x1]
+                region.copy_(torch.lerp(region, image[..., y0:y1, x0:x1], m))
+        return bokeh_up, mask
+
+    # ---------------------------------------------------------------- inference
+
+    @torch.no_grad()
+    def prepare(self, image: Any, disparity: Any = None) -> Scene:
+        """Run the networks once for a photo and cache what :meth:`render` needs.
+
+        Args:
+            image: ``H x W x 3`` numpy (uint8, or float32 in [0, 1]) or a ``[1, 3, H, W]``
+                tensor in [0, 1].
+            disparity: optional ``H' x W'`` map in [0, 1] (1 = nearest), any size; it replaces
+                the network's map (resized to the photo).
+
+        Returns:
+            A :class:`Scene` on the model's device.
+        """
+        device = self.device
+        image_t = _image_to_tensor(image).to(device)  # [1,3,H,W]
+        given = None if disparity is None else _disparity_to_tensor(disparity).to(device)
+        size = (int(image_t.shape[-2]), int(image_t.shape[-1]))
+        lr_size = _scaled_size(size, self.config.render_scale, self.config.max_render_side)
+        image_lr = _resize(image_t, lr_size).clamp_(0, 1)  # [1,3,h,w]
+        if given is None:
+            disparity_lr = self.predict_disparity(image_lr)  # [1,1,h,w]
+        else:
+            disparity_lr = _resize(given, lr_size).clamp_(0, 1)
+        radiance_lr = self.radiance_net(image_lr)  # [1,1,h,w]
+        return Scene(
+            image=image_t,
+            image_lr=image_lr,
+            disparity_lr=disparity_lr,
+            radiance_lr=radiance_lr,
+            size=size,
+            disparity_source="network" if given is None else "given",
+            given_disparity=given,
+        )
+
+    def _preview_inputs(self, scene: Scene, max_side: int) -> tuple[Tensor, Tensor, Tensor]:
+        size = _scaled_size(scene.size, 1.0, max_side)
+        key = ("preview", size)
+        if key not in scene.cache:
+            lr_size = tuple(scene.image_lr.shape[-2:])
+            src = scene.image_lr if size[0] <= lr_size[0] else scene.image
+            scene.cache[key] = (
+                _resize(src, size).clamp(0, 1),
+                _resize(scene.disparity_lr, size).clamp(0, 1),
+                _resize(scene.radiance_lr, size),
+            )
+        return scene.cache[key]
+
+    @torch.no_grad()
+    def render(
+        self,
+        scene: Scene,
+        focus: float = 0.5,
+        blur: float = 40.0,
+        fusion: bool = True,
+        max_side: int | None = None,
+        **render_options: Any,
+    ) -> Result:
+        """Refocus a prepared photo.
+
+        Args:
+            scene: from :meth:`prepare`.
+            focus: focal disparity in [0, 1] (1 = nearest); see :meth:`focus_at`.
+            blur: ``K``, CoC diameter in px at FULL resolution for ``|d - focus| = 1``.
+            fusion: apply deep Poisson fusion at full resolution (else plain upsampling).
+            max_side: preview mode: render at this long side, no fusion.
+            **render_options: passed to ``rendering.render`` (``order``, ``num_layers``,
+                ``schedule``, ``kernel``, ``blades``, ``rotation``, ``highlight_boost``,
+                ``quality``, ``method``).
+
+        Returns:
+            :class:`Result`.
+        """
+        if not isinstance(scene, Scene):
+            raise TypeError(f"scene must be a Scene from prepare(), got {type(scene).__name__}")
+        focus, blur = _check_focus_blur(focus, blur)
+        if max_side is not None and (isinstance(max_side, bool) or int(max_side) < 1):
+            raise ValueError(f"max_side must be a positive integer or None, got {max_side!r}")
+        if "radiance" in render_options:
+            raise ValueError("render_options must not contain 'radiance' (it comes from scene)")
+        render_options.setdefault("order", self.config.order)
+        timings: dict[str, float] = {}
+        t_all = time.perf_counter()
+
+        # 1. inputs of the rendering pass (preview: its own size, cached per size)
+        if max_side is not None:
+            image_lr, disparity_lr, radiance_lr = self._preview_inputs(scene, int(max_side))
+        else:
+            image_lr, disparity_lr, radiance_lr = (
+                scene.image_lr,
+                scene.disparity_lr,
+                scene.radiance_lr,
+            )
+        lr_size = (int(image_lr.shape[-2]), int(image_lr.shape[-1]))
+        lr_ratio = _size_ratio(lr_size, scene.size)
+        blur_lr = blur * lr_ratio
+
+        # 2. layered rendering at low resolution (HDR boost inside)
+        t0 = time.perf_counter()
+        bokeh_lr = rendering.render(
+            image_lr, disparity_lr, focus, blur_lr, radiance=radiance_lr, **render_options
+        )  # [1,3,h,w]
+        timings["render_lr"] = _ms(t0)
+        defocus_lr = _coc_to_defocus(blur_lr * (disparity_lr - focus).abs())
+
+        # 3. upsample + deep Poisson fusion at full resolution
+        if max_side is not None:
+            bokeh = bokeh_lr
+            mask = torch.zeros_like(disparity_lr)
+        else:
+            t0 = time.perf_counter()
+            bokeh = _resize(bokeh_lr, scene.size)  # [1,3,H,W]
+            if bokeh is bokeh_lr:
+                bokeh = bokeh.clone()  # fusion writes into it; bokeh_lr is returned too
+            timings["upsample"] = _ms(t0)
+            if fusion:
+                t0 = time.perf_counter()
+                bokeh, mask = self._fuse_tiled(scene, bokeh, focus, blur, lr_ratio)
+                timings["fusion"] = _ms(t0)
+            else:
+                mask = torch.zeros((1, 1, *scene.size), device=bokeh.device)
+
+        t0 = time.perf_counter()
+        result = Result(
+            bokeh=_to_numpy_image(bokeh.clamp_(0, 1)),
+            bokeh_lr=_to_numpy_image(bokeh_lr),
+            disparity=disparity_lr[0, 0].cpu().numpy(),
+            defocus=defocus_lr[0, 0].cpu().numpy(),
+            fusion_mask=mask[0, 0].cpu().numpy(),
+            timings=timings,
+        )
+        timings["to_numpy"] = _ms(t0)
+        timings["total"] = _ms(t_all)
+        return result
+
+    def focus_at(self, scene: Scene, x: float, y: float, radius: int | None = None) -> float:
+        """Median disparity in a ``(2r+1)^2`` window around full-res pixel ``(x, y)``.
+
+        ``(x, y)`` is clamped into the photo; the window is clipped at its borders.
+        ``radius`` defaults to ``max(2, round(max(H, W) / 200))`` px.
+
+        Returns:
+            Focal disparity in [0, 1] for :meth:`render`.
+        """
+        if not isinstance(scene, Scene):
+            raise TypeError(f"scene must be a Scene from prepare(), got {type(scene).__name__}")
+        try:
+            xf, yf = float(x), float(y)
+        except (TypeError, ValueError):
+            raise TypeError(f"x and y must be numbers, got {x!r}, {y!r}") from None
+        if not (math.isfinite(xf) and math.isfinite(yf)):
+            raise ValueError(f"x and y must be finite, got {x!r}, {y!r}")
+        height, width = scene.size
+        r = max(2, round(max(height, width) / 200)) if radius is None else int(radius)
+        if r < 0:
+            raise ValueError(f"radius must be >= 0, got {radius!r}")
+        xi = min(max(round(xf), 0), width - 1)
+        yi = min(max(round(yf), 0), height - 1)
+        d = scene.disparity_full_tensor()[0, 0]
+        window = d[max(0, yi - r) : yi + r + 1, max(0, xi - r) : xi + r + 1]
+        return float(np.clip(np.median(window.detach().cpu().numpy()), 0.0, 1.0))
+
+    # ---------------------------------------------------------------- training forwards
+
+    def _render_batch(
+        self,
+        image: Tensor,
+        disparity: Tensor,
+        focus: Tensor,
+        blur: Tensor,
+        radiance: Tensor,
+        **options: Any,
+    ) -> Tensor:
+        # rendering.render takes one blur per call; group samples that share it
+        blur_list = [float(v) for v in blur.reshape(-1)]
+        focus = focus.reshape(-1)
+        if all(v == blur_list[0] for v in blur_list):
+            return rendering.render(
+                image, disparity, focus, blur_list[0], radiance=radiance, **options
+            )
+        outs = [
+            rendering.render(
+                image[i : i + 1],
+                disparity[i : i + 1],
+                focus[i : i + 1],
+                blur_list[i],
+                radiance=radiance[i : i + 1],
+                **options,
+            )
+            for i in range(image.shape[0])
+        ]
+        return torch.cat(outs, dim=0)
+
+    def forward_stage1(
+        self, image_lr: Tensor, focus: float | Tensor, blur_lr: float | Tensor, **options: Any
+    ) -> dict[str, Tensor]:
+        """Differentiable low-resolution bokeh (training stage 1).
+
+        Args:
+            image_lr: ``(B, 3, h, w)`` in [0, 1]; the defocus network runs at this size.
+            focus: focal disparity, float or ``[B]`` in [0, 1].
+            blur_lr: ``K`` in px at this resolution, float or ``[B]``.
+            **options: passed to ``rendering.render``.
+
+        Returns:
+            ``{"bokeh_lr": (B,3,h,w), "disparity": (B,1,h,w), "radiance": (B,1,h,w)}``.
+        """
+        b = image_lr.shape[0]
+        options.setdefault("order", self.config.order)
+        disparity = self.defocus_net(image_lr)  # [B,1,h,w]
+        radiance = self.radiance_net(image_lr)  # [B,1,h,w]
+        f = _per_sample(focus, b, image_lr).reshape(-1)
+        k = _per_sample(blur_lr, b, image_lr).reshape(-1)
+        bokeh = self._render_batch(image_lr, disparity, f, k, radiance, **options)
+        return {"bokeh_lr": bokeh, "disparity": disparity, "radiance": radiance}
+
+    def forward_stage2(
+        self, image: Tensor, focus: float | Tensor, blur: float | Tensor, **options: Any
+    ) -> dict[str, Tensor]:
+        """Full-resolution fused bokeh (training stage 2; gradients reach ``f_p`` only).
+
+        Args:
+            image: ``I_hr``, ``(B, 3, H, W)`` in [0, 1].
+            focus: focal disparity, float or ``[B]``.
+            blur: ``K`` in px at full resolution, float or ``[B]``.
+
+        Returns:
+            dict with ``bokeh`` (B,3,H,W) = fused ``B_hr``, ``bokeh_up`` (B,3,H,W),
+            ``bokeh_lr`` (B,3,h,w), ``disparity_lr`` (B,1,h,w), ``disparity`` (B,1,H,W),
+            ``defocus`` (B,1,H,W) paper-normalised, ``mask`` and ``mask_soft`` (B,1,H,W).
+        """
+        b = image.shape[0]
+        size = (int(image.shape[-2]), int(image.shape[-1]))
+        lr_size = _scaled_size(size, self.config.render_scale, None)
+        lr_ratio = _size_ratio(lr_size, size)
+        k = _per_sample(blur, b, image)
+        f = _per_sample(focus, b, image)
+        frozen = (self.defocus_net, self.radiance_net)
+        modes = [m.training for m in frozen]
+        with torch.no_grad():
+            # the stage-1 networks are frozen here: batch statistics must not move
+            for m in frozen:
+                m.eval()
+            image_lr = _resize(image, lr_size).clamp(0, 1)
+            low = self.forward_stage1(
+                image_lr, f.reshape(-1), (k * lr_ratio).reshape(-1), **options
+            )
+            bokeh_up = _resize(low["bokeh_lr"], size)  # [B,3,H,W]
+            disparity = _resize(low["disparity"], size).clamp(0, 1)  # [B,1,H,W]
+            for m, mode in zip(frozen, modes, strict=True):
+                m.train(mode)
+        mask, mask_soft = self.fusion_mask(image, disparity, f, k, lr_ratio)
+        bokeh = torch.lerp(bokeh_up, image, mask)
+        defocus = _coc_to_defocus(k * lr_ratio * (disparity - f).abs())
+        return {
+            "bokeh": bokeh,
+            "bokeh_up": bokeh_up,
+            "bokeh_lr": low["bokeh_lr"],
+            "disparity_lr": low["disparity"],
+            "disparity": disparity,
+            "defocus": defocus,
+            "mask": mask,
+            "mask_soft": mask_soft,
+        }
+
+
+def _runs(columns: list[int]) -> list[tuple[int, int]]:
+    """Merge sorted column indices into inclusive runs: [1, 2, 3, 7] -> [(1, 3), (7, 7)]."""
+    runs: list[list[int]] = []
+    for c in columns:
+        if runs and c == runs[-1][1] + 1:
+            runs[-1][1] = c
+        else:
+            runs.append([c, c])
+    return [(a, b) for a, b in runs]
+
+
+def _defocus_to_coc(defocus: float) -> float:
+    """CoC (px at the low-res pass) of normalised defocus ``defocus`` (inverse of the schedule)."""
+    sizes = PAPER_GROWING_SIZES
+    pos = min(max(defocus, 0.0), 1.0) * (len(sizes) - 1)
+    i = min(int(pos), len(sizes) - 2)
+    return sizes[i] + (pos - i) * (sizes[i + 1] - sizes[i])
+
+
+def _schedule_lines() -> list[tuple[float, float]] | None:
+    """The growing schedule's inverse as lines ``(a, b)``: layer index = min(a + b * coc).
+
+    The schedule's steps only grow, so its inverse is concave and piecewise linear, which
+    makes it the minimum of its segments' lines. ``None`` if that does not hold.
+    """
+    sizes = PAPER_GROWING_SIZES
+    lines: list[tuple[float, float]] = []
+    for i in range(len(sizes) - 1):
+        slope = 1.0 / (sizes[i + 1] - sizes[i])
+        if lines and abs(lines[-1][1] - slope) < 1e-12:
+            continue
+        if lines and slope > lines[-1][1]:
+            return None
+        lines.append((i - slope * sizes[i], slope))
+    return lines
+
+
+_LINES = _schedule_lines()
+
+
+def _coc_to_defocus(coc: Tensor) -> Tensor:
+    """``rendering.coc_to_defocus`` for tensors, as a few elementwise ops (no searchsorted).
+
+    At 12 MP the generic piecewise-linear lookup costs seconds; this costs tens of ms.
+    Shape: any -> same, values in [0, 1].
+    """
+    if _LINES is None:
+        return rendering.coc_to_defocus(coc)
+    top = len(PAPER_GROWING_SIZES) - 1
+    out = None
+    for a, b in _LINES:
+        line = coc * b + a
+        out = line if out is None else torch.minimum(out, line)
+    return out.clamp(0, top) / top

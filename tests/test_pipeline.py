@@ -1,0 +1,321 @@
+"""D2F pipeline: prepare/render contract, fusion guarantees, checkpoints, input checks."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from d2f_core import rendering
+from d2f_core.pipeline import D2F, D2FConfig, Result, Scene, _coc_to_defocus
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    # tiny tensors gain nothing from threads, and OpenMP spin-waits collapse on a busy machine
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def _image(h: int = 48, w: int = 64, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    base = rng.random((h // 8 + 1, w // 8 + 1, 3)).astype(np.float32)
+    img = np.kron(base, np.ones((8, 8, 1), dtype=np.float32))[:h, :w]
+    return np.clip(img + 0.05 * rng.standard_normal((h, w, 3)).astype(np.float32), 0, 1)
+
+
+def _ramp(h: int = 48, w: int = 64) -> np.ndarray:
+    return np.tile(np.linspace(0, 1, w, dtype=np.float32), (h, 1))
+
+
+@pytest.fixture(scope="module")
+def model() -> D2F:
+    torch.manual_seed(0)
+    return D2F.from_config({})
+
+
+class TestPrepareRender:
+    def test_scene_fields(self, model):
+        scene = model.prepare(_image())
+        assert isinstance(scene, Scene)
+        assert scene.image.shape == (1, 3, 48, 64)
+        assert scene.image_lr.shape == (1, 3, 24, 32)
+        assert scene.disparity_lr.shape == (1, 1, 24, 32)
+        assert scene.radiance_lr.shape == (1, 1, 24, 32)
+        assert scene.size == (48, 64)
+        assert scene.disparity_source == "network"
+        assert 0 <= float(scene.disparity_lr.min()) <= float(scene.disparity_lr.max()) <= 1
+        assert scene.disparity_full().shape == (48, 64)
+
+    def test_uint8_equals_float(self, model):
+        img8 = (_image() * 255).round().astype(np.uint8)
+        a = model.prepare(img8)
+        b = model.prepare(img8.astype(np.float32) / 255)
+        assert torch.allclose(a.disparity_lr, b.disparity_lr, atol=1e-6)
+
+    def test_result_fields(self, model):
+        res = model.render(model.prepare(_image()), focus=0.5, blur=12.0)
+        assert isinstance(res, Result)
+        assert res.bokeh.shape == (48, 64, 3) and res.bokeh.dtype == np.float32
+        assert res.bokeh_lr.shape == (24, 32, 3)
+        assert res.disparity.shape == res.defocus.shape == (24, 32)
+        assert res.fusion_mask.shape == (48, 64)
+        for arr in (res.bokeh, res.bokeh_lr, res.disparity, res.defocus, res.fusion_mask):
+            assert arr.min() >= 0 and arr.max() <= 1
+        assert {"render_lr", "total"} <= set(res.timings)
+
+    def test_low_res_pass_equals_render_bokeh(self, model):
+        image, disp = _image(), _ramp()
+        scene = model.prepare(image, disparity=disp)
+        res = model.render(scene, focus=0.3, blur=20.0)
+        expected = rendering.render_bokeh(
+            scene.image_lr[0].permute(1, 2, 0).numpy(),
+            scene.disparity_lr[0, 0].numpy(),
+            0.3,
+            10.0,  # K scales with the pass: 24x32 is half of 48x64
+            radiance=scene.radiance_lr,
+        )
+        np.testing.assert_allclose(res.bokeh_lr, expected, atol=1e-6)
+
+    def test_full_scale_without_fusion_is_render_bokeh(self):
+        torch.manual_seed(0)
+        model = D2F.from_config({"render_scale": 1.0})
+        image, disp = _image(), _ramp()
+        scene = model.prepare(image, disparity=disp)
+        res = model.render(scene, focus=0.6, blur=9.0, fusion=False, highlight_boost=False)
+        expected = rendering.render_bokeh(
+            image, disp, 0.6, 9.0, radiance=scene.radiance_lr, highlight_boost=False
+        )
+        np.testing.assert_allclose(res.bokeh, expected, atol=1e-6)
+        assert not res.fusion_mask.any()
+
+    def test_given_disparity_resized(self, model):
+        scene = model.prepare(_image(), disparity=np.full((7, 5), 0.25, np.float32))
+        assert scene.disparity_source == "given"
+        np.testing.assert_allclose(scene.disparity_full(), 0.25, atol=1e-6)
+        np.testing.assert_allclose(scene.disparity_lr.numpy(), 0.25, atol=1e-6)
+
+    def test_zero_blur_returns_input(self, model):
+        image = _image()
+        res = model.render(model.prepare(image, disparity=_ramp()), focus=0.5, blur=0.0)
+        np.testing.assert_allclose(res.bokeh, image, atol=1e-6)
+        np.testing.assert_allclose(res.fusion_mask, 1.0)
+
+    def test_in_focus_pixels_stay_sharp(self, model):
+        # left half exactly at the focal plane, right half far behind it
+        disp = np.where(np.arange(64)[None, :] < 32, 0.8, 0.0).astype(np.float32)
+        disp = np.repeat(disp, 48, axis=0)
+        image = _image()
+        res = model.render(model.prepare(image, disparity=disp), focus=0.8, blur=40.0)
+        np.testing.assert_allclose(res.fusion_mask[:, :31], 1.0)
+        np.testing.assert_allclose(res.bokeh[:, :31], image[:, :31], atol=1e-6)
+        # far half: CoC 32 px, D well above the gate, so the blurred pass is used
+        assert res.fusion_mask[:, 34:].max() == 0.0
+        assert np.abs(res.bokeh[:, 34:] - image[:, 34:]).mean() > 0.01
+
+    def test_preview(self, model):
+        scene = model.prepare(_image(96, 128), disparity=_ramp(96, 128))
+        res = model.render(scene, focus=0.5, blur=30.0, max_side=32)
+        assert res.bokeh.shape == (24, 32, 3)
+        assert res.fusion_mask.shape == (24, 32) and not res.fusion_mask.any()
+        again = model.render(scene, focus=0.5, blur=30.0, max_side=32)
+        np.testing.assert_array_equal(res.bokeh, again.bokeh)
+
+    def test_render_options_pass_through(self, model):
+        scene = model.prepare(_image(), disparity=_ramp())
+        a = model.render(scene, 0.5, 30.0, kernel="hard", fusion=False)
+        b = model.render(scene, 0.5, 30.0, kernel="soft", fusion=False)
+        assert np.abs(a.bokeh - b.bokeh).max() > 1e-4
+        with pytest.raises(ValueError, match="kernel"):
+            model.render(scene, 0.5, 30.0, kernel="bogus")
+
+
+class TestFusion:
+    @pytest.mark.parametrize(
+        ("focus", "blur"), [(0.5, 20.0), (0.52, 200.0), (0.3, 3.0), (0.5, 0.5), (0.0, 40.0)]
+    )
+    def test_tiled_equals_dense(self, focus, blur):
+        torch.manual_seed(0)
+        model = D2F.from_config({"fusion": "paper"})  # the widest halo
+        h, w = 300, 600
+        image = np.random.default_rng(0).random((h, w, 3), dtype=np.float32)
+        # a ramp (mixed tiles), then a flat region at 0.5 (all-sharp tiles when focus = 0.5)
+        disp = np.full((h, w), 0.5, np.float32)
+        disp[:, :280] = np.linspace(0, 1, 280, dtype=np.float32)
+        scene = model.prepare(image, disparity=disp)
+        bokeh_up = torch.rand(1, 3, h, w, generator=torch.Generator().manual_seed(1))
+        with torch.no_grad():
+            mask, _ = model.fusion_mask(
+                scene.image, scene.disparity_full_tensor(), focus, blur, 0.5
+            )
+            expected = torch.lerp(bokeh_up, scene.image, mask)
+            fused, tiled_mask = model._fuse_tiled(scene, bokeh_up.clone(), focus, blur, 0.5)
+        torch.testing.assert_close(tiled_mask, mask, atol=1e-6, rtol=0)
+        torch.testing.assert_close(fused, expected, atol=1e-6, rtol=0)
+
+    def test_mask_is_at_least_the_prior(self, model):
+        image = torch.rand(1, 3, 16, 16)
+        disp = torch.linspace(0, 1, 16).expand(1, 1, 16, 16).contiguous()
+        with torch.no_grad():
+            mask, soft = model.fusion_mask(image, disp, 0.5, 10.0, 0.5)
+        coc = 10.0 * (disp - 0.5).abs()
+        assert torch.all(mask[coc <= 1.0] == 1.0)
+        assert torch.all(mask >= soft)
+
+    def test_fast_defocus_matches_renderer(self):
+        coc = torch.linspace(0, 120, 20001)
+        torch.testing.assert_close(
+            _coc_to_defocus(coc), rendering.coc_to_defocus(coc), atol=1e-6, rtol=0
+        )
+
+
+class TestFocusAt:
+    def test_median_ignores_outliers(self, model):
+        disp = np.full((48, 64), 0.2, np.float32)
+        disp[10:15, 20:25] = 0.8
+        disp[12, 22] = 0.0  # one outlier inside the window
+        scene = model.prepare(_image(), disparity=disp)
+        assert model.focus_at(scene, 22, 12, radius=2) == pytest.approx(0.8, abs=1e-6)
+
+    def test_clamps_to_image(self, model):
+        disp = np.full((48, 64), 0.1, np.float32)
+        disp[:, -4:] = 0.9
+        scene = model.prepare(_image(), disparity=disp)
+        assert model.focus_at(scene, 500, -30, radius=1) == pytest.approx(0.9, abs=1e-6)
+        assert model.focus_at(scene, -5, 100) == pytest.approx(0.1, abs=1e-6)
+
+    def test_bad_args(self, model):
+        scene = model.prepare(_image())
+        with pytest.raises(ValueError, match="finite"):
+            model.focus_at(scene, float("nan"), 3)
+        with pytest.raises(TypeError, match="scene"):
+            model.focus_at("scene", 1, 1)
+
+
+class TestInputChecks:
+    def test_bad_images(self, model):
+        with pytest.raises(ValueError, match="image"):
+            model.prepare(np.zeros((8, 8), np.float32))
+        with pytest.raises(ValueError, match="image"):
+            model.prepare(np.full((8, 8, 3), 2.0, np.float32))
+        with pytest.raises(ValueError, match="NaN"):
+            model.prepare(np.full((8, 8, 3), np.nan, np.float32))
+        with pytest.raises(TypeError, match="image"):
+            model.prepare([[1, 2, 3]])
+
+    def test_bad_disparity(self, model):
+        nan = np.zeros((8, 8), np.float32)
+        nan[2, 2] = np.inf
+        with pytest.raises(ValueError, match="disparity contains NaN or inf"):
+            model.prepare(_image(), disparity=nan)
+        with pytest.raises(ValueError, match="disparity must have shape"):
+            model.prepare(_image(), disparity=np.zeros((4, 4, 3), np.float32))
+        with pytest.raises(ValueError, match=r"disparity must be in \[0, 1\]"):
+            model.prepare(_image(), disparity=np.full((4, 4), 3.0, np.float32))
+
+    def test_bad_focus_blur(self, model):
+        scene = model.prepare(_image())
+        with pytest.raises(ValueError, match="focus"):
+            model.render(scene, focus=1.5, blur=10.0)
+        with pytest.raises(ValueError, match="blur"):
+            model.render(scene, focus=0.5, blur=-1.0)
+        with pytest.raises(ValueError, match="max_side"):
+            model.render(scene, focus=0.5, blur=1.0, max_side=0)
+        with pytest.raises(TypeError, match="scene"):
+            model.render(None, 0.5, 1.0)
+
+    def test_bad_config(self):
+        with pytest.raises(ValueError, match="unknown config keys"):
+            D2F.from_config({"colour": "red"})
+        with pytest.raises(ValueError, match="variant"):
+            D2F.from_config({"defocus": "vit"})
+        with pytest.raises(TypeError, match="network_size"):
+            D2FConfig(network_size="big")
+
+
+class TestCheckpoints:
+    def test_roundtrip_identical(self, model, tmp_path):
+        path = tmp_path / "m.pt"
+        model.save(path)
+        loaded = D2F.from_checkpoint(path)
+        assert loaded.config == model.config
+        assert not loaded.training
+        image = _image()
+        a = model.render(model.prepare(image), 0.5, 20.0)
+        b = loaded.render(loaded.prepare(image), 0.5, 20.0)
+        np.testing.assert_array_equal(a.bokeh, b.bokeh)
+
+    def test_truncated(self, model, tmp_path):
+        path = tmp_path / "m.pt"
+        model.save(path)
+        data = path.read_bytes()
+        path.write_bytes(data[: len(data) // 2])
+        with pytest.raises(ValueError, match="corrupt or truncated"):
+            D2F.from_checkpoint(path)
+
+    def test_garbage_and_wrong_layout(self, tmp_path):
+        path = tmp_path / "g.pt"
+        path.write_bytes(b"\x00garbage")
+        with pytest.raises(ValueError, match="corrupt"):
+            D2F.from_checkpoint(path)
+        torch.save({"weights": torch.zeros(1)}, path)
+        with pytest.raises(ValueError, match="'config' and 'state_dict'"):
+            D2F.from_checkpoint(path)
+
+    def test_mismatched_config(self, model, tmp_path):
+        ckpt = model.checkpoint()
+        ckpt["config"] = dict(ckpt["config"], fusion="paper")
+        path = tmp_path / "mm.pt"
+        torch.save(ckpt, path)
+        with pytest.raises(ValueError, match="does not match its config"):
+            D2F.from_checkpoint(path)
+        ckpt = model.checkpoint()
+        ckpt["config"]["bogus"] = 1
+        torch.save(ckpt, path)
+        with pytest.raises(ValueError, match="invalid config"):
+            D2F.from_checkpoint(path)
+        ckpt = model.checkpoint()
+        ckpt["version"] = 99
+        torch.save(ckpt, path)
+        with pytest.raises(ValueError, match="version"):
+            D2F.from_checkpoint(path)
+
+    def test_missing_files(self, tmp_path, monkeypatch):
+        with pytest.raises(FileNotFoundError, match="nope.pt"):
+            D2F.from_checkpoint(tmp_path / "nope.pt")
+        with pytest.raises(FileNotFoundError, match="missing.pt"):
+            D2F.from_pretrained(tmp_path / "missing.pt")
+        monkeypatch.setenv("D2F_WEIGHTS", str(tmp_path / "env.pt"))
+        with pytest.raises(FileNotFoundError, match="env.pt"):
+            D2F.from_pretrained()
+
+    def test_pretrained_from_env(self, model, tmp_path, monkeypatch):
+        path = tmp_path / "env.pt"
+        model.save(path)
+        monkeypatch.setenv("D2F_WEIGHTS", str(path))
+        assert D2F.from_pretrained().config == model.config
+
+
+class TestTrainingForwards:
+    def test_stage1_gradients(self):
+        torch.manual_seed(0)
+        model = D2F.from_config({}).train()
+        out = model.forward_stage1(torch.rand(2, 3, 32, 32), 1.0, torch.tensor([8.0, 12.0]))
+        assert out["bokeh_lr"].shape == (2, 3, 32, 32)
+        out["bokeh_lr"].mean().backward()
+        assert model.defocus_net.project[0][1].weight.grad is not None
+        assert model.radiance_net.net[0].weight.grad is not None
+        assert model.fusion_net.net[0].weight.grad is None
+
+    def test_stage2_trains_fusion_only(self):
+        torch.manual_seed(0)
+        model = D2F.from_config({}).train()
+        image = torch.rand(1, 3, 32, 32)
+        out = model.forward_stage2(image, 0.5, 10.0)
+        assert out["bokeh"].shape == out["bokeh_up"].shape == (1, 3, 32, 32)
+        assert out["bokeh_lr"].shape == (1, 3, 16, 16)
+        out["bokeh"].mean().backward()
+        assert model.fusion_net.net[0].weight.grad is not None
+        assert all(p.grad is None for p in model.defocus_net.parameters())
