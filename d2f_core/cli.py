@@ -1,0 +1,667 @@
+"""``d2f``: render bokeh from the command line.
+
+    d2f render IN -o OUT [--focus F | --focus-at X,Y] --blur K [--depth FILE ...]
+    d2f batch DIR -o OUTDIR [same options]
+
+Depth comes from, in order: ``--depth``, the phone depth embedded in the photo (Google Lens
+Blur, Apple portrait JPEG/HEIC), or the D2F defocus network. The focal plane comes from
+``--focus``/``--focus-at``, else the focus stored by the phone, else the image centre.
+Without network weights, photos with a depth map still render (the physical layered
+renderer with a sharp in-focus prior instead of the learned radiance and fusion networks).
+
+Exit status: 0 success, 1 failure (unreadable input, missing weights, ...), 2 usage error.
+Errors go to stderr as ``d2f: error: ...``, without a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import logging
+import math
+import os
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .io import (
+    READ_EXTENSIONS,
+    SAVE_FORMATS,
+    load_depth,
+    load_photo,
+    same_file,
+    save_depth,
+    save_image,
+)
+
+# named explicitly: under "python -m d2f_core.cli" __name__ is "__main__"
+logger = logging.getLogger("d2f_core.cli")
+
+PROG = "d2f"
+DEPTH_SUFFIXES = ("", "_depth", "-depth", "_disparity", "-disparity")
+DEPTH_FILE_EXTENSIONS = (".png", ".npy", ".pfm", ".tif", ".tiff", ".jpg", ".jpeg")
+# The fallback renderer caps its working resolution like the pipeline's low-res pass.
+_FALLBACK_MAX_SIDE = 1024
+_SHARP_COC_PX = 1.0
+
+
+class UsageError(Exception):
+    """A problem with the command line itself (exit status 2)."""
+
+
+class RenderError(Exception):
+    """A photo could not be rendered (exit status 1)."""
+
+
+# --------------------------------------------------------------------------- argument types
+
+
+def _unit_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number in [0, 1], got {text!r}") from None
+    if not 0.0 <= value <= 1.0:
+        raise argparse.ArgumentTypeError(f"expected a number in [0, 1], got {text!r}")
+    return value
+
+
+def _non_negative_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}") from None
+    if not math.isfinite(value) or value < 0:
+        raise argparse.ArgumentTypeError(f"expected a finite number >= 0, got {text!r}")
+    return value
+
+
+def _finite_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+    return value
+
+
+def _point(text: str) -> tuple[float, float]:
+    parts = text.replace(" ", "").split(",")
+    try:
+        if len(parts) != 2:
+            raise ValueError
+        x, y = float(parts[0]), float(parts[1])
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected X,Y pixel coordinates, got {text!r}") from None
+    if not (math.isfinite(x) and math.isfinite(y)) or x < 0 or y < 0:
+        raise argparse.ArgumentTypeError(f"expected X,Y >= 0, got {text!r}")
+    return x, y
+
+
+def _blades(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if value != 0 and not 3 <= value <= 32:
+        raise argparse.ArgumentTypeError(f"expected 0 (round) or 3..32 blades, got {value}")
+    return value
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = float(text)  # accepts 12e6
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if not math.isfinite(value) or value < 1 or value != int(value):
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+    return int(value)
+
+
+def _jpeg_quality(text: str) -> int:
+    value = _positive_int(text)
+    if value > 100:
+        raise argparse.ArgumentTypeError(f"expected 1..100, got {text!r}")
+    return value
+
+
+# --------------------------------------------------------------------------- parser
+
+
+class _Parser(argparse.ArgumentParser):
+    """Reports errors as ``d2f: error: ...`` for subcommands too (not ``d2f render: ...``)."""
+
+    def error(self, message: str):  # type: ignore[override]
+        self.print_usage(sys.stderr)
+        self.exit(2, f"{PROG}: error: {message}\n")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    common = _Parser(add_help=False)
+    focus = common.add_argument_group("focus and blur")
+    where = focus.add_mutually_exclusive_group()
+    where.add_argument(
+        "--focus", type=_unit_float, metavar="F", help="focal disparity in [0, 1] (1 = nearest)"
+    )
+    where.add_argument(
+        "--focus-at",
+        type=_point,
+        metavar="X,Y",
+        help="focus on the depth at this pixel of the (upright) input photo",
+    )
+    focus.add_argument(
+        "--blur",
+        type=_non_negative_float,
+        required=True,
+        metavar="K",
+        help="blur amount: CoC diameter in px at full resolution for |d - focus| = 1",
+    )
+    focus.add_argument(
+        "--aperture-blades",
+        type=_blades,
+        default=0,
+        metavar="N",
+        help="polygonal aperture with N blades (0 = round, default)",
+    )
+    focus.add_argument(
+        "--rotation", type=_finite_float, default=0.0, metavar="DEG", help="aperture rotation"
+    )
+    focus.add_argument(
+        "--no-fusion",
+        action="store_true",
+        help="skip the full-resolution fusion (plain upsampling of the bokeh pass)",
+    )
+    depth = common.add_argument_group("depth")
+    depth.add_argument(
+        "--depth",
+        type=Path,
+        metavar="FILE",
+        help="depth/disparity map of the upright photo (PNG 8/16-bit, .npy, .pfm, float "
+        "TIFF); for batch a folder with maps named like the photos (STEM.png, "
+        "STEM_depth.npy, ...)",
+    )
+    depth.add_argument(
+        "--depth-kind",
+        choices=("disparity", "depth"),
+        default="disparity",
+        help="what --depth stores: disparity (default; large = near) or metric depth",
+    )
+    depth.add_argument(
+        "--near",
+        choices=("bright", "dark"),
+        default=None,
+        help="which end of a --depth disparity map is near (default: bright)",
+    )
+    depth.add_argument(
+        "--zero-is-hole",
+        action="store_true",
+        help="zeros in a --depth disparity map mean 'unknown' (stereo ground truth); "
+        "they are always holes in metric depth maps",
+    )
+    depth.add_argument(
+        "--no-embedded-depth",
+        action="store_true",
+        help="ignore phone depth embedded in the photo",
+    )
+    out = common.add_argument_group("output")
+    out.add_argument(
+        "--save-maps",
+        type=Path,
+        metavar="DIR",
+        help="also write STEM_disparity.png (16-bit), STEM_defocus.png, STEM_fusion_mask.png",
+    )
+    out.add_argument(
+        "--jpeg-quality", type=_jpeg_quality, default=95, metavar="Q", help="default 95"
+    )
+    model = common.add_argument_group("model and limits")
+    model.add_argument(
+        "--weights",
+        type=Path,
+        metavar="CKPT",
+        help="D2F checkpoint (default: shipped weights or $D2F_WEIGHTS)",
+    )
+    model.add_argument(
+        "--max-pixels",
+        type=_positive_int,
+        metavar="N",
+        help="downscale larger photos to at most N pixels before rendering",
+    )
+    verbosity = common.add_argument_group("messages")
+    verbosity.add_argument("-q", "--quiet", action="store_true", help="only errors")
+    verbosity.add_argument(
+        "-v", "--verbose", action="count", default=0, help="more detail (-vv for debug)"
+    )
+
+    parser = _Parser(
+        prog=PROG,
+        description="Single-image bokeh rendering and refocusing with D2F (Defocus to Focus).",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    render = sub.add_parser(
+        "render",
+        parents=[common],
+        help="render one photo",
+        description="Render bokeh for one photo.",
+    )
+    render.add_argument("input", type=Path, metavar="IN", help="input photo")
+    render.add_argument(
+        "-o", "--output", type=Path, required=True, metavar="OUT", help="output file or folder"
+    )
+    batch = sub.add_parser(
+        "batch",
+        parents=[common],
+        help="render every photo in a folder",
+        description="Render bokeh for every photo in a folder (not recursive).",
+    )
+    batch.add_argument("input", type=Path, metavar="DIR", help="folder of photos")
+    batch.add_argument(
+        "-o", "--output", type=Path, required=True, metavar="DIR", help="output folder"
+    )
+    batch.add_argument(
+        "--format",
+        choices=sorted({e.lstrip(".") for e in SAVE_FORMATS}),
+        default=None,
+        help="output format (default: the input's, or jpg when it cannot be written)",
+    )
+    batch.add_argument(
+        "--suffix", default="_bokeh", help="added to each output file name (default _bokeh)"
+    )
+    return parser
+
+
+# --------------------------------------------------------------------------- logging
+
+
+class _Formatter(logging.Formatter):
+    def format(self, record: logging.LogRecord) -> str:
+        msg = record.getMessage()
+        if record.levelno >= logging.ERROR:
+            return f"{PROG}: error: {msg}"
+        if record.levelno >= logging.WARNING:
+            return f"{PROG}: warning: {msg}"
+        return f"{PROG}: {msg}"
+
+
+def _setup_logging(quiet: bool, verbose: int) -> tuple[logging.Handler, int]:
+    """Send the package's log records to stderr; returns the handler and the old level."""
+    levels = (logging.WARNING, logging.INFO, logging.DEBUG)
+    level = logging.ERROR if quiet else levels[min(verbose, 2)]
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(_Formatter())
+    handler.setLevel(level)
+    pkg = logging.getLogger("d2f_core")
+    old = pkg.level
+    pkg.addHandler(handler)
+    pkg.setLevel(level)
+    return handler, old
+
+
+# --------------------------------------------------------------------------- rendering
+
+
+@dataclass
+class Engine:
+    """Loads the D2F model at most once per run; remembers why it is unavailable."""
+
+    weights: Path | None
+    _model: Any = None
+    _error: str | None = None
+    _tried: bool = False
+
+    def model(self) -> Any:
+        if self._tried:
+            return self._model
+        self._tried = True
+        from .pipeline import D2F
+
+        if self.weights is not None:
+            if not self.weights.is_file():
+                raise RenderError(f"--weights {os.fspath(self.weights)!r}: no such file")
+            try:
+                self._model = D2F.from_checkpoint(self.weights)
+            except (ValueError, FileNotFoundError) as exc:
+                raise RenderError(f"--weights: {exc}") from exc
+            return self._model
+        try:
+            self._model = D2F.from_pretrained()
+        except FileNotFoundError as exc:
+            self._error = str(exc)
+            logger.info("D2F weights unavailable (%s)", exc)
+        except ValueError as exc:  # present but unusable: worth a warning
+            self._error = str(exc)
+            logger.warning("D2F weights unusable (%s)", exc)
+        return self._model
+
+    @property
+    def error(self) -> str | None:
+        return self._error
+
+
+@dataclass
+class Rendered:
+    bokeh: np.ndarray
+    maps: dict[str, np.ndarray] = field(default_factory=dict)
+
+
+def _focus_from_map(disparity: np.ndarray, x: float, y: float) -> float:
+    """Median disparity around pixel (x, y); same window as ``D2F.focus_at``."""
+    h, w = disparity.shape
+    r = max(2, round(max(h, w) / 200))
+    xi = min(max(round(x), 0), w - 1)
+    yi = min(max(round(y), 0), h - 1)
+    win = disparity[max(0, yi - r) : yi + r + 1, max(0, xi - r) : xi + r + 1]
+    return float(np.clip(np.median(win), 0.0, 1.0))
+
+
+def render_with_depth_only(
+    image: np.ndarray,
+    disparity: np.ndarray,
+    focus: float,
+    blur: float,
+    *,
+    fusion: bool = True,
+    **render_options: Any,
+) -> Rendered:
+    """Render without the learned networks: the layered renderer at up to 1024 px (long side),
+    upsampled, with the in-focus prior (CoC <= 1 px keeps the sharp input) as fusion.
+
+    Shape: image HxWx3 float32 [0, 1], disparity HxW [0, 1] -> bokeh HxWx3 [0, 1].
+    """
+    import torch
+    import torch.nn.functional as F
+
+    from .rendering import coc_to_defocus, render
+
+    h, w = image.shape[:2]
+    scale = min(1.0, _FALLBACK_MAX_SIDE / max(h, w))
+    lr = (max(1, round(h * scale)), max(1, round(w * scale)))
+    img = torch.from_numpy(np.ascontiguousarray(image, dtype=np.float32)).permute(2, 0, 1)[None]
+    disp = torch.from_numpy(np.ascontiguousarray(disparity, dtype=np.float32))[None, None]
+    with torch.no_grad():
+        if lr != (h, w):
+            img_lr = F.interpolate(img, lr, mode="bilinear", antialias=True, align_corners=False)
+            disp_lr = F.interpolate(disp, lr, mode="bilinear", antialias=True, align_corners=False)
+            img_lr, disp_lr = img_lr.clamp(0, 1), disp_lr.clamp(0, 1)
+        else:
+            img_lr, disp_lr = img, disp
+        ratio = 0.5 * (lr[0] / h + lr[1] / w)
+        bokeh_lr = render(img_lr, disp_lr, focus, blur * ratio, **render_options)  # [1,3,h,w]
+        bokeh = bokeh_lr
+        if lr != (h, w):
+            bokeh = F.interpolate(bokeh_lr, (h, w), mode="bilinear", align_corners=False)
+        coc = blur * (disp - focus).abs()  # [1,1,H,W] px at full resolution
+        mask = ((2.0 * _SHARP_COC_PX - coc) / _SHARP_COC_PX).clamp(0, 1)
+        if fusion:
+            bokeh = torch.lerp(bokeh, img, mask)
+        else:
+            mask = torch.zeros_like(mask)
+        defocus = coc_to_defocus(blur * ratio * (disp_lr - focus).abs())
+    return Rendered(
+        bokeh=bokeh[0].permute(1, 2, 0).clamp(0, 1).numpy(),
+        maps={
+            "disparity": disparity.astype(np.float32),
+            "defocus": defocus[0, 0].numpy(),
+            "fusion_mask": mask[0, 0].numpy(),
+        },
+    )
+
+
+def _find_depth_file(folder: Path, stem: str) -> Path | None:
+    for suffix in DEPTH_SUFFIXES:
+        for ext in DEPTH_FILE_EXTENSIONS:
+            candidate = folder / f"{stem}{suffix}{ext}"
+            if candidate.is_file():
+                return candidate
+    return None
+
+
+def render_file(
+    src: Path,
+    dst: Path,
+    args: argparse.Namespace,
+    engine: Engine,
+    depth_file: Path | None,
+) -> Path:
+    """Render one photo to ``dst``; raises ``ValueError``/``RenderError`` on failure."""
+    photo = load_photo(src, max_pixels=args.max_pixels, use_embedded=not args.no_embedded_depth)
+    image = photo.image
+    h, w = image.shape[:2]
+    disparity = None
+    focus = args.focus
+    if depth_file is not None:
+        disparity = load_depth(
+            depth_file,
+            kind=args.depth_kind,
+            near=args.near,
+            size=(h, w),
+            guide=image,
+            zero_is_hole=True if args.zero_is_hole else None,
+        )
+        logger.info("%s: depth from %s", src, depth_file)
+    elif photo.disparity is not None:
+        disparity = photo.disparity
+        source = photo.depth_info.get("source") if photo.depth_info else "embedded"
+        logger.info("%s: using the phone depth embedded in the photo (%s)", src, source)
+        if focus is None and args.focus_at is None and photo.focus is not None:
+            focus = float(photo.focus)
+            logger.info("%s: focus %.3f from the photo's metadata", src, focus)
+
+    point = None
+    if focus is None:
+        oh, ow = photo.info.original_size
+        if args.focus_at is not None:
+            x, y = args.focus_at
+            if x > ow - 1 or y > oh - 1:
+                raise ValueError(f"--focus-at {x:g},{y:g} is outside the {ow}x{oh} photo {src}")
+            point = (x * w / ow, y * h / oh)  # into the loaded (possibly downscaled) frame
+        else:
+            point = ((w - 1) / 2.0, (h - 1) / 2.0)
+            logger.info("%s: no focus given; focusing on the image centre", src)
+
+    options: dict[str, Any] = {"blades": args.aperture_blades, "rotation": args.rotation}
+    model = engine.model()
+    if model is not None:
+        scene = model.prepare(image, disparity=disparity)
+        if point is not None:
+            focus = model.focus_at(scene, *point)
+        result = model.render(
+            scene, focus=focus, blur=args.blur, fusion=not args.no_fusion, **options
+        )
+        rendered = Rendered(
+            bokeh=result.bokeh,
+            maps={
+                "disparity": scene.disparity_full(),
+                "defocus": result.defocus,
+                "fusion_mask": result.fusion_mask,
+            },
+        )
+    elif disparity is not None:
+        if point is not None:
+            focus = _focus_from_map(disparity, *point)
+        logger.info("%s: rendering with the depth map only (no D2F weights)", src)
+        rendered = render_with_depth_only(
+            image, disparity, focus, args.blur, fusion=not args.no_fusion, **options
+        )
+    else:
+        raise RenderError(
+            f"{src}: no depth map: the photo has no embedded phone depth and no --depth was "
+            f"given, and the D2F network weights are unavailable ({engine.error}); pass "
+            "--depth FILE or --weights CKPT"
+        )
+    logger.info("%s: focus %.3f, blur %g px", src, focus, args.blur)
+
+    protect = [src] + ([depth_file] if depth_file is not None else [])
+    save_image(
+        dst,
+        rendered.bokeh,
+        quality=args.jpeg_quality,
+        icc_profile=photo.info.icc_profile,
+        exif=photo.info.exif,
+        protect=protect,
+    )
+    if args.save_maps is not None:
+        args.save_maps.mkdir(parents=True, exist_ok=True)
+        stem = dst.stem
+        for name, arr in rendered.maps.items():
+            target = args.save_maps / f"{stem}_{name}.png"
+            if any(same_file(target, p) for p in protect):
+                raise ValueError(f"--save-maps: {target} would overwrite an input file")
+            save_depth(target, np.clip(arr, 0.0, 1.0))
+    return dst
+
+
+# --------------------------------------------------------------------------- commands
+
+
+def _check_output_name(path: Path) -> None:
+    if path.suffix.lower() not in SAVE_FORMATS:
+        known = " ".join(sorted(SAVE_FORMATS))
+        raise UsageError(f"output {os.fspath(path)!r}: unknown image extension (use {known})")
+
+
+def _cmd_render(args: argparse.Namespace) -> int:
+    src: Path = args.input
+    if not src.exists():
+        raise RenderError(f"{os.fspath(src)}: no such file")
+    if src.is_dir():
+        raise UsageError(f"{os.fspath(src)} is a folder; use 'd2f batch' for folders")
+    dst: Path = args.output
+    if dst.is_dir():
+        ext = src.suffix.lower() if src.suffix.lower() in SAVE_FORMATS else ".jpg"
+        dst = dst / f"{src.stem}_bokeh{ext}"
+    _check_output_name(dst)
+    if same_file(dst, src):
+        raise UsageError(f"output {os.fspath(dst)!r} is the input photo; choose another name")
+    if args.depth is not None:
+        if args.depth.is_dir():
+            raise UsageError("--depth must be a file for 'd2f render'")
+        if same_file(dst, args.depth):
+            raise UsageError(f"output {os.fspath(dst)!r} is the --depth file")
+    if not dst.parent.exists():
+        raise RenderError(f"output folder {os.fspath(dst.parent)!r} does not exist")
+    render_file(src, dst, args, Engine(args.weights), args.depth)
+    logger.info("wrote %s", dst)
+    return 0
+
+
+def _batch_plan(args: argparse.Namespace) -> tuple[list[tuple[Path, Path]], list[Path]]:
+    """(input, output) pairs and the files skipped for their extension."""
+    in_dir: Path = args.input
+    out_dir: Path = args.output
+    files = sorted(p for p in in_dir.iterdir() if p.is_file() and not p.name.startswith("."))
+    photos = [p for p in files if p.suffix.lower() in READ_EXTENSIONS]
+    skipped = [p for p in files if p.suffix.lower() not in READ_EXTENSIONS]
+    used: set[str] = set()
+    pairs = []
+    for p in photos:
+        if args.format:
+            ext = "." + args.format
+        else:
+            ext = p.suffix.lower() if p.suffix.lower() in SAVE_FORMATS else ".jpg"
+        name = f"{p.stem}{args.suffix}{ext}"
+        if name.lower() in used:
+            # a.jpg and a.heic would both become a_bokeh.jpg
+            name = f"{p.stem}_{p.suffix.lstrip('.').lower()}{args.suffix}{ext}"
+        used.add(name.lower())
+        pairs.append((p, out_dir / name))
+    return pairs, skipped
+
+
+def _cmd_batch(args: argparse.Namespace) -> int:
+    in_dir: Path = args.input
+    out_dir: Path = args.output
+    if not in_dir.is_dir():
+        raise UsageError(f"{os.fspath(in_dir)!r} is not a folder")
+    if out_dir.exists() and not out_dir.is_dir():
+        raise UsageError(f"-o {os.fspath(out_dir)!r} exists and is not a folder")
+    if out_dir.exists() and same_file(out_dir, in_dir):
+        raise UsageError("-o must differ from the input folder (outputs never replace inputs)")
+    if "/" in args.suffix or os.sep in args.suffix:
+        raise UsageError("--suffix must not contain a path separator")
+    if args.depth is not None and not args.depth.is_dir():
+        raise UsageError("--depth must be a folder of depth maps for 'd2f batch'")
+    if args.save_maps is not None and args.save_maps.exists() and same_file(args.save_maps, in_dir):
+        raise UsageError("--save-maps must differ from the input folder")
+    pairs, skipped = _batch_plan(args)
+    for p in skipped:
+        logger.info("skipping %s: not a photo file extension", p)
+    if not pairs:
+        raise RenderError(f"no photos found in {os.fspath(in_dir)}")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    engine = Engine(args.weights)
+    failed: list[Path] = []
+
+    try:
+        from tqdm import tqdm
+        from tqdm.contrib.logging import logging_redirect_tqdm
+    except ImportError:  # tqdm is optional: no progress bar then
+        tqdm = None
+    redirect = (
+        logging_redirect_tqdm(loggers=[logging.getLogger("d2f_core")])
+        if tqdm is not None
+        else contextlib.nullcontext()
+    )
+    with redirect:
+        bar = (
+            tqdm(pairs, desc="d2f", unit="photo", disable=True if args.quiet else None)
+            if tqdm is not None
+            else pairs
+        )
+        for src, dst in bar:
+            if tqdm is not None:
+                bar.set_postfix_str(src.name, refresh=False)
+            depth_file = _find_depth_file(args.depth, src.stem) if args.depth else None
+            try:
+                render_file(src, dst, args, engine, depth_file)
+            except (ValueError, OSError, RenderError, RuntimeError) as exc:
+                failed.append(src)
+                msg = _message(exc)
+                logger.error("skipped %s", msg if str(src) in msg else f"{src}: {msg}")
+    done = len(pairs) - len(failed)
+    logger.info("%d of %d photos rendered into %s", done, len(pairs), out_dir)
+    if failed:
+        logger.error("%d of %d photos failed", len(failed), len(pairs))
+        return 1
+    return 0
+
+
+def _message(exc: BaseException) -> str:
+    text = str(exc) or type(exc).__name__
+    if isinstance(exc, OSError) and exc.strerror and exc.filename:
+        text = f"{exc.filename}: {exc.strerror}"
+    return text
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``d2f`` command. Returns the exit status."""
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # argparse already printed usage and the message
+        return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 2)
+    handler, old_level = _setup_logging(args.quiet, args.verbose)
+    try:
+        if args.command == "render":
+            return _cmd_render(args)
+        return _cmd_batch(args)
+    except UsageError as exc:
+        parser.print_usage(sys.stderr)
+        print(f"{PROG}: error: {exc}", file=sys.stderr)
+        return 2
+    except (RenderError, ValueError, OSError, RuntimeError) as exc:
+        print(f"{PROG}: error: {_message(exc)}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f"{PROG}: interrupted", file=sys.stderr)
+        return 130
+    finally:
+        logging.getLogger("d2f_core").removeHandler(handler)
+        logging.getLogger("d2f_core").setLevel(old_level)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,334 @@
+"""The ``d2f`` command: exit statuses, error messages, depth sources, batch behaviour."""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+
+import numpy as np
+import pytest
+from _io_writers import lensblur_jpeg
+from PIL import Image, ImageCms
+
+from d2f_core.cli import main, render_with_depth_only
+from d2f_core.io import load_image, save_depth
+
+SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+@pytest.fixture(autouse=True)
+def no_shipped_weights(monkeypatch, tmp_path):
+    """Every test starts without default weights, like a fresh clone before training."""
+    monkeypatch.setenv("D2F_WEIGHTS", str(tmp_path / "no-such-weights.pt"))
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory) -> Path:
+    from d2f_core.pipeline import D2F
+
+    path = tmp_path_factory.mktemp("ckpt") / "tiny.pt"
+    D2F.from_config({"network_size": 64}).save(path)
+    return path
+
+
+def _scene(h: int = 48, w: int = 64, seed: int = 0):
+    """A textured photo: left half near (disparity 1), right half far (0)."""
+    rng = np.random.default_rng(seed)
+    img = (rng.random((h, w, 3)) * 255).astype(np.uint8)
+    disp = np.zeros((h, w), np.float32)
+    disp[:, : w // 2] = 1.0
+    return img, disp
+
+
+def _grad(img: np.ndarray) -> float:
+    g = img.mean(axis=2)
+    return float(np.mean(np.abs(np.diff(g, axis=1))))
+
+
+def _write_photo(path: Path, img: np.ndarray, **params) -> Path:
+    Image.fromarray(img).save(path, **params)
+    return path
+
+
+def _run(capsys, *argv) -> tuple[int, str]:
+    code = main([str(a) for a in argv])
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    return code, err
+
+
+class TestUsage:
+    def test_help(self, capsys):
+        assert main(["--help"]) == 0
+        assert "render" in capsys.readouterr().out
+        assert main(["render", "--help"]) == 0
+        assert "--focus-at" in capsys.readouterr().out
+
+    @pytest.mark.parametrize(
+        "argv",
+        [
+            [],
+            ["render"],
+            ["render", "in.jpg", "--blur", "10"],  # no -o
+            ["render", "in.jpg", "-o", "o.jpg"],  # no --blur
+            ["render", "in.jpg", "-o", "o.jpg", "--blur", "-1"],
+            ["render", "in.jpg", "-o", "o.jpg", "--blur", "5", "--focus", "1.5"],
+            ["render", "in.jpg", "-o", "o.jpg", "--blur", "5", "--focus", "0", "--focus-at", "1,2"],
+            ["render", "in.jpg", "-o", "o.jpg", "--blur", "5", "--focus-at", "12"],
+            ["render", "in.jpg", "-o", "o.jpg", "--blur", "5", "--aperture-blades", "2"],
+            ["render", "in.jpg", "-o", "o.jpg", "--blur", "5", "--max-pixels", "0"],
+            ["render", "in.jpg", "-o", "o.jpg", "--blur", "5", "--depth-kind", "metres"],
+            ["frobnicate"],
+        ],
+    )  # fmt: skip
+    def test_bad_command_lines_exit_2(self, capsys, argv):
+        code, err = _run(capsys, *argv)
+        assert code == 2
+        assert "d2f: error:" in err
+
+    def test_output_equal_to_input_refused(self, tmp_path, capsys):
+        img, _ = _scene()
+        src = _write_photo(tmp_path / "photo.png", img)
+        before = src.read_bytes()
+        code, err = _run(capsys, "render", src, "-o", tmp_path / "." / "photo.png", "--blur", 5)
+        assert code == 2 and "is the input photo" in err
+        assert src.read_bytes() == before
+
+    def test_unknown_output_extension(self, tmp_path, capsys):
+        img, _ = _scene()
+        src = _write_photo(tmp_path / "photo.png", img)
+        code, err = _run(capsys, "render", src, "-o", tmp_path / "out.gif", "--blur", 5)
+        assert code == 2 and "extension" in err
+
+
+class TestRender:
+    def test_with_depth_file_and_no_weights(self, tmp_path, capsys):
+        img, disp = _scene()
+        src = _write_photo(tmp_path / "photo.png", img)
+        save_depth(tmp_path / "depth.png", disp)
+        out = tmp_path / "out.png"
+        code, err = _run(
+            capsys, "render", src, "-o", out, "--blur", 12, "--depth", tmp_path / "depth.png",
+            "--focus", 1.0, "-v",
+        )  # fmt: skip
+        assert code == 0, err
+        res = load_image(out)
+        assert res.shape == (48, 64, 3)
+        # near half in focus stays the input, far half is blurred
+        np.testing.assert_allclose(res[:, :28], img[:, :28] / 255.0, atol=1 / 255)
+        assert _grad(res[:, 36:]) < 0.3 * _grad(img[:, 36:] / 255.0)
+        assert "no D2F weights" in err
+
+    def test_metric_depth_and_near_dark(self, tmp_path, capsys):
+        img, disp = _scene()
+        src = _write_photo(tmp_path / "photo.png", img)
+        np.save(tmp_path / "z.npy", np.where(disp > 0.5, 1.0, 5.0))  # left is 1 m away
+        save_depth(tmp_path / "inv.png", 1.0 - disp)  # stored dark = near
+        outs = []
+        for i, extra in enumerate(
+            [
+                ["--depth", tmp_path / "z.npy", "--depth-kind", "depth"],
+                ["--depth", tmp_path / "inv.png", "--near", "dark"],
+            ]
+        ):
+            out = tmp_path / f"o{i}.png"
+            code, err = _run(capsys, "render", src, "-o", out, "--blur", 12, "--focus", 1, *extra)
+            assert code == 0, err
+            outs.append(load_image(out))
+        np.testing.assert_allclose(outs[0], outs[1], atol=2 / 255)
+        np.testing.assert_allclose(outs[0][:, :28], img[:, :28] / 255.0, atol=1 / 255)
+
+    def test_no_depth_no_weights_is_a_clear_failure(self, tmp_path, capsys):
+        img, _ = _scene()
+        src = _write_photo(tmp_path / "photo.png", img)
+        code, err = _run(capsys, "render", src, "-o", tmp_path / "o.png", "--blur", 5)
+        assert code == 1
+        assert err.startswith("d2f: error:") and "--depth" in err and "--weights" in err
+        assert not (tmp_path / "o.png").exists()
+
+    def test_weights_without_depth(self, tmp_path, capsys, checkpoint):
+        img, _ = _scene()
+        src = _write_photo(tmp_path / "photo.png", img)
+        out = tmp_path / "o.jpg"
+        code, err = _run(
+            capsys, "render", src, "-o", out, "--blur", 8, "--weights", checkpoint,
+            "--focus-at", "10,10", "--aperture-blades", 6, "--rotation", 15,
+            "--save-maps", tmp_path / "maps",
+        )  # fmt: skip
+        assert code == 0, err
+        assert load_image(out).shape == (48, 64, 3)
+        for name in ("disparity", "defocus", "fusion_mask"):
+            assert (tmp_path / "maps" / f"o_{name}.png").is_file()
+
+    def test_bad_weights(self, tmp_path, capsys):
+        img, disp = _scene()
+        src = _write_photo(tmp_path / "photo.png", img)
+        (tmp_path / "bad.pt").write_bytes(b"not a checkpoint")
+        code, err = _run(
+            capsys, "render", src, "-o", tmp_path / "o.png", "--blur", 5,
+            "--weights", tmp_path / "bad.pt",
+        )  # fmt: skip
+        assert code == 1 and "--weights" in err
+        code, err = _run(
+            capsys, "render", src, "-o", tmp_path / "o.png", "--blur", 5,
+            "--weights", tmp_path / "missing.pt",
+        )  # fmt: skip
+        assert code == 1 and "missing.pt" in err
+
+    def test_embedded_lens_blur_depth_and_focus(self, tmp_path, capsys):
+        img, disp = _scene()
+        z = np.where(disp > 0.5, 1.0, 4.0)
+        blurred = np.full_like(img, 90)
+        data = lensblur_jpeg(img, blurred, z, near=1.0, far=4.0, focal_distance=1.0)
+        src = tmp_path / "lensblur.jpg"
+        src.write_bytes(data)
+        out = tmp_path / "o.png"
+        code, err = _run(capsys, "render", src, "-o", out, "--blur", 12, "-v",
+                         "--save-maps", tmp_path / "m")  # fmt: skip
+        assert code == 0, err
+        assert "embedded" in err and "focus 1.000" in err
+        res = load_image(out)
+        photo = load_image(io.BytesIO(data).getvalue())
+        assert np.abs(photo - 90 / 255).max() < 0.02  # the file's main image is flat grey...
+        # ...but the render starts from the embedded original: near half is the photo
+        assert _grad(res[:, :28]) > 0.8 * _grad(img[:, :28] / 255.0)
+        assert _grad(res[:, 36:]) < 0.3 * _grad(img[:, 36:] / 255.0)
+        d = load_image(tmp_path / "m" / "o_disparity.png")[..., 0]
+        assert d[:, :28].min() > 0.99 and d[:, 36:].max() < 0.01
+
+    def test_icc_and_exif_carried_over(self, tmp_path, capsys):
+        img, disp = _scene()
+        srgb = ImageCms.ImageCmsProfile(ImageCms.createProfile("sRGB")).tobytes()
+        exif = Image.Exif()
+        exif[0x010F] = "CliTest"
+        exif[0x0112] = 3
+        src = _write_photo(
+            tmp_path / "p.jpg", img, quality=95, icc_profile=srgb, exif=exif.tobytes()
+        )
+        save_depth(tmp_path / "d.png", disp[::-1, ::-1])  # depth of the upright photo
+        out = tmp_path / "o.jpg"
+        code, err = _run(
+            capsys, "render", src, "-o", out, "--blur", 4, "--depth", tmp_path / "d.png"
+        )
+        assert code == 0, err
+        with Image.open(out) as im:
+            assert im.info.get("icc_profile") == srgb
+            assert im.getexif().get(0x010F) == "CliTest"
+            assert im.getexif().get(0x0112, 1) == 1
+
+    def test_output_folder_and_max_pixels(self, tmp_path, capsys):
+        img, disp = _scene(96, 128)
+        src = _write_photo(tmp_path / "p.png", img)
+        save_depth(tmp_path / "d.png", disp)
+        (tmp_path / "out").mkdir()
+        code, err = _run(
+            capsys, "render", src, "-o", tmp_path / "out", "--blur", 4, "--depth",
+            tmp_path / "d.png", "--max-pixels", 3072,
+        )  # fmt: skip
+        assert code == 0, err
+        assert load_image(tmp_path / "out" / "p_bokeh.png").shape == (48, 64, 3)
+
+    def test_focus_at_outside_photo(self, tmp_path, capsys):
+        img, disp = _scene()
+        src = _write_photo(tmp_path / "p.png", img)
+        save_depth(tmp_path / "d.png", disp)
+        code, err = _run(
+            capsys, "render", src, "-o", tmp_path / "o.png", "--blur", 4,
+            "--depth", tmp_path / "d.png", "--focus-at", "500,3",
+        )  # fmt: skip
+        assert code == 1 and "outside" in err
+
+    def test_unreadable_input(self, tmp_path, capsys):
+        bad = tmp_path / "broken.jpg"
+        bad.write_bytes(b"\xff\xd8\xff\xe0garbage")
+        code, err = _run(capsys, "render", bad, "-o", tmp_path / "o.png", "--blur", 4)
+        assert code == 1 and "broken.jpg" in err and err.startswith("d2f: error:")
+        code, err = _run(capsys, "render", tmp_path / "nope.jpg", "-o", tmp_path / "o.png",
+                         "--blur", 4)  # fmt: skip
+        assert code == 1 and "nope.jpg" in err
+
+
+class TestBatch:
+    def _folder(self, tmp_path: Path) -> tuple[Path, Path]:
+        photos = tmp_path / "photos"
+        depths = tmp_path / "depths"
+        photos.mkdir()
+        depths.mkdir()
+        for i in range(2):
+            img, disp = _scene(seed=i)
+            _write_photo(photos / f"img{i}.png", img)
+            save_depth(depths / f"img{i}_depth.png", disp)
+        return photos, depths
+
+    def test_all_good(self, tmp_path, capsys):
+        photos, depths = self._folder(tmp_path)
+        (photos / "notes.txt").write_text("not a photo")
+        out = tmp_path / "out"
+        code, err = _run(capsys, "batch", photos, "-o", out, "--blur", 6, "--depth", depths,
+                         "--focus", 1, "--format", "jpg")  # fmt: skip
+        assert code == 0, err
+        assert sorted(p.name for p in out.iterdir()) == ["img0_bokeh.jpg", "img1_bokeh.jpg"]
+
+    def test_unreadable_file_is_skipped_and_reported(self, tmp_path, capsys):
+        photos, depths = self._folder(tmp_path)
+        (photos / "corrupt.jpg").write_bytes(b"\xff\xd8\xff\xe0 truncated")
+        out = tmp_path / "out"
+        code, err = _run(capsys, "batch", photos, "-o", out, "--blur", 6, "--depth", depths)
+        assert code == 1
+        assert "corrupt.jpg" in err and "1 of 3 photos failed" in err
+        assert sorted(p.name for p in out.iterdir()) == ["img0_bokeh.png", "img1_bokeh.png"]
+
+    def test_output_folder_equal_to_input_refused(self, tmp_path, capsys):
+        photos, depths = self._folder(tmp_path)
+        before = sorted(p.name for p in photos.iterdir())
+        code, err = _run(capsys, "batch", photos, "-o", photos / ".", "--blur", 6)
+        assert code == 2 and "differ" in err
+        assert sorted(p.name for p in photos.iterdir()) == before
+
+    def test_name_collisions_get_distinct_outputs(self, tmp_path, capsys):
+        photos, depths = self._folder(tmp_path)
+        img, _ = _scene(seed=5)
+        _write_photo(photos / "img0.jpg", img, quality=95)
+        out = tmp_path / "out"
+        code, err = _run(capsys, "batch", photos, "-o", out, "--blur", 6, "--depth", depths,
+                         "--format", "png")  # fmt: skip
+        assert code == 0, err
+        assert len(list(out.iterdir())) == 3
+
+    def test_empty_folder_and_missing_weights(self, tmp_path, capsys):
+        empty = tmp_path / "empty"
+        empty.mkdir()
+        code, err = _run(capsys, "batch", empty, "-o", tmp_path / "o", "--blur", 6)
+        assert code == 1 and "no photos" in err
+        photos, _ = self._folder(tmp_path)
+        code, err = _run(capsys, "batch", photos, "-o", tmp_path / "o2", "--blur", 6)
+        assert code == 1 and "2 of 2 photos failed" in err
+
+
+class TestFallbackRenderer:
+    def test_zero_blur_is_identity(self):
+        img, disp = _scene()
+        out = render_with_depth_only(img / 255.0, disp, 0.3, 0.0)
+        np.testing.assert_allclose(out.bokeh, img / 255.0, atol=1e-6)
+
+    def test_large_image_pass_is_capped(self):
+        rng = np.random.default_rng(0)
+        img = rng.random((600, 2100, 3)).astype(np.float32)
+        disp = np.tile(np.linspace(0, 1, 2100, dtype=np.float32), (600, 1))
+        out = render_with_depth_only(img, disp, 1.0, 20.0)
+        assert out.bokeh.shape == img.shape
+        assert out.maps["defocus"].shape == (293, 1024)
+        # in-focus column (d = 1) is the input exactly, far side is smoothed
+        np.testing.assert_allclose(out.bokeh[:, -1], img[:, -1], atol=1e-6)
+        assert out.bokeh[:, :200].std() < 0.5 * img[:, :200].std()
+
+
+@pytest.mark.shared_data
+def test_real_lens_blur_file(tmp_path, capsys):
+    src = SHARED / "google_lensblur_depthy" / "lensblur_sample.jpg"
+    if not src.exists():
+        pytest.skip(f"shared data not available: {src}")
+    out = tmp_path / "o.jpg"
+    code, err = _run(capsys, "render", src, "-o", out, "--blur", 30, "--max-pixels", 150_000)
+    assert code == 0, err
+    assert load_image(out).shape[0] * load_image(out).shape[1] <= 150_000
