@@ -38,6 +38,8 @@ from .pipeline import D2F, D2FConfig, _coc_to_defocus
 __all__ = [
     "FUSION_METHODS",
     "alpha_blend",
+    "disparity_errors",
+    "gaussian_background_baseline",
     "gaussian_baseline",
     "laplacian_pyramid_blend",
     "main",
@@ -182,6 +184,39 @@ def _focus_blur(item: dict, config: D2FConfig) -> tuple[float, float]:
     )
 
 
+def disparity_errors(pred: np.ndarray, target: np.ndarray) -> tuple[float, float]:
+    """Agreement of a predicted disparity map with ground truth, blind to scale and shift.
+
+    Returns ``(spearman, si_rmse)``: the Spearman rank correlation, and the RMSE after the
+    least-squares fit ``a * pred + b`` to ``target`` (both maps in [0, 1]).
+    """
+    p = np.asarray(pred, np.float64).ravel()
+    t = np.asarray(target, np.float64).ravel()
+    if p.shape != t.shape:
+        raise ValueError(f"pred {np.shape(pred)} and target {np.shape(target)} differ in shape")
+    design = np.stack([p, np.ones_like(p)], axis=1)
+    coef, *_ = np.linalg.lstsq(design, t, rcond=None)
+    si_rmse = float(np.sqrt(np.mean((design @ coef - t) ** 2)))
+    if p.std() == 0 or t.std() == 0:
+        return 0.0, si_rmse
+    rank_p = np.argsort(np.argsort(p, kind="stable"), kind="stable").astype(np.float64)
+    rank_t = np.argsort(np.argsort(t, kind="stable"), kind="stable").astype(np.float64)
+    return float(np.corrcoef(rank_p, rank_t)[0, 1]), si_rmse
+
+
+def gaussian_background_baseline(
+    image: np.ndarray, disparity: np.ndarray, focus: float, blur: float
+) -> np.ndarray:
+    """Keep pixels within 1 px of CoC sharp, blur the rest with one Gaussian (sigma = K / 8).
+
+    The plain "portrait mode" recipe, given the true disparity. Shape: HxWx3 -> HxWx3.
+    """
+    coc = blur * np.abs(disparity - focus)
+    sharp = np.clip(2.0 - coc, 0.0, 1.0)[..., None]  # 1 below 1 px, 0 above 2 px
+    blurred = gaussian_baseline(image, max(blur / 8.0, 0.5))
+    return (sharp * image + (1 - sharp) * blurred).astype(np.float32)
+
+
 def _score(pred: np.ndarray, target: np.ndarray) -> tuple[float, float]:
     return metrics.psnr(pred, target), metrics.ssim(pred, target)
 
@@ -227,7 +262,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--split", default="val470", help="train, val470, val294 or all")
     p.add_argument("--fusion", action="store_true", help="compare fusion methods")
     p.add_argument("--use-gt-disparity", action="store_true", help="use disparity/<id>.png")
-    p.add_argument("--baseline", choices=("identity", "gaussian"), default=None)
+    p.add_argument(
+        "--baseline",
+        choices=("identity", "gaussian", "gaussian-bg"),
+        default=None,
+        help="identity: the input; gaussian: blur everything; gaussian-bg: blur all but the "
+        "in-focus pixels of the true disparity",
+    )
     p.add_argument("--sigma", type=float, default=3.0, help="gaussian baseline sigma (px)")
     p.add_argument("--theta", type=float, default=0.25, help="binary-mask threshold on D")
     p.add_argument("--limit", type=int, default=None, help="evaluate the first N pairs")
@@ -247,7 +288,11 @@ def _run(args: argparse.Namespace) -> int:
     if args.fusion and model is None:
         raise ValueError("--fusion needs --weights (it compares fusions of the model's render)")
     args.out.mkdir(parents=True, exist_ok=True)
-    header = ["id", "method", "psnr", "ssim", "ms"] if args.fusion else ["id", "psnr", "ssim", "ms"]
+    header = (
+        ["id", "method", "psnr", "ssim", "ms"]
+        if args.fusion
+        else ["id", "psnr", "ssim", "ms", "disp_spearman", "disp_si_rmse"]
+    )
     rows: list[list] = []
     for i in range(count):
         item = dataset[i]
@@ -259,16 +304,27 @@ def _run(args: argparse.Namespace) -> int:
         image = item["image"].permute(1, 2, 0).numpy()
         target = item["target"].permute(1, 2, 0).numpy()
         t0 = time.perf_counter()
+        disp_err = (math.nan, math.nan)
         if args.baseline == "identity":
             pred = image
         elif args.baseline == "gaussian":
             pred = gaussian_baseline(image, args.sigma)
+        elif args.baseline == "gaussian-bg":
+            if not item["has_disparity"]:
+                raise ValueError(f"--baseline gaussian-bg: pair {item['id']} has no disparity")
+            focus, blur = _focus_blur(item, D2FConfig())
+            pred = gaussian_background_baseline(image, item["disparity"][0].numpy(), focus, blur)
         else:
             focus, blur = _focus_blur(item, model.config)
             disparity = item["disparity"][0].numpy() if args.use_gt_disparity else None
-            pred = model.render(model.prepare(image, disparity=disparity), focus, blur).bokeh
+            result = model.render(model.prepare(image, disparity=disparity), focus, blur)
+            pred = result.bokeh
+            if item["has_disparity"] and not args.use_gt_disparity:
+                gt = torch.from_numpy(item["disparity"][0].numpy())[None, None]
+                gt_lr = F.interpolate(gt, size=result.disparity.shape, mode="area")[0, 0]
+                disp_err = disparity_errors(result.disparity, gt_lr.numpy())
         ms = (time.perf_counter() - t0) * 1000
-        rows.append([item["id"], *_score(pred, target), ms])
+        rows.append([item["id"], *_score(pred, target), ms, *disp_err])
         logger.debug("%s: PSNR %.3f SSIM %.4f %.0f ms", *rows[-1])
     name = "fusion" if args.fusion else "eval"
     path = args.out / f"{name}_{args.split}.csv"
@@ -288,6 +344,9 @@ def _run(args: argparse.Namespace) -> int:
         print(
             f"{what} on {args.split}: PSNR {p:.4f} dB  SSIM {s:.4f}  {ms:.1f} ms  ({count} images)"
         )
+        if not math.isnan(rows[0][4]):
+            rho, rmse = (float(np.mean([r[k] for r in rows])) for k in (4, 5))
+            print(f"predicted disparity: Spearman {rho:.4f}  scale/shift-invariant RMSE {rmse:.4f}")
     print(f"wrote {path}")
     return 0
 

@@ -14,6 +14,8 @@ from d2f_core.data import EBBDataset
 from d2f_core.evaluate import (
     FUSION_METHODS,
     alpha_blend,
+    disparity_errors,
+    gaussian_background_baseline,
     gaussian_baseline,
     laplacian_pyramid_blend,
     main,
@@ -128,12 +130,41 @@ def _rows(path):
         return list(csv.DictReader(fh))
 
 
+class TestDisparityErrors:
+    def test_affine_copy_is_perfect(self):
+        rng = np.random.default_rng(1)
+        gt = rng.random((20, 30))
+        rho, rmse = disparity_errors(0.3 * gt + 0.2, gt)
+        assert rho == pytest.approx(1.0) and rmse == pytest.approx(0.0, abs=1e-12)
+
+    def test_reversed_order_and_noise(self):
+        gt = np.linspace(0, 1, 200).reshape(10, 20)
+        rho, rmse = disparity_errors(1 - gt, gt)
+        assert rho == pytest.approx(-1.0)
+        assert rmse == pytest.approx(0.0, abs=1e-12)  # an affine map with a negative scale
+        rho, rmse = disparity_errors(np.random.default_rng(2).random((10, 20)), gt)
+        assert abs(rho) < 0.3 and rmse > 0.2  # unrelated maps
+
+
+def test_gaussian_background_baseline_keeps_focus_sharp():
+    rng = np.random.default_rng(3)
+    image = rng.random((32, 40, 3)).astype(np.float32)
+    disp = np.zeros((32, 40), np.float32)
+    disp[:, :20] = 1.0  # left half in focus
+    out = gaussian_background_baseline(image, disp, 1.0, 40.0)
+    np.testing.assert_array_equal(out[:, :20], image[:, :20])
+    assert out[:, 25:].std() < 0.5 * image[:, 25:].std()
+
+
 class TestCLI:
     def test_eval_csv(self, setup, tmp_path, capsys):
         data, weights, _ = setup
         assert main([str(data), "--weights", str(weights), "--out", str(tmp_path)]) == 0
         rows = _rows(tmp_path / "eval_val470.csv")
-        assert list(rows[0]) == ["id", "psnr", "ssim", "ms"]
+        assert list(rows[0]) == ["id", "psnr", "ssim", "ms", "disp_spearman", "disp_si_rmse"]
+        # the pairs carry ground-truth disparity, so the predicted map is scored against it
+        assert -1.0 <= float(rows[0]["disp_spearman"]) <= 1.0
+        assert 0.0 <= float(rows[0]["disp_si_rmse"]) <= 1.0
         assert [r["id"] for r in rows] == ["0002"]
         assert "PSNR" in capsys.readouterr().out
 
