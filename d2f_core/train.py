@@ -423,7 +423,36 @@ def build_parser() -> argparse.ArgumentParser:
         )  # fmt: skip
         p.add_argument("--workers", type=int, default=2)
         p.add_argument("-v", "--verbose", action="store_true")
+    p = sub.add_parser(
+        "export", help="write a shippable checkpoint (no optimizer state), with config changes"
+    )
+    p.add_argument("checkpoint", type=Path, help="a stage-1 or stage-2 checkpoint")
+    p.add_argument("out", type=Path, help="the checkpoint to write")
+    p.add_argument(
+        "--set", action="append", default=[], metavar="KEY=VALUE",
+        help="config override for inference, e.g. --set network_size=384 --set render_scale=0.5",
+    )  # fmt: skip
+    p.add_argument("-v", "--verbose", action="store_true")
     return parser
+
+
+def export(checkpoint: Path, out: Path, overrides: Sequence[str]) -> Path:
+    """Reload ``checkpoint``, apply ``KEY=VALUE`` config overrides, save to ``out``."""
+    model = D2F.from_checkpoint(checkpoint)
+    config = model.config.to_dict()
+    for item in overrides:
+        key, sep, value = item.partition("=")
+        if not sep or key not in config:
+            raise ValueError(
+                f"--set needs KEY=VALUE with KEY one of {sorted(config)}, got {item!r}"
+            )
+        kind = type(config[key])
+        config[key] = kind(value)
+    # validates the new config before anything is written
+    model.config = type(model.config).from_dict(config)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    model.save(out)
+    return out
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -432,6 +461,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
+    if args.stage == "export":
+        try:
+            logger.info("wrote %s", export(args.checkpoint, args.out, args.set))
+        except (ValueError, TypeError, FileNotFoundError) as exc:
+            logger.error("%s", exc)
+            return 2
+        return 0
     for name in ("steps", "batch_size", "crop", "save_every", "log_every"):
         if getattr(args, name) < 1:
             raise SystemExit(f"d2f-train: --{name.replace('_', '-')} must be >= 1")

@@ -105,3 +105,19 @@ def test_cli_errors(tmp_path, data):
     assert main([*args, "--workers", "0", "--device", "cpu"]) == 2
     with pytest.raises(SystemExit):
         main(["stage3"])
+
+
+def test_export_applies_config_and_drops_optimizer(stage1, tmp_path):
+    ckpt = stage1.checkpoint
+    out = tmp_path / "ship" / "model.pt"
+    argv = ["export", str(ckpt), str(out), "--set", "network_size=96", "--set", "render_scale=0.5"]
+    assert main(argv) == 0
+    raw = torch.load(out, map_location="cpu", weights_only=True)
+    assert set(raw) == {"config", "state_dict", "version"}
+    assert raw["config"]["network_size"] == 96 and raw["config"]["render_scale"] == 0.5
+    source = D2F.from_checkpoint(ckpt)
+    shipped = D2F.from_checkpoint(out)
+    for key, value in source.state_dict().items():
+        assert torch.equal(value, shipped.state_dict()[key])
+    assert main(["export", str(ckpt), str(out), "--set", "no_such_key=1"]) == 2
+    assert main(["export", str(ckpt), str(out), "--set", "render_scale=2"]) == 2
