@@ -1,0 +1,303 @@
+"""The D2F refocusing web app (Gradio): page layout, event wiring and the ``d2f-app`` CLI.
+
+Start it with ``d2f-app`` or ``python -m app`` (http://127.0.0.1:7860). The logic lives in
+:mod:`app.handlers`; rendering and click-to-focus are done by ``d2f_core.pipeline.D2F``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+from pathlib import Path
+from typing import Any
+
+import gradio as gr
+
+from app.cache import SceneCache
+from app.handlers import DEPTH_KINDS, FORMATS, VIEWS, RefocusApp, delete_session
+
+log = logging.getLogger(__name__)
+
+SAMPLES_DIR = Path(__file__).resolve().parent.parent / "assets" / "samples"
+#: Events that run the model share one concurrency group of this many parallel calls
+#: (all sessions together); on a 2-core CPU more only adds contention.
+DEFAULT_CONCURRENCY = 4
+#: Sessions idle this long (seconds) drop their scene from memory.
+SESSION_TTL_S = 3600
+
+CSS = """
+#result img, #input img { object-fit: contain; }
+.d2f-legend { padding: 2px 6px; }
+"""
+
+INTRO = """# D2F refocus
+Upload a photo, then **click where it should be sharp** or move the focal-plane slider.
+Dragging a slider shows a quick preview; releasing it renders at full resolution.
+"""
+
+
+def sample_paths() -> list[str]:
+    """The bundled example photos (``assets/samples/*.jpg``), sorted by name."""
+    return sorted(str(p) for p in SAMPLES_DIR.glob("*.jpg"))
+
+
+def load_model(weights: str | os.PathLike | None = None) -> Any:
+    """``D2F.from_pretrained`` with an optional weights path (else env ``D2F_WEIGHTS``)."""
+    from d2f_core.pipeline import D2F
+
+    if weights is not None:
+        return D2F.from_pretrained(weights)
+    return D2F.from_pretrained()
+
+
+def build_demo(
+    model: Any = None,
+    *,
+    weights: str | os.PathLike | None = None,
+    cache: SceneCache | None = None,
+    concurrency: int | None = None,
+) -> gr.Blocks:
+    """Build the app.
+
+    Args:
+        model: a ``D2F`` instance; None loads ``D2F.from_pretrained(weights)``.
+        weights: checkpoint path used when ``model`` is None (default: env ``D2F_WEIGHTS``,
+            then ``assets/weights/d2f_lite.pt``).
+        cache: scene cache (default: the process-wide :data:`app.cache.SCENE_CACHE`).
+        concurrency: parallel model calls across all sessions (default
+            ``D2F_APP_CONCURRENCY`` or 4).
+
+    Returns:
+        the ``gr.Blocks`` app, queue configured, not launched.
+    """
+    if model is None:
+        model = load_model(weights)
+    if concurrency is None:
+        concurrency = int(os.environ.get("D2F_APP_CONCURRENCY", DEFAULT_CONCURRENCY))
+    logic = RefocusApp(model, cache)
+    # one group for every event that runs the model, so the CPU is not oversubscribed
+    heavy = {"concurrency_id": "model", "concurrency_limit": concurrency}
+    quiet = {"show_progress": "hidden", "trigger_mode": "always_last"}
+    chained = {"show_progress": "hidden", "api_visibility": "private", "api_name": "auto_download"}
+
+    with gr.Blocks(title="D2F refocus", delete_cache=(600, 3600)) as demo:
+        session = gr.State(None, time_to_live=SESSION_TTL_S, delete_callback=delete_session)
+        gr.Markdown(INTRO)
+        with gr.Row():
+            with gr.Column(scale=1):
+                photo = gr.Image(
+                    label="Photo (click to focus)",
+                    type="filepath",
+                    sources=["upload", "clipboard"],
+                    elem_id="input",
+                    height=420,
+                )
+                focus = gr.Slider(
+                    0.0,
+                    1.0,
+                    value=0.5,
+                    step=0.001,
+                    label="Focal plane (disparity, 1 = near)",
+                    elem_id="focus",
+                )
+                blur = gr.Slider(
+                    0.0,
+                    300.0,
+                    value=40.0,
+                    step=1.0,
+                    label="Blur amount K (CoC diameter in px at full resolution for |d - f| = 1)",
+                    elem_id="blur",
+                )
+                with gr.Accordion("Advanced", open=False):
+                    blades = gr.Dropdown(
+                        choices=[
+                            ("round", 0),
+                            ("5 blades", 5),
+                            ("6 blades", 6),
+                            ("7 blades", 7),
+                            ("8 blades", 8),
+                            ("9 blades", 9),
+                        ],
+                        value=0,
+                        label="Aperture",
+                        elem_id="blades",
+                    )
+                    rotation = gr.Slider(
+                        0.0,
+                        180.0,
+                        value=0.0,
+                        step=1.0,
+                        label="Blade rotation (degrees)",
+                        elem_id="rotation",
+                    )
+                    highlight = gr.Checkbox(
+                        value=True, label="Highlight boost (bright bokeh balls)", elem_id="hdr"
+                    )
+                    fusion = gr.Checkbox(
+                        value=True,
+                        label="Fusion (keep in-focus detail at full resolution)",
+                        elem_id="fusion",
+                    )
+                with gr.Accordion("Your own depth map (optional)", open=False):
+                    depth = gr.File(
+                        label="Depth or disparity image (PNG/TIFF, 8/16-bit) or .npy",
+                        elem_id="depth",
+                    )
+                    depth_kind = gr.Radio(
+                        list(DEPTH_KINDS),
+                        value=DEPTH_KINDS[0],
+                        label="The map holds",
+                        elem_id="depth_kind",
+                    )
+                examples = None
+                if sample_paths():
+                    examples = gr.Examples(sample_paths(), inputs=[photo], label="Examples")
+            with gr.Column(scale=1):
+                view = gr.Radio(list(VIEWS), value=VIEWS[0], label="View", elem_id="view")
+                result = gr.Image(
+                    label="Result",
+                    format="png",
+                    interactive=False,
+                    elem_id="result",
+                    height=420,
+                    buttons=["fullscreen"],
+                )
+                compare = gr.ImageSlider(
+                    label="Before / after",
+                    format="png",
+                    interactive=False,
+                    visible=False,
+                    elem_id="compare",
+                    max_height=420,
+                )
+                legend = gr.HTML(visible=False, elem_id="legend", label="Legend")
+                info = gr.Textbox(label="Status", interactive=False, elem_id="info")
+                with gr.Row():
+                    fmt = gr.Radio(
+                        list(FORMATS), value="JPEG", label="Download format", elem_id="format"
+                    )
+                    download = gr.DownloadButton("Download", elem_id="download")
+
+        options = [blades, rotation, highlight, fusion, view]
+        shown = [result, compare, legend, info]
+
+        load_io = {
+            "fn": logic.load,
+            "inputs": [photo, depth, depth_kind, session, focus, blur, *options],
+            "outputs": [session, focus, *shown],
+            # raw upload payloads: decoding errors are reported by the app, not by Gradio
+            "preprocess": False,
+            **heavy,
+            **quiet,
+        }
+        # .upload, not .change: an upload fires .change twice in Gradio 6, and the two runs
+        # then race on the same output file
+        gr.on([photo.upload, photo.clear, depth.change, depth_kind.change], api_name="load",
+              **load_io).success(logic.download, [session, fmt], [download], **chained)  # fmt: skip
+        if examples is not None:
+            examples.load_input_event.then(api_visibility="private", **load_io).success(
+                logic.download, [session, fmt], [download], **chained
+            )
+
+        render_inputs = [session, focus, blur, *options]
+        # .change only (never .input as well: two concurrent runs break the image); .change
+        # also follows values set by click-to-focus, whose preview is then skipped
+        for slider in (focus, blur, rotation):
+            slider.change(
+                logic.render_preview,
+                render_inputs,
+                shown,
+                api_name=f"preview_{slider.elem_id}",
+                **heavy,
+                **quiet,
+            )
+            slider.release(
+                logic.render_full,
+                render_inputs,
+                shown,
+                api_name=f"render_{slider.elem_id}",
+                **heavy,
+                **quiet,
+            ).success(logic.download, [session, fmt], [download], **chained)
+        gr.on(
+            [blades.change, highlight.change, fusion.change],
+            logic.render_full,
+            render_inputs,
+            shown,
+            api_name="render",
+            **heavy,
+            **quiet,
+        ).success(logic.download, [session, fmt], [download], **chained)
+
+        # Gradio finds the event data by the annotation of a named positional parameter
+        def on_select(
+            state, blur_v, blades_v, rotation_v, hdr_v, fusion_v, view_v, evt: gr.SelectData
+        ):
+            return logic.click(
+                state, evt.index, blur_v, blades_v, rotation_v, hdr_v, fusion_v, view_v
+            )
+
+        photo.select(
+            on_select,
+            [session, blur, *options],
+            [focus, *shown[:4]],
+            api_visibility="private",
+            **heavy,
+            **quiet,
+        ).success(logic.download, [session, fmt], [download], **chained)
+        view.change(
+            logic.show_view,
+            [session, view],
+            [result, compare, legend],
+            api_name="view",
+            show_progress="hidden",
+        )
+        fmt.change(
+            logic.download, [session, fmt], [download], api_name="download", show_progress="hidden"
+        )
+    demo.queue(default_concurrency_limit=concurrency)
+    return demo
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``d2f-app``: serve the app (default http://127.0.0.1:7860)."""
+    parser = argparse.ArgumentParser(prog="d2f-app", description=__doc__.splitlines()[0])
+    parser.add_argument(
+        "--host", default="127.0.0.1", help="interface to bind (default: %(default)s)"
+    )
+    parser.add_argument("--port", type=int, default=7860, help="port (default: %(default)s)")
+    parser.add_argument(
+        "--weights",
+        default=None,
+        help="checkpoint (default: $D2F_WEIGHTS, else assets/weights/d2f_lite.pt)",
+    )
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=int(os.environ.get("D2F_APP_THREADS", "1")),
+        help="torch threads per render (default: $D2F_APP_THREADS or 1; see app/README.md)",
+    )
+    args = parser.parse_args(argv)
+    if args.threads < 1:
+        parser.error(f"--threads must be >= 1, got {args.threads}")
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    logging.getLogger("httpx").setLevel(logging.WARNING)
+    import torch
+
+    # several renders run at once (one per session event); each on one thread keeps them
+    # from stalling each other at every parallel region when cores are busy
+    torch.set_num_threads(args.threads)
+    try:
+        model = load_model(args.weights)
+    except (FileNotFoundError, ValueError) as err:
+        parser.error(str(err))
+    demo = build_demo(model)
+    demo.launch(
+        server_name=args.host, server_port=args.port, share=False, allowed_paths=[str(SAMPLES_DIR)]
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,210 @@
+"""The real app in headless Chromium (Playwright, sync API), driven like a user would.
+
+Starts ``python -m app`` on a free localhost port with a tiny random-init checkpoint,
+uploads a generated photo whose near subject and far background are known (with its
+disparity map), clicks the subject and then the background, drags the blur slider, switches
+to the defocus view, and uploads a file that is not an image. Screenshots go to the test's
+tmp dir (``<tmp_path>/screens/NN_<step>.png``).
+"""
+
+from __future__ import annotations
+
+import io
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+pytestmark = [pytest.mark.browser, pytest.mark.slow]
+
+TIMEOUT_MS = 30_000
+
+
+def result_src(page) -> str | None:
+    return page.evaluate("() => document.querySelector('#result img')?.getAttribute('src')")
+
+
+def wait_new_result(page, old: str | None) -> str:
+    """Wait until ``#result img`` shows a different, fully loaded file; return its src."""
+    page.wait_for_function(
+        """(old) => {
+            const img = document.querySelector('#result img');
+            return img && img.getAttribute('src') && img.getAttribute('src') !== old
+                && img.complete && img.naturalWidth > 0;
+        }""",
+        arg=old,
+        timeout=TIMEOUT_MS,
+    )
+    return result_src(page)
+
+
+def fetch_image(page, src: str) -> np.ndarray:
+    url = src if src.startswith("http") else page.url.rstrip("/") + "/" + src.lstrip("/")
+    with urllib.request.urlopen(url, timeout=10) as r:
+        return np.asarray(Image.open(io.BytesIO(r.read())).convert("RGB"))
+
+
+def click_photo_at(page, x: int, y: int) -> None:
+    """Click photo pixel (x, y) of ``#input img``, undoing its letterboxed, scaled display."""
+    box = page.evaluate(
+        """() => {
+            const img = document.querySelector('#input img');
+            const r = img.getBoundingClientRect();
+            return {w: r.width, h: r.height, nw: img.naturalWidth, nh: img.naturalHeight};
+        }"""
+    )
+    scale = min(box["w"] / box["nw"], box["h"] / box["nh"], 1.0)
+    ox = (box["w"] - box["nw"] * scale) / 2
+    oy = (box["h"] - box["nh"] * scale) / 2
+    pos = {"x": ox + (x + 0.5) * scale, "y": oy + (y + 0.5) * scale}
+    page.locator("#input img").click(position=pos)
+
+
+def focus_value(page) -> float:
+    return float(page.locator("#focus input[data-testid=number-input]").input_value())
+
+
+def test_refocus_in_browser(
+    app_server, chromium_launch_options, two_plane_scene, sharpness, tmp_path
+):
+    from playwright.sync_api import sync_playwright
+
+    server = app_server()
+    screens = tmp_path / "screens"
+    screens.mkdir()
+    shots: list[Path] = []
+
+    def shot(page, name: str) -> None:
+        path = screens / f"{len(shots):02d}_{name}.png"
+        page.screenshot(path=str(path), full_page=True)
+        shots.append(path)
+
+    scene = two_plane_scene
+    x0, y0, x1, y1 = scene.box
+    subject = (x0 + 12, y0 + 12, x1 - 12, y1 - 12)
+    background = (x1 + 12, 12, scene.image.shape[1] - 4, scene.image.shape[0] - 4)
+    errors: list[str] = []
+
+    with sync_playwright() as p:
+        browser = p.chromium.launch(**chromium_launch_options)
+        try:
+            page = browser.new_page(viewport={"width": 1400, "height": 1000})
+            page.on("pageerror", lambda e: errors.append(str(e)))
+            page.set_default_timeout(TIMEOUT_MS)
+            page.goto(server.url)
+            page.wait_for_selector("#focus input[type=range]")
+
+            # 0. a bundled example renders (network disparity of the tiny random model)
+            page.locator(".gallery-item, [data-testid=examples] button").first.click()
+            src = wait_new_result(page, None)
+            page.wait_for_function(
+                "() => document.querySelector('#info textarea').value.startsWith('512x512 px')"
+            )
+            shot(page, "example")
+
+            # 1. the photo, then its disparity map (which replaces the network's map)
+            page.set_input_files("#input input[type=file]", str(scene.photo))
+            src = wait_new_result(page, src)
+            page.get_by_text("Your own depth map (optional)").click()
+            page.set_input_files("#depth input[type=file]", str(scene.disparity))
+            src = wait_new_result(page, src)
+            page.wait_for_function(
+                "() => document.querySelector('#info textarea').value.includes('your disparity')"
+            )
+            shot(page, "uploaded")
+            start_focus = focus_value(page)
+
+            # 2. click the near subject: focus -> 1, the subject becomes sharp
+            click_photo_at(page, *scene.near_point)
+            page.wait_for_function(
+                "() => parseFloat(document.querySelector("
+                "'#focus input[data-testid=number-input]').value) > 0.95"
+            )
+            src = wait_new_result(page, src)
+            near = fetch_image(page, src)
+            near_focus = focus_value(page)
+            shot(page, "focused_near")
+
+            # 3. click the far background: focus -> 0, the background becomes sharp
+            click_photo_at(page, *scene.far_point)
+            page.wait_for_function(
+                "() => parseFloat(document.querySelector("
+                "'#focus input[data-testid=number-input]').value) < 0.05"
+            )
+            src = wait_new_result(page, src)
+            far = fetch_image(page, src)
+            far_focus = focus_value(page)
+            shot(page, "focused_far")
+
+            assert start_focus == pytest.approx(0.5)
+            assert "cached scene" not in page.locator("#info textarea").input_value()
+            assert near_focus == pytest.approx(1.0, abs=0.02)
+            assert far_focus == pytest.approx(0.0, abs=0.02)
+            assert near.shape == far.shape == scene.image.shape
+            assert sharpness(near, subject) > 2 * sharpness(far, subject)
+            assert sharpness(far, background) > 2 * sharpness(near, background)
+            assert sharpness(far, background) > 0.8 * sharpness(scene.image, background)
+
+            # 4. drag the blur slider to the right end: the subject gets blurrier still
+            blur_before = float(page.locator("#blur input[data-testid=number-input]").input_value())
+            track = page.locator("#blur input[type=range]").bounding_box()
+            ymid = track["y"] + track["height"] / 2
+            start_x = track["x"] + track["width"] * blur_before / 300.0
+            page.mouse.move(start_x, ymid)
+            page.mouse.down()
+            for k in range(1, 11):
+                page.mouse.move(start_x + (track["x"] + track["width"] - start_x) * k / 10, ymid)
+                page.wait_for_timeout(30)
+            page.mouse.up()
+            page.wait_for_function(
+                "() => parseFloat(document.querySelector("
+                "'#blur input[data-testid=number-input]').value) > 250"
+            )
+            page.wait_for_function(
+                "() => document.querySelector('#info textarea').value.includes('full render')"
+                " && /blur (2[5-9][0-9]|300) px/.test("
+                "document.querySelector('#info textarea').value)"
+            )
+            src = wait_new_result(page, src) if result_src(page) == src else result_src(page)
+            dragged = fetch_image(page, src)
+            blur_after = float(page.locator("#blur input[data-testid=number-input]").input_value())
+            assert blur_after > blur_before
+            assert sharpness(dragged, subject) < sharpness(far, subject)
+            shot(page, "blur_dragged")
+
+            # 5. the defocus map with its colour legend
+            page.locator("#view").get_by_text("Defocus", exact=True).click()
+            src = wait_new_result(page, src)
+            page.wait_for_selector("#legend >> text=in focus")
+            defocus = fetch_image(page, src)
+            # background in focus: dark end of magma; the subject far from it: bright
+            assert defocus[background[1] : background[3], background[0] : background[2]].mean() < 40
+            assert defocus[subject[1] : subject[3], subject[0] : subject[2]].mean() > 150
+            shot(page, "defocus_view")
+
+            # 6. a file that is not an image gets a clear error, not a traceback
+            bad = tmp_path / "notes.jpg"
+            bad.write_text("this is a shopping list, not a photo\n" * 10)
+            page.set_input_files("#input input[type=file]", str(bad))
+            toast = page.locator(".toast-body.error", has_text="notes.jpg").first
+            toast.wait_for()
+            text = toast.inner_text()
+            shot(page, "bad_upload")
+            assert "notes.jpg" in text and "not an image" in text
+            assert "Traceback" not in text
+
+            # 7. the session's photo survived: the focal slider still renders it
+            number = page.locator("#focus input[data-testid=number-input]")
+            number.fill("0.5")
+            number.press("Enter")
+            src = wait_new_result(page, src)
+            assert fetch_image(page, src).shape[:2] == scene.image.shape[:2]
+        finally:
+            browser.close()
+
+    assert not errors, errors
+    assert all(p.stat().st_size > 0 for p in shots)
+    log = server.log.read_text()
+    assert "Traceback" not in log, log[-3000:]

@@ -1,0 +1,638 @@
+"""Handler-level tests of the web app (no browser, no server): app.imaging, app.cache,
+app.handlers and the event wiring of app.main.build_demo."""
+
+from __future__ import annotations
+
+import dataclasses
+import threading
+import time
+from pathlib import Path
+
+import gradio as gr
+import numpy as np
+import pytest
+from PIL import Image
+
+from app import imaging
+from app.cache import SceneCache, content_key, scene_nbytes
+from app.handlers import (
+    PREVIEW_MAX_SIDE,
+    VIEWS,
+    RefocusApp,
+    RenderParams,
+    Session,
+    delete_session,
+)
+
+BLUR = 120.0  # px: both planes far out of focus when the other is focused
+
+
+def pixels(update) -> np.ndarray:
+    """The picture an image update sends to the browser (a PNG file the app wrote)."""
+    return np.asarray(Image.open(update["value"]))
+
+
+def is_skip(update) -> bool:
+    """``gr.skip()`` is an update that changes nothing."""
+    return update == {"__type__": "update"}
+
+
+@pytest.fixture
+def logic(tiny_model, tmp_path):
+    return RefocusApp(tiny_model, SceneCache(256 << 20), download_root=tmp_path / "downloads")
+
+
+@pytest.fixture
+def loaded(logic, two_plane_scene):
+    """(logic, session, scene) after uploading the two-plane photo with its disparity map."""
+    out = logic.load(
+        str(two_plane_scene.photo), str(two_plane_scene.disparity), "disparity", None, 0.5, BLUR
+    )
+    return logic, out[0], two_plane_scene
+
+
+def write_exif_rotated(path: Path, image: np.ndarray, orientation: int = 6) -> None:
+    exif = Image.Exif()
+    exif[0x0112] = orientation
+    Image.fromarray(image).save(path, exif=exif, quality=95)
+
+
+# ------------------------------------------------------------------------- imaging
+
+
+class TestLoadPhoto:
+    def test_png_roundtrip(self, two_plane_scene):
+        photo = imaging.load_photo(two_plane_scene.photo, "scene.png")
+        assert photo.image.dtype == np.float32
+        assert photo.image.shape == (240, 320, 3)
+        assert photo.shown_size == photo.size == (320, 240)
+        assert photo.notice is None
+        np.testing.assert_allclose(photo.image * 255, two_plane_scene.image, atol=0.5)
+
+    def test_exif_orientation_applied(self, tmp_path):
+        image = np.zeros((40, 80, 3), np.uint8)
+        image[:, :10] = 255  # a white band on the left of the stored pixels
+        path = tmp_path / "rot.jpg"
+        write_exif_rotated(path, image, orientation=6)  # "rotate 90 CW to display"
+        photo = imaging.load_photo(path)
+        assert photo.image.shape == (80, 40, 3)
+        assert photo.shown_size == (40, 80)
+        # after a 90 degree clockwise turn the left band is at the top
+        assert photo.image[:10].mean() > 0.9 and photo.image[-20:].mean() < 0.1
+
+    @pytest.mark.parametrize(
+        ("content", "match"),
+        [
+            (b"", "empty"),
+            (b"this is not an image at all\n" * 20, "not an image"),
+        ],
+    )
+    def test_bad_files(self, tmp_path, content, match):
+        path = tmp_path / "upload.jpg"
+        path.write_bytes(content)
+        with pytest.raises(ValueError, match=match) as err:
+            imaging.load_photo(path, "holiday.jpg")
+        assert str(tmp_path) not in str(err.value)  # the user sees their file name only
+        assert "holiday.jpg" in str(err.value)
+
+    def test_truncated_jpeg(self, tmp_path, two_plane_scene):
+        full = tmp_path / "full.jpg"
+        Image.fromarray(two_plane_scene.image).save(full, quality=90)
+        cut = tmp_path / "cut.jpg"
+        cut.write_bytes(full.read_bytes()[: full.stat().st_size // 3])
+        with pytest.raises(ValueError, match="truncated|corrupt"):
+            imaging.load_photo(cut, "cut.jpg")
+
+    def test_one_pixel_refused(self, tmp_path):
+        path = tmp_path / "dot.png"
+        Image.new("RGB", (1, 1), (10, 20, 30)).save(path)
+        with pytest.raises(ValueError, match=r"only 1x1 pixels"):
+            imaging.load_photo(path, "dot.png")
+
+    @pytest.mark.slow
+    def test_40_megapixel_is_downscaled_with_notice(self, tmp_path):
+        path = tmp_path / "big.jpg"
+        rng = np.random.default_rng(0)
+        small = rng.integers(0, 255, (125, 200, 3), dtype=np.uint8)
+        Image.fromarray(small).resize((8000, 5000), Image.Resampling.NEAREST).save(path, quality=80)
+        t0 = time.perf_counter()
+        photo = imaging.load_photo(path, "big.jpg")
+        elapsed = time.perf_counter() - t0
+        w, h = photo.size
+        assert w * h <= imaging.MAX_PIXELS
+        assert abs(w / h - 1.6) < 0.01
+        assert photo.shown_size == (8000, 5000)
+        assert "8000x5000" in photo.notice and "resized" in photo.notice
+        assert elapsed < 20
+
+    def test_rgba_on_white(self, tmp_path):
+        path = tmp_path / "alpha.png"
+        a = np.zeros((32, 32, 4), np.uint8)
+        a[..., 0] = 255
+        a[:, 16:, 3] = 255  # left half transparent, right half opaque red
+        Image.fromarray(a, "RGBA").save(path)
+        img = imaging.load_photo(path).image
+        np.testing.assert_allclose(img[:, :16], 1.0, atol=1 / 255)
+        np.testing.assert_allclose(
+            img[:, 16:], np.broadcast_to([1.0, 0.0, 0.0], (32, 16, 3)), atol=1 / 255
+        )
+
+
+class TestLoadDepth:
+    def test_disparity_png_resized_to_photo(self, two_plane_scene):
+        d, stored = imaging.load_depth_map(two_plane_scene.disparity, (640, 480), "disparity")
+        assert stored == (320, 240)
+        assert d.shape == (480, 640) and d.dtype == np.float32
+        assert d.min() >= 0 and d.max() <= 1
+        x0, y0, x1, y1 = (2 * v for v in two_plane_scene.box)
+        assert d[(y0 + y1) // 2, (x0 + x1) // 2] > 0.9  # near box = 1 after normalising
+        assert d[5, -5] < 0.1
+
+    def test_depth_kind_inverts_order(self, tmp_path):
+        depth = np.full((20, 30), 4000, np.uint16)  # mm
+        depth[5:15, 5:15] = 1000  # a nearer square
+        path = tmp_path / "depth16.png"
+        Image.fromarray(depth).save(path)
+        d, _ = imaging.load_depth_map(path, (30, 20), "depth")
+        assert d[10, 10] > 0.9 and d[1, 25] < 0.1
+
+    def test_npy(self, tmp_path):
+        path = tmp_path / "d.npy"
+        np.save(path, np.linspace(1, 3, 12 * 16, dtype=np.float32).reshape(12, 16))
+        d, stored = imaging.load_depth_map(path, (16, 12))
+        assert stored == (16, 12)
+        assert d[0, 0] < 0.05 and d[-1, -1] > 0.95
+
+    def test_wrong_type_and_aspect_are_errors(self, tmp_path):
+        text = tmp_path / "notes.txt"
+        text.write_text("depth? no")
+        with pytest.raises(ValueError, match="notes.txt"):
+            imaging.load_depth_map(text, (32, 32), name="notes.txt")
+        tall = tmp_path / "tall.png"
+        Image.fromarray(np.zeros((64, 16), np.uint8) + 3).save(tall)
+        with pytest.raises(ValueError, match="aspect"):
+            imaging.load_depth_map(tall, (64, 16))
+
+
+class TestDisplayHelpers:
+    def test_colorize_known_stops(self):
+        v = np.array([[0.0, 0.5, 1.0, -3.0, 7.0]], np.float32)
+        out = imaging.colorize(v, "viridis")
+        stops = imaging.COLORMAPS["viridis"]
+        np.testing.assert_array_equal(out[0, 0], stops[0])
+        np.testing.assert_array_equal(out[0, 1], stops[4])
+        np.testing.assert_array_equal(out[0, 2], stops[-1])
+        np.testing.assert_array_equal(out[0, 3], stops[0])  # clipped
+        np.testing.assert_array_equal(out[0, 4], stops[-1])
+        grey = imaging.colorize(np.array([[0.0, 0.5, 1.0]]), "gray")
+        np.testing.assert_array_equal(grey[0, :, 0], [0, 128, 255])
+
+    def test_legend_mentions_labels(self):
+        html = imaging.legend_html("magma", "0 sharp", "1 <blurry>", "Defocus")
+        assert "linear-gradient" in html and "0 sharp" in html and "&lt;blurry&gt;" in html
+
+    def test_fit_display_and_to_uint8(self):
+        a = np.zeros((100, 3200, 3), np.uint8)
+        assert imaging.fit_display(a, 1600).shape == (50, 1600, 3)
+        assert imaging.fit_display(a[:, :100], 1600) is not None
+        np.testing.assert_array_equal(
+            imaging.to_uint8(np.array([0.0, 0.5, 1.0, 2.0])), [0, 128, 255, 255]
+        )
+
+
+# --------------------------------------------------------------------------- cache
+
+
+@dataclasses.dataclass
+class FakeScene:
+    """Stands in for a Scene only where the cache needs *something* with arrays inside."""
+
+    pixels: np.ndarray
+    cache: dict = dataclasses.field(default_factory=dict)
+
+
+class TestSceneCache:
+    def test_content_key(self):
+        a = np.zeros((4, 4, 3), np.float32)
+        b = a.copy()
+        b[0, 0, 0] = 1e-3
+        d = np.zeros((4, 4), np.float32)
+        assert content_key(a) == content_key(a.copy())
+        assert content_key(a) != content_key(b)
+        assert content_key(a) != content_key(a, d)
+        assert content_key(a, d) != content_key(a, d + 0.5)
+        assert content_key(a.reshape(2, 8, 3)) != content_key(a)
+
+    def test_scene_nbytes_counts_nested(self):
+        import torch
+
+        s = FakeScene(np.zeros(1000, np.float32), {"t": torch.zeros(10, dtype=torch.float64)})
+        assert scene_nbytes(s) == 4000 + 80
+
+    def test_lru_bound_in_bytes(self):
+        model = object.__new__(type("M", (), {}))
+        cache = SceneCache(max_bytes=10_000)
+        for i in range(5):
+            cache.put(model, f"k{i}", FakeScene(np.zeros(1000, np.float32)))  # 4000 B each
+        assert len(cache) == 2 and cache.nbytes == 8000
+        assert cache.get(model, "k0") is None and cache.get(model, "k4") is not None
+        cache.get(model, "k3")  # k3 becomes most recent; k4 is evicted next
+        cache.put(model, "k5", FakeScene(np.zeros(1000, np.float32)))
+        assert cache.get(model, "k4") is None and cache.get(model, "k3") is not None
+        cache.put(model, "huge", FakeScene(np.zeros(10_000, np.float32)))
+        assert cache.get(model, "huge") is None  # larger than the bound: not kept
+
+    def test_growth_after_put_is_counted(self):
+        model = object.__new__(type("M", (), {}))
+        cache = SceneCache(max_bytes=10_000)
+        a = FakeScene(np.zeros(500, np.float32))
+        cache.put(model, "a", a)
+        cache.put(model, "b", FakeScene(np.zeros(500, np.float32)))
+        a.cache["full"] = np.zeros(1500, np.float32)  # filled lazily by render
+        cache.get(model, "a")
+        assert cache.nbytes == 2000 + 8000
+        cache.put(model, "c", FakeScene(np.zeros(10, np.float32)))
+        assert cache.get(model, "b") is None  # LRU went first
+        assert cache.nbytes <= 10_000
+
+    def test_models_do_not_share_entries(self):
+        m1 = object.__new__(type("M", (), {}))
+        m2 = object.__new__(type("M", (), {}))
+        cache = SceneCache()
+        cache.put(m1, "k", FakeScene(np.zeros(1, np.float32)))
+        assert cache.get(m2, "k") is None and cache.get(m1, "k") is not None
+
+    def test_concurrent_prepare_runs_once(self):
+        model = object.__new__(type("M", (), {}))
+        cache = SceneCache()
+        calls = []
+
+        def prepare():
+            calls.append(1)
+            time.sleep(0.05)
+            return FakeScene(np.zeros(8, np.float32))
+
+        results = []
+        threads = [
+            threading.Thread(
+                target=lambda: results.append(cache.get_or_prepare(model, "k", prepare))
+            )
+            for _ in range(8)
+        ]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        assert len(calls) == 1
+        assert len({id(s) for s, _ in results}) == 1
+        assert sorted(c for _, c in results) == [False] + [True] * 7
+
+    def test_bad_bound(self):
+        with pytest.raises(ValueError, match="max_bytes"):
+            SceneCache(-1)
+
+
+# ------------------------------------------------------------------------ handlers
+
+
+class TestRenderParams:
+    def test_rounding_and_types(self):
+        p = RenderParams.from_inputs("0.43721", 40, "6", 30, 1, 0)
+        assert p == RenderParams(0.437, 40.0, 6, 30.0, True, False)
+        assert p.render_options() == {
+            "fusion": False,
+            "blades": 6,
+            "rotation": 30.0,
+            "highlight_boost": True,
+        }
+
+    @pytest.mark.parametrize(
+        "args", [(1.5, 10), (-0.1, 10), (0.5, -1), (0.5, 10, 2), ("x", 10), (None, 10)]
+    )
+    def test_invalid(self, args):
+        with pytest.raises(gr.Error):
+            RenderParams.from_inputs(*args)
+
+
+class TestLoad:
+    def test_upload_with_disparity(self, loaded, sharpness):
+        logic, session, scene = loaded
+        assert isinstance(session, Session)
+        assert session.size == session.shown_size == (320, 240)
+        assert session.name == "scene"
+        assert session.last_full.shape == (240, 320, 3)
+        # focus 0.5 with K = 120 px: both planes are |d - f| ~ 0.4 away, both blurred
+        assert sharpness(session.last_full) < 0.5 * sharpness(scene.image)
+
+    def test_outputs_and_info(self, logic, two_plane_scene):
+        out = logic.load(
+            {"path": str(two_plane_scene.photo), "orig_name": "my photo.png"},
+            {"path": str(two_plane_scene.disparity), "orig_name": "d.png"},
+            "disparity (bright = near)",
+            None,
+            0.5,
+            BLUR,
+        )
+        session, focus, result, compare, legend, info = out
+        assert session.name == "my_photo"
+        assert is_skip(focus)  # no focal plane recorded in the file
+        assert result["visible"] is True and pixels(result).shape == (240, 320, 3)
+        assert compare["visible"] is False and legend["visible"] is False
+        assert "320x240 px" in info and "prepare" in info and "your disparity map" in info
+
+    def test_same_pixels_hit_the_cache(self, logic, two_plane_scene):
+        args = (str(two_plane_scene.disparity), "disparity", None, 0.5, BLUR)
+        first = logic.load(str(two_plane_scene.photo), *args)
+        again = logic.load(str(two_plane_scene.photo), *args)
+        assert "cached scene" in again[-1] and "cached scene" not in first[-1]
+        assert again[0].scene is first[0].scene
+        other = logic.load(str(two_plane_scene.photo), None, "disparity", None, 0.5, BLUR)
+        assert other[0].scene is not first[0].scene  # network map: a different key
+
+    def test_depth_resize_notice(self, logic, two_plane_scene, tmp_path, capsys):
+        small = tmp_path / "small_disp.png"
+        Image.open(two_plane_scene.disparity).resize((160, 120), Image.Resampling.NEAREST).save(
+            small
+        )
+        logic.load(str(two_plane_scene.photo), str(small), "disparity", None, 0.5, BLUR)
+        assert "160x120" in capsys.readouterr().out  # gr.Info outside a request prints
+
+    def test_depth_kind(self, logic, two_plane_scene):
+        out = logic.load(
+            str(two_plane_scene.photo), str(two_plane_scene.disparity), "depth (bright = far)",
+            None, 0.5, BLUR,
+        )  # fmt: skip
+        x, y = two_plane_scene.near_point
+        # read as depth, the bright box is now the far plane
+        assert out[0].scene.disparity_full()[y, x] < 0.1
+
+    @pytest.mark.parametrize(
+        ("content", "message"),
+        [
+            (b"", "empty"),
+            (b"GIF89a-not-really", "not an image|corrupt"),
+            (b"%PDF-1.4 hello", "not an image"),
+        ],
+    )
+    def test_bad_upload_is_gr_error_and_keeps_session(self, loaded, tmp_path, content, message):
+        logic, session, _ = loaded
+        bad = tmp_path / "bad.jpg"
+        bad.write_bytes(content)
+        with pytest.raises(gr.Error, match=message):
+            logic.load(str(bad), None, "disparity", session, 0.5, BLUR)
+        # the previous photo still renders
+        out = logic.render_full(session, 0.9, BLUR)
+        assert pixels(out[0]).shape == (240, 320, 3)
+
+    def test_bad_depth_is_gr_error(self, logic, two_plane_scene, tmp_path):
+        text = tmp_path / "depth.txt"
+        text.write_text("not a map")
+        with pytest.raises(gr.Error, match="depth.txt"):
+            logic.load(
+                str(two_plane_scene.photo), {"path": str(text), "orig_name": "depth.txt"},
+                "disparity", None, 0.5, BLUR,
+            )  # fmt: skip
+
+    def test_cleared_input(self, loaded):
+        logic, session, _ = loaded
+        folder = session.folder
+        assert folder is not None and folder.exists()
+        out = logic.load(None, None, "disparity", session, 0.5, BLUR)
+        assert out[0] is None and out[-1] == ""
+        assert not folder.exists()
+
+    def test_exif_rotated_upload_and_click(self, logic, tmp_path, scene_factory):
+        scene = scene_factory(width=200, height=120)
+        stored = np.rot90(scene.image, k=1)  # displayed after a 90 degree CW turn
+        path = tmp_path / "rotated.jpg"
+        write_exif_rotated(path, np.ascontiguousarray(stored), orientation=6)
+        out = logic.load(str(path), str(scene.disparity), "disparity", None, 0.5, BLUR)
+        session = out[0]
+        assert session.size == session.shown_size == (200, 120)
+        focus = logic.click(session, list(scene.near_point), BLUR)[0]
+        assert focus == pytest.approx(1.0, abs=0.02)
+
+
+class TestRender:
+    def test_click_near_then_far(self, loaded, sharpness):
+        logic, session, scene = loaded
+        near = logic.click(session, list(scene.near_point), BLUR)
+        # the map is min-max normalised: the near box is 1, the background 0
+        assert near[0] == pytest.approx(1.0, abs=0.01)
+        img_near = session.last_full.copy()
+        far = logic.click(session, list(scene.far_point), BLUR)
+        assert far[0] == pytest.approx(0.0, abs=0.01)
+        img_far = session.last_full
+        x0, y0, x1, y1 = scene.box
+        inner = (x0 + 12, y0 + 12, x1 - 12, y1 - 12)
+        background = (x1 + 12, 12, 320 - 4, 240 - 4)
+        assert sharpness(img_near, inner) > 2 * sharpness(img_far, inner)
+        assert sharpness(img_far, background) > 2 * sharpness(img_near, background)
+        # in focus is exactly the input (fusion keeps sub-pixel CoC sharp)
+        np.testing.assert_allclose(
+            img_near[inner[1] : inner[3], inner[0] : inner[2]].astype(int),
+            scene.image[inner[1] : inner[3], inner[0] : inner[2]].astype(int),
+            atol=2,
+        )
+        assert "focus_at" in far[-1]
+
+    def test_click_coordinates_scale_to_a_downscaled_scene(self, loaded):
+        logic, session, scene = loaded
+        session.shown_size = (640, 480)  # as if the upload had been twice as large
+        x, y = scene.near_point
+        assert logic.click(session, [2 * x, 2 * y], BLUR)[0] == pytest.approx(1.0, abs=0.01)
+        # clicks past the edge clamp into the photo
+        assert logic.click(session, [10_000, 10_000], BLUR)[0] == pytest.approx(0.0, abs=0.01)
+
+    def test_click_without_photo_and_bad_index(self, logic, loaded):
+        with pytest.warns(UserWarning, match="Upload a photo"):
+            out = logic.click(None, [1, 2], BLUR)
+        assert all(is_skip(o) for o in out)
+        _, session, _ = loaded
+        with pytest.raises(gr.Error, match="Click position"):
+            logic.click(session, "middle", BLUR)
+
+    def test_preview_is_small_and_skipped_after_full(self, loaded):
+        logic, session, _ = loaded
+        out = logic.render_preview(session, 0.3, BLUR)
+        assert max(pixels(out[0]).shape[:2]) <= PREVIEW_MAX_SIDE
+        assert "preview" in out[-1]
+        logic.render_full(session, 0.3, BLUR)
+        assert all(is_skip(o) for o in logic.render_preview(session, 0.3, BLUR))
+        # the same params again at full resolution: nothing new to do
+        assert all(is_skip(o) for o in logic.render_full(session, 0.3, BLUR))
+        assert not is_skip(logic.render_preview(session, 0.31, BLUR)[0])
+
+    def test_preview_dropped_when_full_render_overtakes_it(self, loaded):
+        logic, session, _ = loaded
+        model = logic.model
+        started, release = threading.Event(), threading.Event()
+
+        class SlowPreview:
+            """Delegates to the real model; holds preview renders until released."""
+
+            def __getattr__(self, name):
+                return getattr(model, name)
+
+            def render(self, *args, **kwargs):
+                if kwargs.get("max_side"):
+                    started.set()
+                    release.wait(10)
+                return model.render(*args, **kwargs)
+
+        logic.model = SlowPreview()
+        box = {}
+        t = threading.Thread(
+            target=lambda: box.setdefault("out", logic.render_preview(session, 0.2, BLUR))
+        )
+        t.start()
+        assert started.wait(10)
+        full = logic.render_full(session, 0.25, BLUR)
+        release.set()
+        t.join(10)
+        assert not is_skip(full[0])
+        assert all(is_skip(o) for o in box["out"])
+        assert "full" in full[-1] and session.full_params.focus == 0.25
+
+    def test_advanced_options_change_the_picture(self, loaded):
+        logic, session, _ = loaded
+        base = pixels(logic.render_full(session, 0.0, BLUR)[0])
+        for kwargs in (
+            {"blades": 6, "rotation": 20},
+            {"highlight_boost": False},
+            {"fusion": False},
+        ):
+            out = logic.render_full(session, 0.0, BLUR, **kwargs)
+            assert pixels(out[0]).shape == base.shape
+        no_blur = pixels(logic.render_full(session, 0.0, 0.0)[0])
+        np.testing.assert_allclose(no_blur.astype(int), session.before.astype(int), atol=1)
+
+    def test_views(self, loaded):
+        logic, session, _ = loaded
+        for view in VIEWS:
+            result, compare, legend = logic.show_view(session, view)
+            if view == "Before / after":
+                assert result["visible"] is False and compare["visible"] is True
+                before, after = (np.asarray(Image.open(p)) for p in compare["value"])
+                assert before.shape == after.shape
+            else:
+                assert result["visible"] is True and compare["visible"] is False
+                assert pixels(result).shape == (240, 320, 3)
+                assert legend["visible"] is (view != "Bokeh")
+        disp = pixels(logic.show_view(session, "Disparity")[0])
+        x, y = session.size[0] - 5, 5  # far background: disparity 0 -> first viridis stop
+        np.testing.assert_allclose(disp[y, x], imaging.COLORMAPS["viridis"][0], atol=2)
+        with pytest.raises(gr.Error, match="Unknown view"):
+            logic.show_view(session, "X-ray")
+        assert logic.show_view(None, "Bokeh")[0]["value"] is None
+
+    def test_display_files_are_pruned(self, loaded):
+        from app.handlers import DISPLAY_FILES_KEPT
+
+        logic, session, _ = loaded
+        for k in range(DISPLAY_FILES_KEPT + 4):
+            logic.render_preview(session, 0.1 + 0.01 * k, BLUR)
+        assert len(list((session.folder / "display").iterdir())) == DISPLAY_FILES_KEPT
+
+    def test_render_without_session(self, logic):
+        assert all(is_skip(o) for o in logic.render_full(None, 0.5, 10))
+        assert all(is_skip(o) for o in logic.render_preview(None, 0.5, 10))
+
+    def test_core_value_error_becomes_gr_error(self, loaded):
+        logic, session, _ = loaded
+        with pytest.raises(gr.Error, match="blur"):
+            logic.render_full(session, 0.5, 20_000)
+
+
+class TestDownload:
+    def test_png_is_the_full_render(self, loaded):
+        logic, session, _ = loaded
+        logic.click(session, [5, 5], BLUR)
+        up = logic.download(session, "PNG")
+        path = Path(up["value"])
+        assert path.suffix == ".png" and path.name.startswith("scene_bokeh_f")
+        assert "320x240" in up["label"]
+        np.testing.assert_array_equal(np.asarray(Image.open(path)), session.last_full)
+
+    def test_jpeg_replaces_png(self, loaded):
+        logic, session, _ = loaded
+        png = Path(logic.download(session, "PNG")["value"])
+        jpg = Path(logic.download(session, "JPEG")["value"])
+        assert jpg.suffix == ".jpg" and not png.exists()
+        with Image.open(jpg) as im:
+            assert im.format == "JPEG" and im.size == (320, 240)
+
+    def test_bad_format_and_no_session(self, loaded):
+        logic, session, _ = loaded
+        with pytest.raises(gr.Error, match="PNG or JPEG"):
+            logic.download(session, "GIF")
+        assert logic.download(None, "PNG")["value"] is None
+
+    def test_session_delete_removes_files(self, loaded):
+        logic, session, _ = loaded
+        path = Path(logic.download(session, "PNG")["value"])
+        assert path.exists()
+        delete_session(session)
+        assert not path.exists()
+        delete_session(None)  # no-op
+
+
+# -------------------------------------------------------------------------- wiring
+
+
+@pytest.fixture(scope="module")
+def demo_config(tiny_model):
+    from app.main import build_demo
+
+    demo = build_demo(tiny_model, cache=SceneCache(1 << 20))
+    return demo.get_config_file()
+
+
+class TestBuildDemo:
+    @pytest.fixture
+    def config(self, demo_config):
+        return demo_config
+
+    def test_elements_present(self, config):
+        ids = {c["props"].get("elem_id") for c in config["components"]}
+        wanted = "input focus blur view result compare legend info download format depth"
+        wanted += " blades rotation hdr fusion"
+        assert set(wanted.split()) <= ids
+
+    def test_slider_events(self, config):
+        by_elem = {c["props"].get("elem_id"): c["id"] for c in config["components"]}
+        for name in ("focus", "blur", "rotation"):
+            sid = by_elem[name]
+            events = {t[1] for d in config["dependencies"] for t in d["targets"] if t[0] == sid}
+            assert events == {"change", "release"}, name  # never .input next to .change
+            for d in config["dependencies"]:
+                if any(t[0] == sid for t in d["targets"]):
+                    assert d["trigger_mode"] == "always_last"
+                    assert d["show_progress"] == "hidden"
+        select = [
+            d
+            for d in config["dependencies"]
+            if [by_elem["input"], "select"] in map(list, d["targets"])
+        ]
+        assert len(select) == 1 and by_elem["focus"] in select[0]["outputs"]
+        photo_events = {t[1] for d in config["dependencies"] for t in d["targets"]
+                        if t[0] == by_elem["input"]}  # fmt: skip
+        # an upload fires .change twice in Gradio 6; the app listens to .upload instead
+        assert photo_events == {"upload", "clear", "select"}
+
+    def test_examples_from_assets(self):
+        from app.main import sample_paths
+
+        names = {Path(p).name for p in sample_paths()}
+        assert {"astronaut.jpg", "coffee.jpg", "chelsea.jpg", "rocket.jpg"} <= names
+        for p in sample_paths():
+            assert Path(p).stat().st_size < 300_000
+
+
+def test_main_reports_missing_weights(tmp_path, capsys):
+    from app.main import main
+
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--weights", str(tmp_path / "nope.pt"), "--port", "0"])
+    assert exit_info.value.code == 2
+    assert "nope.pt" in capsys.readouterr().err
