@@ -1,0 +1,290 @@
+"""Adaptive render settings: no more model than a scene needs.
+
+:func:`choose_settings` looks at the disparity map, the focal plane and the requested blur
+``K`` and picks the cheapest renderer settings whose expected error stays within a budget
+(PSNR in dB against the exact reference of the same model: ``quality="exact"``,
+``num_layers=15``, every other option unchanged):
+
+* ``K * max|d - focus| < 1`` px: nothing is blurred, the input is the answer (identity path:
+  no layers, no fusion).
+* the layer count and the reduced-resolution preset (:data:`rendering.QUALITY_PRESETS`) come
+  from a calibration table of worst-case PSNR per largest-CoC bin, measured on seeded
+  generated scenes by ``d2f-bench accuracy --calibrate``. The renderer itself already skips
+  empty layers and stops its kernel schedule at the scene's largest CoC, so a small ``K``
+  needs few layers whatever is picked here.
+* fusion (full-resolution sharpening of the in-focus region) is needed only if some pixel is
+  close enough to the focal plane for the fusion gate to open.
+
+:func:`render_adaptive` is :func:`rendering.render` with those settings.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+
+import torch
+import torch.nn.functional as F
+
+from .rendering import QUALITY_PRESETS, layer_plan, render
+
+__all__ = [
+    "BUDGETS",
+    "CALIBRATION",
+    "CANDIDATES",
+    "RenderSettings",
+    "choose_settings",
+    "render_adaptive",
+]
+
+#: User-facing quality/speed option -> PSNR budget (dB) against the exact reference.
+BUDGETS: dict[str, float] = {"high": 45.0, "balanced": 38.0, "fast": 32.0}
+DEFAULT_QUALITY = "balanced"
+
+#: (num_layers, renderer quality preset) pairs the picker chooses from.
+CANDIDATES: tuple[tuple[int, str], ...] = tuple(
+    (layers, quality)
+    for layers in (5, 7, 9, 11, 15)
+    for quality in ("exact", "high", "balanced", "fast")
+)
+
+#: Upper edges (px) of the largest-CoC bins of :data:`CALIBRATION`; the last bin is open.
+COC_BINS: tuple[float, ...] = (4.0, 8.0, 16.0, 32.0, 64.0, 128.0)
+
+#: Worst-case PSNR (dB) against the exact 15-layer reference, per largest-CoC bin (one value
+#: per bin of :data:`COC_BINS` plus the open bin; ``None`` = not measured). Written by
+#: ``d2f-bench accuracy --calibrate`` (seeded generated scenes, depth order, soft disk, growing
+#: schedule); see :func:`d2f_core.bench_accuracy.calibrate`.
+CALIBRATION: dict[tuple[int, str], tuple[float | None, ...]] = {}
+
+# Subtracted from the calibrated worst case: the calibration scenes are not the user's.
+SAFETY_DB = 1.0
+# Full-resolution CoC (px) under which the pipeline's fusion gate opens: the paper's
+# D < 0.3 at a half-resolution pass is an 11.8 px CoC there, 23.6 px at full resolution.
+FUSION_COC_PX = 23.6
+# Long side of the map the picker inspects: the layer occupancy needs no more.
+_PROBE_SIDE = 128
+
+
+@dataclass
+class RenderSettings:
+    """What :func:`choose_settings` picked for one scene and slider value.
+
+    Attributes:
+        num_layers: kernel sizes per side of the focal plane for ``rendering.render``.
+        quality: renderer reduced-resolution preset (``"exact"`` ... ``"fast"``).
+        identity: nothing is blurred: the input is the result, no layer is rendered.
+        fusion: the full-resolution fusion step can change the result.
+        max_coc: largest CoC diameter in the scene (px at the disparity's resolution).
+        min_coc: smallest CoC diameter (px at the disparity's resolution).
+        layers: ``(centre, kernel px, share of pixels)`` of the occupied layers, back to
+            front, at the picked layer count.
+        predicted_psnr: calibrated worst case (dB) against the exact reference, ``inf`` for
+            the identity path and the reference itself.
+        budget_db: the budget the settings were picked for.
+        cost: relative cost estimate (full-frame kernel passes at full resolution).
+    """
+
+    num_layers: int
+    quality: str
+    identity: bool
+    fusion: bool
+    max_coc: float
+    min_coc: float
+    budget_db: float
+    predicted_psnr: float = math.inf
+    cost: float = 0.0
+    layers: list[tuple[int, int, float]] = field(default_factory=list)
+
+    def render_options(self) -> dict[str, object]:
+        """Keyword arguments for ``rendering.render``."""
+        return {"num_layers": self.num_layers, "quality": self.quality}
+
+    def to_dict(self) -> dict[str, object]:
+        out = asdict(self)
+        out["predicted_psnr"] = None if math.isinf(self.predicted_psnr) else self.predicted_psnr
+        return out
+
+
+def _coc_bin(max_coc: float) -> int:
+    for i, edge in enumerate(COC_BINS):
+        if max_coc < edge:
+            return i
+    return len(COC_BINS)
+
+
+def predicted_psnr(num_layers: int, quality: str, max_coc: float) -> float:
+    """Calibrated worst-case PSNR (dB) of a candidate for a scene whose largest CoC is
+    ``max_coc`` px; ``inf`` for the reference itself, ``-inf`` when not calibrated."""
+    if num_layers == 15 and quality == "exact":
+        return math.inf
+    row = CALIBRATION.get((num_layers, quality))
+    if row is None:
+        return -math.inf
+    value = row[_coc_bin(max_coc)]
+    return -math.inf if value is None else value - SAFETY_DB
+
+
+def _probe(disparity: torch.Tensor) -> torch.Tensor:
+    """The first map of the batch, area-downsampled to a long side of at most 128 px."""
+    d = disparity[:1].detach().float()
+    scale = _PROBE_SIDE / max(d.shape[-2:])
+    if scale < 1:
+        size = (max(1, round(d.shape[-2] * scale)), max(1, round(d.shape[-1] * scale)))
+        d = F.interpolate(d, size=size, mode="area")
+    return d
+
+
+def _occupancy(
+    disparity: torch.Tensor, focus: float, blur: float, num_layers: int, schedule: str
+) -> list[tuple[int, int, float]]:
+    """``(centre, kernel px, share of pixels)`` of each layer that holds pixels."""
+    f = torch.full((1, 1, 1, 1), focus, dtype=disparity.dtype)
+    plan = layer_plan(disparity, f, blur, num_layers=num_layers, schedule=schedule)
+    coord = plan.coord.flatten()
+    out = []
+    for centre, size in plan.order:
+        near = (coord - centre).abs() < 1.0
+        if centre > 0:
+            near &= coord > 0
+        elif centre < 0:
+            near &= coord < 0
+        share = float(near.float().mean())
+        if share > 0:
+            out.append((centre, size, share))
+    return out
+
+
+def _factor(size: int, quality: str) -> int:
+    preset = QUALITY_PRESETS[quality]
+    if preset.quarter is not None and size >= preset.quarter:
+        return 4
+    if preset.half is not None and size >= preset.half:
+        return 2
+    return 1
+
+
+def _cost(layers: list[tuple[int, int, float]], quality: str) -> float:
+    """Relative render cost: each blurred layer's share of the frame, at its resolution."""
+    total = 0.0
+    for _, size, share in layers:
+        if size <= 1:
+            total += 0.1 * share  # masked and composited, not convolved
+            continue
+        f = _factor(size, quality)
+        # a layer's support box is larger than its pixels, and every layer pays some overhead
+        total += (0.05 + min(1.0, 2.0 * share)) / (f * f)
+    return total
+
+
+def choose_settings(
+    disparity: torch.Tensor,
+    focus: float,
+    blur: float,
+    *,
+    budget_db: float | None = None,
+    quality: str = DEFAULT_QUALITY,
+    schedule: str = "growing",
+    full_scale: float = 1.0,
+    fusion_coc: float = FUSION_COC_PX,
+) -> RenderSettings:
+    """Cheapest renderer settings whose expected error stays within a PSNR budget.
+
+    Args:
+        disparity: ``(B, 1, H, W)`` in [0, 1], 1 = nearest (the first map is inspected).
+        focus: focal disparity in [0, 1].
+        blur: ``K``, CoC diameter in px at the disparity's resolution for ``|d - focus| = 1``.
+        budget_db: PSNR (dB) against the exact reference that the result must reach; default
+            from ``quality``.
+        quality: user-facing option, ``"high"``, ``"balanced"`` or ``"fast"``
+            (:data:`BUDGETS`).
+        schedule: kernel-size schedule the render will use.
+        full_scale: full-resolution px per px of ``disparity`` (2 for a half-resolution pass);
+            used for the identity and fusion decisions, which concern the full-size output.
+        fusion_coc: full-resolution CoC (px) below which fusion can change a pixel.
+
+    Returns:
+        :class:`RenderSettings`; ``settings.render_options()`` goes to ``rendering.render``.
+    """
+    if not isinstance(disparity, torch.Tensor) or disparity.ndim != 4 or disparity.shape[1] != 1:
+        shape = tuple(disparity.shape) if isinstance(disparity, torch.Tensor) else None
+        raise ValueError(f"disparity must be a (B, 1, H, W) tensor, got {shape}")
+    try:
+        focus, blur = float(focus), float(blur)
+    except (TypeError, ValueError):
+        raise TypeError(f"focus and blur must be numbers, got {focus!r}, {blur!r}") from None
+    if not (math.isfinite(focus) and 0.0 <= focus <= 1.0):
+        raise ValueError(f"focus must be in [0, 1], got {focus}")
+    if not (math.isfinite(blur) and blur >= 0.0):
+        raise ValueError(f"blur must be a finite number >= 0, got {blur}")
+    if quality not in BUDGETS:
+        raise ValueError(f"quality must be one of {sorted(BUDGETS)}, got {quality!r}")
+    budget = BUDGETS[quality] if budget_db is None else float(budget_db)
+    if not full_scale > 0:
+        raise ValueError(f"full_scale must be > 0, got {full_scale}")
+
+    d = disparity.detach().clamp(0, 1)
+    distance = (d - focus).abs()
+    max_coc = blur * float(distance.max())
+    min_coc = blur * float(distance.min())
+    if max_coc * full_scale < 1.0:
+        # every CoC is below a pixel of the output: nothing to blur, nothing to fuse
+        return RenderSettings(15, "exact", True, False, max_coc, min_coc, budget)
+    fusion = min_coc * full_scale < fusion_coc and full_scale > 1.0
+
+    probe = _probe(d)
+    best: RenderSettings | None = None
+    for num_layers, preset in CANDIDATES:
+        expected = predicted_psnr(num_layers, preset, max_coc)
+        if expected < budget:
+            continue
+        layers = _occupancy(probe, focus, blur, num_layers, schedule)
+        cost = _cost(layers, preset)
+        if best is None or (cost, -expected) < (best.cost, -best.predicted_psnr):
+            best = RenderSettings(
+                num_layers, preset, False, fusion, max_coc, min_coc, budget, expected, cost, layers
+            )
+    if best is None:  # only when the table lacks the reference's own entry
+        best = RenderSettings(15, "exact", False, fusion, max_coc, min_coc, budget)
+    return best
+
+
+def render_adaptive(
+    image: torch.Tensor,
+    disparity: torch.Tensor,
+    focus: float,
+    blur: float,
+    *,
+    budget_db: float | None = None,
+    quality: str = DEFAULT_QUALITY,
+    **options,
+) -> tuple[torch.Tensor, RenderSettings]:
+    """:func:`rendering.render` with :func:`choose_settings`' layer count and preset.
+
+    Args:
+        image: ``(B, 3, H, W)`` in [0, 1]; disparity ``(B, 1, H, W)`` in [0, 1].
+        focus, blur: as for ``rendering.render`` (``blur`` in px at this resolution).
+        budget_db, quality: see :func:`choose_settings`.
+        **options: other ``rendering.render`` options (``order``, ``kernel``, ``radiance``...);
+            ``num_layers`` and ``quality`` are picked here.
+
+    Returns:
+        ``(bokeh (B, 3, H, W) in [0, 1], settings)``. On the identity path the input is
+        returned (clamped) and no layer is rendered.
+    """
+    for key in ("num_layers", "quality"):
+        if key in options:
+            raise ValueError(f"options must not contain {key!r}: render_adaptive picks it")
+    schedule = options.get("schedule", "growing")
+    settings = choose_settings(
+        disparity, focus, blur, budget_db=budget_db, quality=quality, schedule=schedule
+    )
+    if settings.identity and options.get("order", "depth") == "depth":
+        if not isinstance(image, torch.Tensor) or image.ndim != 4 or image.shape[1] != 3:
+            raise ValueError("image must be a (B, 3, H, W) tensor")
+        return image.clamp(0, 1), settings
+    if options.get("order", "depth") == "paper":
+        # the paper's order stretches its 15 kernels to K: the layer count is the model's
+        settings.num_layers = 15
+    return render(image, disparity, focus, blur, **options, **settings.render_options()), settings
+

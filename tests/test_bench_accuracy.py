@@ -1,0 +1,146 @@
+"""The speed/accuracy bench (d2f_core.bench_accuracy): quick run, metrics, K convention."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from d2f_core import bench
+from d2f_core.bench_accuracy import (
+    edge_band,
+    light_band,
+    main,
+    masked_metrics,
+    pareto_front,
+)
+from d2f_core.metrics import psnr
+from d2f_core.rendering import render
+from d2f_core.synth import Layer, Scene, render_pinhole, render_thin_lens
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.fixture(autouse=True)
+def _threads():
+    old = torch.get_num_threads()
+    torch.set_num_threads(2)
+    yield
+    torch.set_num_threads(old)
+
+
+class TestQuickRun:
+    def test_quick_mode_writes_json_and_charts(self, tmp_path, capsys):
+        out, cache = tmp_path / "out", tmp_path / "cache"
+        # through the d2f-bench dispatcher, as CI and the README run it
+        rc = bench.main(
+            ["accuracy", "--", "--quick", "--e2e", "--out", str(out), "--cache", str(cache)]
+        )
+        assert rc == 0
+        report = json.loads((out / "accuracy.json").read_text())
+        names = {e["setting"] for e in report["summary"]}
+        assert {"default", "paper", "adaptive", "input (no blur)"} <= names
+        for e in report["summary"]:
+            assert e["ms"] >= 0 and 0 < e["ssim"] <= 1 and np.isfinite(e["psnr"])
+        assert any(e.get("pareto") for e in report["summary"])
+        assert report["headline"] and "speedup_vs_paper" in report["headline"][0]
+        assert report["e2e"]["rows"] and report["e2e"]["paper_gpu_s"] == 0.58
+        for chart in ("accuracy.png", "e2e.png"):
+            assert (out / chart).read_bytes()[:8] == PNG_MAGIC
+        cached = sorted(cache.glob("*.npz"))
+        assert cached
+
+        # a re-run reads the ground truth from the cache instead of rendering it again
+        mtimes = [p.stat().st_mtime_ns for p in cached]
+        assert main(["--quick", "--out", str(out), "--cache", str(cache)]) == 0
+        assert [p.stat().st_mtime_ns for p in cached] == mtimes
+        assert "adaptive" in capsys.readouterr().out
+
+
+class TestPieces:
+    def test_pareto_front_known_answer(self):
+        points = [(10, 30.0), (5, 29.0), (20, 29.5), (5, 28.0), (40, 31.0), (10, 30.0)]
+        # (20, 29.5) is beaten by (10, 30); (5, 28) by (5, 29); the duplicates both stay
+        assert pareto_front(points) == [1, 0, 5, 4]
+
+    def test_masked_metrics_identical_and_empty_band(self):
+        g = np.random.default_rng(0)
+        img = g.random((32, 40, 3)).astype(np.float32)
+        band = np.zeros((32, 40), bool)
+        band[4:10, 4:10] = True
+        m = masked_metrics(img, img, {"edges": band, "lights": np.zeros_like(band)})
+        assert m["psnr"] == 100.0 and m["psnr_edges"] == 100.0
+        assert m["ssim"] == pytest.approx(1.0) and m["ssim_edges"] == pytest.approx(1.0)
+        assert m["psnr_lights"] is None and m["ssim_lights"] is None
+
+    def test_masked_psnr_counts_only_the_band(self):
+        a = np.zeros((20, 20, 3), np.float32)
+        b = a.copy()
+        b[:10] = 0.1  # error of 0.1 in the top half only: 20 dB there
+        top = np.zeros((20, 20), bool)
+        top[:10] = True
+        m = masked_metrics(a, b, {"edges": top, "lights": ~top})
+        assert m["psnr_edges"] == pytest.approx(20.0)
+        assert m["psnr_lights"] == 100.0
+        assert m["psnr"] == pytest.approx(20.0 + 10 * np.log10(2))
+
+    def test_edge_band_surrounds_depth_steps(self):
+        disp = np.zeros((40, 60), np.float32)
+        disp[:, 30:] = 0.8
+        band = edge_band(disp, blur=16.0)  # radius 4 px
+        cols = np.flatnonzero(band[20])
+        assert cols.min() == 29 - 4 and cols.max() == 30 + 4
+        assert not edge_band(np.full((20, 20), 0.3, np.float32), 16.0).any()
+
+    def test_light_band_grows_with_blur(self):
+        lights = np.zeros((50, 50), bool)
+        lights[25, 25] = True
+        assert light_band(lights, 8.0).sum() < light_band(lights, 30.0).sum()
+
+
+class TestConventions:
+    """The renderer's ``blur`` and the synth ground truth's ``blur`` mean the same ``K``."""
+
+    @staticmethod
+    def _plane(disparity: float, focus: float, blur: float):
+        g = np.random.default_rng(3)
+        h, w, m = 64, 96, 24
+        yy, xx = np.mgrid[-m : h + m, -m : w + m]
+        checker = ((yy // 5 + xx // 5) % 2).astype(np.float32) * 0.7 + 0.15
+        rgb = np.stack([checker, 1 - checker, 0.5 + 0 * checker]) * g.uniform(0.8, 1, (3, 1, 1))
+        layer = Layer(rgb.astype(np.float32), np.ones(rgb.shape[1:], np.float32), -m, -m, disparity)
+        scene = Scene([layer], (h, w), m, focus)
+        pinhole, disp = render_pinhole(scene)
+        target = np.clip(render_thin_lens(scene, focus, blur, samples=400), 0, 1)
+        image = torch.from_numpy(np.clip(pinhole, 0, 1)).permute(2, 0, 1)[None].contiguous()
+        out = render(
+            image,
+            torch.from_numpy(disp)[None, None],
+            focus,
+            blur,
+            quality="exact",
+            kernel="hard",
+            highlight_boost=False,
+        )
+        crop = int(blur * abs(disparity - focus) / 2) + 2
+        pred = out[0].permute(1, 2, 0).numpy()[crop:-crop, crop:-crop]
+        return psnr(pred, target[crop:-crop, crop:-crop]), psnr(
+            np.clip(pinhole, 0, 1)[crop:-crop, crop:-crop], target[crop:-crop, crop:-crop]
+        )
+
+    def test_plane_in_front_of_focus_matches_ground_truth(self):
+        # a 10 px CoC: a K off by 20 % costs more than 15 dB here
+        got, unblurred = self._plane(0.9, 0.4, 20.0)
+        assert unblurred < 15
+        assert got > 40
+
+    @pytest.mark.xfail(
+        strict=True,
+        reason="behind the focal plane the sharper of the two overlapping layers is composited "
+        "on top, so a 10 px CoC is rendered with the 7 px kernel (17.7 dB; K x 1.3 gives 46 dB)",
+    )
+    def test_plane_behind_focus_matches_ground_truth(self):
+        got, _ = self._plane(0.1, 0.6, 20.0)
+        assert got > 40
