@@ -169,9 +169,12 @@ def main(argv: list[str] | None = None) -> int:
         ("accuracy", _bench_accuracy, "renderer settings against ground truth"),
     ):
         q = sub.add_parser(name, help=text, add_help=False)
-        q.add_argument("rest", nargs=argparse.REMAINDER)
         q.set_defaults(func=func)
-    args = parser.parse_args(argv)
+    # everything after "app" / "accuracy" (--help included) belongs to that bench
+    args, rest = parser.parse_known_args(argv)
+    if args.command == "render" and rest:
+        parser.error(f"unrecognized arguments: {' '.join(rest)}")
+    args.rest = rest
     logging.basicConfig(level=logging.WARNING)
     return args.func(args)
 
