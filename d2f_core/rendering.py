@@ -340,7 +340,9 @@ def _kernel(spec: KernelSpec, size: int, factor: int, device: str, dtype: torch.
     )
 
 
-@functools.lru_cache(maxsize=256)
+# A spectrum of a 1024-px frame is several MB: 32 entries keep the cache to a few hundred MB
+# while covering every kernel size of a render.
+@functools.lru_cache(maxsize=32)
 def _spectrum(spec: KernelSpec, size: int, factor: int, fh: int, fw: int, device: str, dtype):
     k = _kernel(spec, size, factor, device, dtype)
     return torch.fft.rfft2(k, s=(fh, fw))
