@@ -25,7 +25,7 @@ def _threads():
 
 def _scene(seed: int, size=(96, 144)):
     """A generated scene (held out from the calibration seeds): sRGB image and disparity."""
-    scene = make_scene(size, seed=seed, margin=0)
+    scene = make_scene(size, seed=seed)
     radiance, disp = render_pinhole(scene)
     image = torch.from_numpy(linear_to_srgb(radiance)).permute(2, 0, 1)[None].contiguous()
     orders = [float(lay.order) for lay in scene.layers]
