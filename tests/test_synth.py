@@ -192,6 +192,14 @@ class TestThinLens:
 
 
 class TestScenes:
+    @pytest.mark.parametrize(("seed", "size"), [(18, (128, 192)), (31, (256, 384))])
+    def test_no_margin(self, seed, size):
+        # these seeds place a blob centre beyond the view; with margin 0 its box was empty
+        scene = make_scene(size, seed=seed, margin=0)
+        radiance, disp = render_pinhole(scene)
+        assert radiance.shape == (*size, 3) and disp.shape == size
+        assert np.isfinite(radiance).all() and 0.0 <= disp.min() <= disp.max() <= 1.0
+
     def test_same_seed_same_scene(self):
         a, b = make_scene((H, W), seed=5), make_scene((H, W), seed=5)
         assert [lay.describe() for lay in a.layers] == [lay.describe() for lay in b.layers]

@@ -160,6 +160,12 @@ def _blob(rng, textures, cy, cx, radius, disparity, size, margin, striped=False)
     top, left = max(int(cy) - ext, -margin), max(int(cx) - ext, -margin)
     h = min(int(cy) + ext, size[0] + margin) - top
     w = min(int(cx) + ext, size[1] + margin) - left
+    if h <= 0 or w <= 0:
+        # centre so far outside that the blob misses the content area: keep a 1-px box at
+        # the nearest border (its coverage there is ~0) instead of an empty array
+        top = min(max(top, -margin), size[0] + margin - 1)
+        left = min(max(left, -margin), size[1] + margin - 1)
+        h, w = max(h, 1), max(w, 1)
     yy, xx = np.mgrid[top : top + h, left : left + w].astype(np.float32)
     y, x = yy - cy, xx - cx
     u = (x * math.cos(rot) + y * math.sin(rot)) / math.sqrt(aspect)
