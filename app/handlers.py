@@ -304,6 +304,16 @@ class RefocusApp:
         )
 
     @staticmethod
+    def _settings_text(settings: Any) -> str:
+        """What the adaptive picker chose, for the info line."""
+        if settings is None:
+            return ""
+        if settings.identity:
+            return "every blur under 1 px: input shown"
+        text = f"{settings.num_layers} layers, {settings.quality} preset"
+        return text + ("" if settings.fusion else ", fusion skipped")
+
+    @staticmethod
     def _info(session: Session, params: RenderParams, kind: str, ms: float, extra: str = "") -> str:
         w, h = session.size
         text = (
@@ -414,7 +424,8 @@ class RefocusApp:
             session.last_full = bokeh
             session.last_full_params = params
             self._store_views(session, result, bokeh)
-        return (*self.view_outputs(session, view), self._info(session, params, "full", ms))
+        extra = self._settings_text(result.settings)
+        return (*self.view_outputs(session, view), self._info(session, params, "full", ms, extra))
 
     @reported
     def render_full(
@@ -483,7 +494,9 @@ class RefocusApp:
             if session.full_seq != seq or params == session.full_params:
                 return SKIP4
             self._store_views(session, result, bokeh)
-        return (*self.view_outputs(session, view), self._info(session, params, "preview", ms))
+        extra = self._settings_text(result.settings)
+        info = self._info(session, params, "preview", ms, extra)
+        return (*self.view_outputs(session, view), info)
 
     @reported
     def click(

@@ -41,7 +41,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from . import rendering
+from . import adaptive, rendering
 from .kernels import PAPER_GROWING_SIZES
 from .networks import build_defocus_net, build_fusion_net, build_radiance_net, rgb_to_gray
 
@@ -201,6 +201,9 @@ class Result:
         fusion_mask: ``H x W`` in [0, 1], weight of the sharp input in ``bokeh`` (zeros when
             fusion is off or in preview).
         timings: milliseconds per stage.
+        settings: what the adaptive picker chose for this focus and blur
+            (:class:`adaptive.RenderSettings`: layer count, reduced-resolution preset,
+            identity path, predicted PSNR), ``None`` when the settings were fixed.
     """
 
     bokeh: np.ndarray
@@ -209,6 +212,7 @@ class Result:
     defocus: np.ndarray
     fusion_mask: np.ndarray
     timings: dict[str, float]
+    settings: adaptive.RenderSettings | None = None
 
 
 # --------------------------------------------------------------------------------------
@@ -602,6 +606,7 @@ class D2F(nn.Module):
         blur: float = 40.0,
         fusion: bool = True,
         max_side: int | None = None,
+        budget: str | float | None = adaptive.DEFAULT_QUALITY,
         **render_options: Any,
     ) -> Result:
         """Refocus a prepared photo.
@@ -612,12 +617,19 @@ class D2F(nn.Module):
             blur: ``K``, CoC diameter in px at FULL resolution for ``|d - focus| = 1``.
             fusion: apply deep Poisson fusion at full resolution (else plain upsampling).
             max_side: preview mode: render at this long side, no fusion.
+            budget: error budget of the adaptive settings (:mod:`d2f_core.adaptive`):
+                ``"high"``, ``"balanced"`` or ``"fast"`` (45, 40, 30 dB against the exact
+                renderer), or a PSNR in dB. The layer count and reduced-resolution preset are
+                picked per focus and blur; when every CoC is under a pixel the input is
+                returned without rendering (identity path), and fusion is skipped when no
+                pixel is near enough to the focal plane to be fused. ``None``, an explicit
+                ``num_layers`` or ``quality``, or ``order="paper"`` fix the settings.
             **render_options: passed to ``rendering.render`` (``order``, ``num_layers``,
                 ``schedule``, ``kernel``, ``blades``, ``rotation``, ``highlight_boost``,
                 ``quality``, ``method``).
 
         Returns:
-            :class:`Result`.
+            :class:`Result`; ``result.settings`` says what was picked.
         """
         if not isinstance(scene, Scene):
             raise TypeError(f"scene must be a Scene from prepare(), got {type(scene).__name__}")
@@ -627,6 +639,26 @@ class D2F(nn.Module):
         if "radiance" in render_options:
             raise ValueError("render_options must not contain 'radiance' (it comes from scene)")
         render_options.setdefault("order", self.config.order)
+        named = isinstance(budget, str)
+        if named and budget not in adaptive.BUDGETS:
+            names = sorted(adaptive.BUDGETS)
+            raise ValueError(f"budget must be one of {names}, a dB value or None, got {budget!r}")
+        if budget is not None and not named:
+            bad = f"budget must be a name, a dB value or None, got {budget!r}"
+            if isinstance(budget, bool):
+                raise ValueError(bad)
+            try:
+                budget = float(budget)
+            except (TypeError, ValueError):
+                raise ValueError(bad) from None
+            if not math.isfinite(budget):
+                raise ValueError(f"budget must be finite, got {budget}")
+        pick = (
+            budget is not None
+            and render_options["order"] == "depth"
+            and "num_layers" not in render_options
+            and "quality" not in render_options
+        )
         timings: dict[str, float] = {}
         t_all = time.perf_counter()
 
@@ -642,12 +674,42 @@ class D2F(nn.Module):
         lr_size = (int(image_lr.shape[-2]), int(image_lr.shape[-1]))
         lr_ratio = _size_ratio(lr_size, scene.size)
         blur_lr = blur * lr_ratio
+        # full-res CoC under which the fusion gate can open (see _fuse_tiled)
+        gate_coc = _defocus_to_coc(self.config.fusion_gate) / lr_ratio * 1.01
 
-        # 2. layered rendering at low resolution (HDR boost inside)
+        # 2. adaptive settings, then layered rendering at low resolution (HDR boost inside)
+        settings = None
+        if pick:
+            t0 = time.perf_counter()
+            full = max_side is None
+            settings = adaptive.choose_settings(
+                disparity_lr,
+                focus,
+                blur_lr,
+                budget_db=None if named else budget,
+                quality=budget if named else adaptive.DEFAULT_QUALITY,
+                schedule=render_options.get("schedule", "growing"),
+                full_scale=1.0 / lr_ratio if full else 1.0,
+                fusion_coc=gate_coc,
+            )
+            if full:
+                # decide from the full-resolution map (a given map can hold finer extremes
+                # than its low-res copy): identity when every output CoC is under a pixel,
+                # fusion when some pixel is near enough to focus for _fuse_tiled to touch it
+                lo, hi = scene.disparity_tile_range(_FUSION_TILE)
+                far = float(torch.maximum((hi - focus).abs(), (lo - focus).abs()).max())
+                near = float(torch.clamp(torch.maximum(lo - focus, focus - hi), min=0.0).min())
+                settings.identity = blur * far < 1.0
+                settings.fusion = blur * near < max(gate_coc, 2.0 * self.config.sharp_coc)
+            timings["pick"] = _ms(t0)
         t0 = time.perf_counter()
-        bokeh_lr = rendering.render(
-            image_lr, disparity_lr, focus, blur_lr, radiance=radiance_lr, **render_options
-        )  # [1,3,h,w]
+        if settings is not None and settings.identity:
+            bokeh_lr = image_lr  # every CoC is under a pixel of the output
+        else:
+            options = render_options | (settings.render_options() if settings else {})
+            bokeh_lr = rendering.render(
+                image_lr, disparity_lr, focus, blur_lr, radiance=radiance_lr, **options
+            )  # [1,3,h,w]
         timings["render_lr"] = _ms(t0)
         defocus_lr = _coc_to_defocus(blur_lr * (disparity_lr - focus).abs())
 
@@ -655,13 +717,16 @@ class D2F(nn.Module):
         if max_side is not None:
             bokeh = bokeh_lr
             mask = torch.zeros_like(disparity_lr)
+        elif settings is not None and settings.identity:
+            bokeh = scene.image.clone()
+            mask = torch.ones((1, 1, *scene.size), device=bokeh.device)
         else:
             t0 = time.perf_counter()
             bokeh = _resize(bokeh_lr, scene.size)  # [1,3,H,W]
             if bokeh is bokeh_lr:
                 bokeh = bokeh.clone()  # fusion writes into it; bokeh_lr is returned too
             timings["upsample"] = _ms(t0)
-            if fusion:
+            if fusion and (settings is None or settings.fusion):
                 t0 = time.perf_counter()
                 bokeh, mask = self._fuse_tiled(scene, bokeh, focus, blur, lr_ratio)
                 timings["fusion"] = _ms(t0)
@@ -676,6 +741,7 @@ class D2F(nn.Module):
             defocus=defocus_lr[0, 0].cpu().numpy(),
             fusion_mask=mask[0, 0].cpu().numpy(),
             timings=timings,
+            settings=settings,
         )
         timings["to_numpy"] = _ms(t0)
         timings["total"] = _ms(t_all)

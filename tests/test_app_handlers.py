@@ -463,6 +463,15 @@ class TestRender:
         assert all(is_skip(o) for o in logic.render_full(session, 0.3, BLUR))
         assert not is_skip(logic.render_preview(session, 0.31, BLUR)[0])
 
+    def test_info_names_the_adaptive_settings(self, loaded):
+        logic, session, scene = loaded
+        out = logic.render_full(session, 0.5, 0.0)
+        assert "input shown" in out[-1]
+        np.testing.assert_array_equal(pixels(out[0]), np.asarray(Image.open(scene.photo)))
+        out = logic.render_full(session, 0.5, BLUR)
+        assert "15 layers" in out[-1] and "preset" in out[-1]
+        assert "layers" in logic.render_preview(session, 0.45, BLUR)[-1]
+
     def test_preview_dropped_when_full_render_overtakes_it(self, loaded):
         logic, session, _ = loaded
         model = logic.model

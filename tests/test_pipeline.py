@@ -7,7 +7,10 @@ import pytest
 import torch
 
 from d2f_core import rendering
+from d2f_core.adaptive import BUDGETS
+from d2f_core.metrics import psnr
 from d2f_core.pipeline import D2F, D2FConfig, Result, Scene, _coc_to_defocus
+from d2f_core.synth import linear_to_srgb, make_scene, render_pinhole
 
 
 @pytest.fixture(autouse=True, scope="module")
@@ -319,3 +322,79 @@ class TestTrainingForwards:
         out["bokeh"].mean().backward()
         assert model.fusion_net.net[0].weight.grad is not None
         assert all(p.grad is None for p in model.defocus_net.parameters())
+
+
+class TestAdaptive:
+    """``D2F.render`` picks its settings per focus and blur from an error budget."""
+
+    @staticmethod
+    def _no_render(*args, **kwargs):
+        raise AssertionError("the layered renderer must not run")
+
+    def test_sub_pixel_blur_takes_the_identity_path(self, model, monkeypatch):
+        image = _image()
+        scene = model.prepare(image, disparity=_ramp())
+        monkeypatch.setattr(rendering, "render", self._no_render)
+        for blur in (0.0, 0.9):  # largest CoC 0.9 px: nothing to blur
+            res = model.render(scene, focus=0.0, blur=blur)
+            assert res.settings is not None and res.settings.identity
+            np.testing.assert_allclose(res.bokeh, image, atol=1e-6)
+            np.testing.assert_array_equal(res.fusion_mask, 1.0)
+        with pytest.raises(AssertionError, match="must not run"):
+            model.render(scene, focus=0.0, blur=1.5)  # a 1.5 px CoC needs the renderer
+        with pytest.raises(AssertionError, match="must not run"):
+            model.render(scene, focus=0.0, blur=0.0, budget=None)  # fixed settings
+
+    def test_identity_uses_the_full_resolution_map(self, model):
+        # the given map's one near pixel is averaged away in the low-res copy
+        disp = np.zeros((48, 64), np.float32)
+        disp[20, 30] = 1.0
+        scene = model.prepare(_image(), disparity=disp)
+        assert float(scene.disparity_lr.max()) < 0.5
+        res = model.render(scene, focus=0.0, blur=1.5)
+        assert not res.settings.identity  # full-res CoC there is 1.5 px
+
+    def test_fusion_skipped_when_nothing_is_near_focus(self, model, monkeypatch):
+        scene = model.prepare(_image(), disparity=_ramp() * 0.4)
+        calls = []
+        fuse = model._fuse_tiled
+        monkeypatch.setattr(model, "_fuse_tiled", lambda *a: calls.append(1) or fuse(*a))
+        # nearest pixel 0.6 from focus: CoC >= 60 px at full res, far above the fusion gate
+        res = model.render(scene, focus=1.0, blur=100.0)
+        assert not res.settings.fusion and calls == [] and not res.fusion_mask.any()
+        fixed = model.render(scene, focus=1.0, blur=100.0, budget=None, quality="exact")
+        assert calls == [1] and not fixed.fusion_mask.any()  # the fixed path ran it for nothing
+        res = model.render(scene, focus=0.2, blur=100.0)
+        assert res.settings.fusion and calls == [1, 1] and res.fusion_mask.max() == 1.0
+
+    @pytest.mark.parametrize("budget", ["balanced", "fast", 35.0])
+    def test_stays_within_budget_of_the_exact_renderer(self, budget):
+        torch.manual_seed(0)
+        model = D2F.from_config({"render_scale": 0.5})
+        radiance, disp = render_pinhole(make_scene((192, 288), seed=11))
+        scene = model.prepare(linear_to_srgb(radiance), disparity=disp)
+        limit = budget if isinstance(budget, float) else BUDGETS[budget]
+        for focus, blur in ((0.3, 20.0), (0.7, 60.0), (0.5, 150.0), (0.0, 400.0)):
+            res = model.render(scene, focus, blur, fusion=False, budget=budget)
+            ref = model.render(scene, focus, blur, fusion=False, budget=None, quality="exact")
+            assert res.settings is not None and not res.settings.identity
+            assert res.settings.num_layers in (5, 7, 9, 11, 15)
+            score = psnr(res.bokeh_lr, ref.bokeh_lr)
+            assert score >= limit, (focus, blur, res.settings, score)
+            if budget == "fast" and blur == 400.0:
+                # CoCs over 128 px: the 30 dB budget affords fewer layers (7 measured here)
+                assert res.settings.num_layers < 15
+
+    def test_fixed_settings_pick_nothing(self, model):
+        scene = model.prepare(_image(), disparity=_ramp())
+        assert model.render(scene, 0.5, 30.0, quality="high").settings is None
+        assert model.render(scene, 0.5, 30.0, num_layers=9).settings is None
+        assert model.render(scene, 0.5, 30.0, order="paper").settings is None
+        assert model.render(scene, 0.5, 30.0, budget=None).settings is None
+        assert model.render(scene, 0.5, 30.0).settings.budget_db == 40.0
+
+    @pytest.mark.parametrize("budget", ["bogus", True, "40", float("nan"), [40]])
+    def test_bad_budget(self, model, budget):
+        scene = model.prepare(_image(), disparity=_ramp())
+        with pytest.raises(ValueError, match="budget"):
+            model.render(scene, 0.5, 30.0, budget=budget)
