@@ -306,12 +306,7 @@ class RefocusApp:
     @staticmethod
     def _settings_text(settings: Any) -> str:
         """What the adaptive picker chose, for the info line."""
-        if settings is None:
-            return ""
-        if settings.identity:
-            return "every blur under 1 px: input shown"
-        text = f"{settings.num_layers} layers, {settings.quality} preset"
-        return text + ("" if settings.fusion else ", fusion skipped")
+        return "" if settings is None else settings.describe()
 
     @staticmethod
     def _info(session: Session, params: RenderParams, kind: str, ms: float, extra: str = "") -> str:

@@ -129,6 +129,13 @@ class RenderSettings:
         """Keyword arguments for ``rendering.render``."""
         return {"num_layers": self.num_layers, "quality": self.quality}
 
+    def describe(self) -> str:
+        """One line for people: what was picked."""
+        if self.identity:
+            return "every blur under 1 px: input shown"
+        text = f"{self.num_layers} layers, {self.quality} preset"
+        return text + ("" if self.fusion else ", fusion skipped")
+
     def to_dict(self) -> dict[str, object]:
         out = asdict(self)
         out["predicted_psnr"] = None if math.isinf(self.predicted_psnr) else self.predicted_psnr

@@ -171,6 +171,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--rotation", type=_finite_float, default=0.0, metavar="DEG", help="aperture rotation"
     )
     focus.add_argument(
+        "--quality",
+        choices=("high", "balanced", "fast"),
+        default="balanced",
+        help="error budget of the adaptive renderer: 45, 40 or 30 dB against the exact "
+        "renderer (default: balanced)",
+    )
+    focus.add_argument(
         "--no-fusion",
         action="store_true",
         help="skip the full-resolution fusion (plain upsampling of the bokeh pass)",
@@ -469,8 +476,15 @@ def render_file(
         if point is not None:
             focus = model.focus_at(scene, *point)
         result = model.render(
-            scene, focus=focus, blur=args.blur, fusion=not args.no_fusion, **options
+            scene,
+            focus=focus,
+            blur=args.blur,
+            fusion=not args.no_fusion,
+            budget=args.quality,
+            **options,
         )
+        if result.settings is not None:
+            logger.info("%s: %s", src, result.settings.describe())
         rendered = Rendered(
             bokeh=result.bokeh,
             maps={
@@ -484,7 +498,13 @@ def render_file(
             focus = _focus_from_map(disparity, *point)
         logger.info("%s: rendering with the depth map only (no D2F weights)", src)
         rendered = render_with_depth_only(
-            image, disparity, focus, args.blur, fusion=not args.no_fusion, **options
+            image,
+            disparity,
+            focus,
+            args.blur,
+            fusion=not args.no_fusion,
+            quality=args.quality,  # the renderer preset of the same name
+            **options,
         )
     else:
         raise RenderError(

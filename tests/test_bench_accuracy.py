@@ -35,9 +35,7 @@ class TestQuickRun:
     def test_quick_mode_writes_json_and_charts(self, tmp_path, capsys):
         out, cache = tmp_path / "out", tmp_path / "cache"
         # through the d2f-bench dispatcher, as CI and the README run it
-        rc = bench.main(
-            ["accuracy", "--quick", "--e2e", "--out", str(out), "--cache", str(cache)]
-        )
+        rc = bench.main(["accuracy", "--quick", "--e2e", "--out", str(out), "--cache", str(cache)])
         assert rc == 0
         report = json.loads((out / "accuracy.json").read_text())
         names = {e["setting"] for e in report["summary"]}

@@ -160,6 +160,31 @@ class TestRender:
         for name in ("disparity", "defocus", "fusion_mask"):
             assert (tmp_path / "maps" / f"o_{name}.png").is_file()
 
+    def test_quality_sets_the_error_budget(self, tmp_path, capsys, checkpoint):
+        img, disp = _scene()
+        src = _write_photo(tmp_path / "photo.png", img)
+        depth = tmp_path / "d.npy"
+        np.save(depth, disp)
+        picked = {}
+        for quality in ("high", "fast"):
+            code, err = _run(
+                capsys, "render", src, "-o", tmp_path / f"{quality}.png", "--blur", 400,
+                "--focus", 1.0, "--depth", depth, "--weights", checkpoint, "--quality", quality,
+                "-v",
+            )  # fmt: skip
+            assert code == 0, err
+            picked[quality] = int(err.split(" layers, ")[0].rsplit(" ", 1)[-1])
+        # CoCs over 128 px at the low-res pass: only the 30 dB budget affords fewer layers
+        assert picked["high"] == 15 and picked["fast"] < 15
+        # every CoC under a pixel: the picker returns the input
+        out = tmp_path / "same.png"
+        code, err = _run(capsys, "render", src, "-o", out, "--blur", 0.5, "--focus", 0.5,
+                         "--depth", depth, "--weights", checkpoint, "-v")  # fmt: skip
+        assert code == 0 and "input shown" in err
+        np.testing.assert_array_equal(load_image(out), load_image(src))
+        code, err = _run(capsys, "render", src, "-o", out, "--blur", 5, "--quality", "best")
+        assert code == 2 and "--quality" in err
+
     def test_bad_weights(self, tmp_path, capsys):
         img, disp = _scene()
         src = _write_photo(tmp_path / "photo.png", img)
