@@ -35,6 +35,8 @@ from app.cache import SCENE_CACHE, SceneCache, content_key
 
 log = logging.getLogger(__name__)
 
+#: The adaptive renderer's error budgets (``D2F.render(budget=...)``), fastest last.
+QUALITIES = ("high", "balanced", "fast")
 VIEWS = ("Bokeh", "Before / after", "Disparity", "Defocus", "Fusion mask")
 #: Display files kept per session (Gradio copies each one into its cache when it is sent).
 DISPLAY_FILES_KEPT = 8
@@ -73,6 +75,7 @@ class RenderParams:
     rotation: float = 0.0
     highlight_boost: bool = True
     fusion: bool = True
+    quality: str = "balanced"
 
     @classmethod
     def from_inputs(
@@ -83,6 +86,7 @@ class RenderParams:
         rotation: Any = 0.0,
         highlight_boost: Any = True,
         fusion: Any = True,
+        quality: Any = "balanced",
     ) -> RenderParams:
         """Validate raw widget values (numbers may arrive as str/None from API callers)."""
         try:
@@ -101,7 +105,10 @@ class RenderParams:
             raise user_error(f"blur must be in [0, 10000] px, got {k}.")
         if n < 0 or n in (1, 2):
             raise user_error(f"blades must be 0 (round) or at least 3, got {n}.")
-        return cls(f, k, n, r, bool(highlight_boost), bool(fusion))
+        quality = "balanced" if quality in (None, "") else str(quality)
+        if quality not in QUALITIES:
+            raise user_error(f"quality must be one of {', '.join(QUALITIES)}, got {quality!r}.")
+        return cls(f, k, n, r, bool(highlight_boost), bool(fusion), quality)
 
     def render_options(self) -> dict[str, Any]:
         """Keyword options for ``D2F.render`` (and on to ``rendering.render``)."""
@@ -110,6 +117,7 @@ class RenderParams:
             "blades": self.blades,
             "rotation": self.rotation,
             "highlight_boost": self.highlight_boost,
+            "budget": self.quality,
         }
 
 
@@ -332,6 +340,7 @@ class RefocusApp:
         highlight_boost: Any = True,
         fusion: Any = True,
         view: str = "Bokeh",
+        quality: Any = "balanced",
     ) -> tuple:
         """Decode an upload (and optional depth map), prepare it (cached), render it.
 
@@ -345,7 +354,9 @@ class RefocusApp:
                 session.close()
             cleared = (gr.update(value=None), gr.update(value=None), gr.update(visible=False))
             return (None, gr.skip(), *cleared, "")
-        params = RenderParams.from_inputs(focus, blur, blades, rotation, highlight_boost, fusion)
+        params = RenderParams.from_inputs(
+            focus, blur, blades, rotation, highlight_boost, fusion, quality
+        )
         t0 = time.perf_counter()
         photo = imaging.load_photo(path, _payload_name(image, ext=True))
         if photo.notice:
@@ -368,7 +379,7 @@ class RefocusApp:
             if photo.focus is not None:
                 new_focus = round(float(photo.focus), FOCUS_DECIMALS)
                 params = RenderParams.from_inputs(
-                    new_focus, blur, blades, rotation, highlight_boost, fusion
+                    new_focus, blur, blades, rotation, highlight_boost, fusion, quality
                 )
         t_decode = time.perf_counter()
         key = content_key(photo.image, disparity)
@@ -433,6 +444,7 @@ class RefocusApp:
         highlight_boost: Any = True,
         fusion: Any = True,
         view: str = "Bokeh",
+        quality: Any = "balanced",
     ) -> tuple:
         """Full-resolution render (slider released, option changed).
 
@@ -441,7 +453,9 @@ class RefocusApp:
         """
         if session is None:
             return SKIP4
-        params = RenderParams.from_inputs(focus, blur, blades, rotation, highlight_boost, fusion)
+        params = RenderParams.from_inputs(
+            focus, blur, blades, rotation, highlight_boost, fusion, quality
+        )
         with session.lock:
             if params == session.full_params:
                 return SKIP4  # already rendered (or being rendered) at full resolution
@@ -458,6 +472,7 @@ class RefocusApp:
         highlight_boost: Any = True,
         fusion: Any = True,
         view: str = "Bokeh",
+        quality: Any = "balanced",
     ) -> tuple:
         """Reduced-resolution render while a slider moves.
 
@@ -470,7 +485,9 @@ class RefocusApp:
         """
         if session is None:
             return SKIP4
-        params = RenderParams.from_inputs(focus, blur, blades, rotation, highlight_boost, fusion)
+        params = RenderParams.from_inputs(
+            focus, blur, blades, rotation, highlight_boost, fusion, quality
+        )
         with session.lock:
             if params == session.full_params:
                 return SKIP4
@@ -504,6 +521,7 @@ class RefocusApp:
         highlight_boost: Any = True,
         fusion: Any = True,
         view: str = "Bokeh",
+        quality: Any = "balanced",
     ) -> tuple:
         """Focus on the clicked point: ``index = [x, y]`` in the shown photo's pixels.
 
@@ -525,7 +543,9 @@ class RefocusApp:
         t0 = time.perf_counter()
         focus = round(float(self.model.focus_at(session.scene, xs, ys)), FOCUS_DECIMALS)
         ms_focus = 1000 * (time.perf_counter() - t0)
-        params = RenderParams.from_inputs(focus, blur, blades, rotation, highlight_boost, fusion)
+        params = RenderParams.from_inputs(
+            focus, blur, blades, rotation, highlight_boost, fusion, quality
+        )
         outputs = self._render_full(session, params, view)
         if outputs is SKIP4:
             return (focus, *SKIP4)

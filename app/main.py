@@ -15,7 +15,7 @@ from typing import Any
 import gradio as gr
 
 from app.cache import SceneCache
-from app.handlers import DEPTH_KINDS, FORMATS, VIEWS, RefocusApp, delete_session
+from app.handlers import DEPTH_KINDS, FORMATS, QUALITIES, VIEWS, RefocusApp, delete_session
 
 log = logging.getLogger(__name__)
 
@@ -139,6 +139,12 @@ def build_demo(
                         label="Fusion (keep in-focus detail at full resolution)",
                         elem_id="fusion",
                     )
+                    quality = gr.Radio(
+                        list(QUALITIES),
+                        value="balanced",
+                        label="Quality / speed (error budget: 45 / 40 / 30 dB)",
+                        elem_id="quality",
+                    )
                 with gr.Accordion("Your own depth map (optional)", open=False):
                     depth = gr.File(
                         label="Depth or disparity image (PNG/TIFF, 8/16-bit) or .npy",
@@ -179,7 +185,7 @@ def build_demo(
                     )
                     download = gr.DownloadButton("Download", elem_id="download")
 
-        options = [blades, rotation, highlight, fusion, view]
+        options = [blades, rotation, highlight, fusion, view, quality]
         shown = [result, compare, legend, info]
 
         load_io = {
@@ -221,7 +227,7 @@ def build_demo(
                 **quiet,
             ).success(logic.download, [session, fmt], [download], **chained)
         gr.on(
-            [blades.change, highlight.change, fusion.change],
+            [blades.change, highlight.change, fusion.change, quality.change],
             logic.render_full,
             render_inputs,
             shown,
@@ -232,10 +238,18 @@ def build_demo(
 
         # Gradio finds the event data by the annotation of a named positional parameter
         def on_select(
-            state, blur_v, blades_v, rotation_v, hdr_v, fusion_v, view_v, evt: gr.SelectData
+            state,
+            blur_v,
+            blades_v,
+            rotation_v,
+            hdr_v,
+            fusion_v,
+            view_v,
+            quality_v,
+            evt: gr.SelectData,
         ):
             return logic.click(
-                state, evt.index, blur_v, blades_v, rotation_v, hdr_v, fusion_v, view_v
+                state, evt.index, blur_v, blades_v, rotation_v, hdr_v, fusion_v, view_v, quality_v
             )
 
         photo.select(

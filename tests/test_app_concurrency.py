@@ -54,7 +54,7 @@ def test_sixteen_sessions(app_server, scene_factory, gradio_env, tmp_path, monke
     bad = tmp_path / "not_a_photo.png"
     bad.write_bytes(b"\x00\x01 definitely not a PNG " * 50)
     kind = "disparity (bright = near)"
-    options = (0, 0.0, True, True, "Bokeh")  # blades, rotation, highlight, fusion, view
+    options = (0, 0.0, True, True, "Bokeh", "balanced")  # blades ... fusion, view, quality
 
     def new_client(name: str) -> Client:
         folder = str(tmp_path / f"dl_{name}")

@@ -304,7 +304,10 @@ class TestRenderParams:
             "blades": 6,
             "rotation": 30.0,
             "highlight_boost": True,
+            "budget": "balanced",
         }
+        fast = RenderParams.from_inputs(0.5, 10, quality="fast")
+        assert fast.render_options()["budget"] == "fast"
 
     @pytest.mark.parametrize(
         "args", [(1.5, 10), (-0.1, 10), (0.5, -1), (0.5, 10, 2), ("x", 10), (None, 10)]
@@ -471,6 +474,17 @@ class TestRender:
         out = logic.render_full(session, 0.5, BLUR)
         assert "15 layers" in out[-1] and "preset" in out[-1]
         assert "layers" in logic.render_preview(session, 0.45, BLUR)[-1]
+
+    def test_quality_option_sets_the_budget(self, loaded):
+        logic, session, _ = loaded
+        info = {}
+        for quality in ("high", "fast"):
+            info[quality] = logic.render_full(session, 1.0, 3000.0, quality=quality)[-1]
+        # CoCs far over 64 px: only the 30 dB budget affords fewer than 15 layers
+        assert "15 layers" in info["high"] and "15 layers" not in info["fast"]
+        assert " layers, " in info["fast"]
+        with pytest.raises(gr.Error, match="quality"):
+            logic.render_full(session, 0.5, BLUR, quality="ultra")
 
     def test_preview_dropped_when_full_render_overtakes_it(self, loaded):
         logic, session, _ = loaded
