@@ -26,7 +26,7 @@ from dataclasses import asdict, dataclass, field
 import torch
 import torch.nn.functional as F
 
-from .rendering import QUALITY_PRESETS, layer_plan, render
+from .rendering import _factor_for, layer_plan, render
 
 __all__ = [
     "BUDGETS",
@@ -192,15 +192,6 @@ def _occupancy(
     ]
 
 
-def _factor(size: int, quality: str) -> int:
-    preset = QUALITY_PRESETS[quality]
-    if preset.quarter is not None and size >= preset.quarter:
-        return 4
-    if preset.half is not None and size >= preset.half:
-        return 2
-    return 1
-
-
 def _cost(layers: list[tuple[int, int, float]], quality: str) -> float:
     """Relative render cost: each blurred layer's share of the frame, at its resolution."""
     total = 0.0
@@ -208,7 +199,7 @@ def _cost(layers: list[tuple[int, int, float]], quality: str) -> float:
         if size <= 1:
             total += 0.1 * share  # masked and composited, not convolved
             continue
-        f = _factor(size, quality)
+        f = _factor_for(size, quality)
         # a layer's support box is larger than its pixels, and every layer pays some overhead
         total += (0.05 + min(1.0, 2.0 * share)) / (f * f)
     return total
