@@ -44,6 +44,28 @@ CHROMIUM_ARGS = [
 ]
 
 
+def _torch_threads(n: int) -> Iterator[None]:
+    import torch
+
+    old = torch.get_num_threads()
+    torch.set_num_threads(n)
+    yield
+    torch.set_num_threads(old)
+
+
+@pytest.fixture(scope="module")
+def one_thread() -> Iterator[None]:
+    """One torch thread: tiny tensors gain nothing from threads, and OpenMP spin-waits
+    collapse on a busy machine."""
+    yield from _torch_threads(1)
+
+
+@pytest.fixture
+def two_threads() -> Iterator[None]:
+    """Two torch threads, as the benchmarks and the scene generator run."""
+    yield from _torch_threads(2)
+
+
 @pytest.fixture(scope="session")
 def tiny_checkpoint(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """Path of a seeded random-init D2F checkpoint with :data:`TINY_CONFIG`."""

@@ -14,13 +14,7 @@ from d2f_core.adaptive import BUDGETS, choose_settings, render_adaptive
 from d2f_core.metrics import psnr
 from d2f_core.synth import linear_to_srgb, make_scene, render_pinhole
 
-
-@pytest.fixture(autouse=True)
-def _threads():
-    old = torch.get_num_threads()
-    torch.set_num_threads(2)
-    yield
-    torch.set_num_threads(old)
+pytestmark = pytest.mark.usefixtures("two_threads")
 
 
 def _scene(seed: int, size=(96, 144)):

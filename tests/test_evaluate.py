@@ -23,14 +23,7 @@ from d2f_core.evaluate import (
 )
 from d2f_core.pipeline import D2F
 
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    # tiny tensors gain nothing from threads, and OpenMP spin-waits collapse on a busy machine
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def _pair(seed=0, h=24, w=32):

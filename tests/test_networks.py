@@ -23,13 +23,7 @@ from d2f_core.networks import (
 RESNEXT50_ENCODER_PARAMS = 25_028_904 - 2_049_000
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    # tiny tensors gain nothing from threads, and OpenMP spin-waits collapse on a busy machine
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 @pytest.fixture(scope="module")

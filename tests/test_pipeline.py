@@ -12,14 +12,7 @@ from d2f_core.metrics import psnr
 from d2f_core.pipeline import D2F, D2FConfig, Result, Scene, _coc_to_defocus
 from d2f_core.synth import linear_to_srgb, make_scene, render_pinhole
 
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    # tiny tensors gain nothing from threads, and OpenMP spin-waits collapse on a busy machine
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def _image(h: int = 48, w: int = 64, seed: int = 0) -> np.ndarray:

@@ -6,7 +6,6 @@ import json
 
 import numpy as np
 import pytest
-import torch
 from PIL import Image
 from scipy.signal import fftconvolve
 
@@ -29,12 +28,7 @@ H = W = 64
 MARGIN = 14
 
 
-@pytest.fixture(autouse=True)
-def _threads():
-    old = torch.get_num_threads()
-    torch.set_num_threads(2)
-    yield
-    torch.set_num_threads(old)
+pytestmark = pytest.mark.usefixtures("two_threads")
 
 
 def _opaque(img: np.ndarray, disparity: float, top: int = -MARGIN, left: int = -MARGIN) -> Layer:

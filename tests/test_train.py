@@ -12,14 +12,7 @@ from test_data import write_pairs
 from d2f_core.pipeline import D2F
 from d2f_core.train import build_parser, main, train
 
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    # tiny tensors gain nothing from threads, and OpenMP spin-waits collapse on a busy machine
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 @pytest.fixture(scope="module")
