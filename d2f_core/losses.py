@@ -14,12 +14,14 @@ Stage 2 (fusion network): the stage-1 terms on the fused image ``+ 10 * L_p``.
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
+
+from .networks import _IMAGENET_MEAN, _IMAGENET_STD, load_local_state_dict
 
 __all__ = [
     "D2FLoss",
@@ -36,9 +38,6 @@ __all__ = [
 ]
 
 logger = logging.getLogger(__name__)
-
-_IMAGENET_MEAN = (0.485, 0.456, 0.406)
-_IMAGENET_STD = (0.229, 0.224, 0.225)
 
 
 def _check_pair(pred: Tensor, target: Tensor) -> None:
@@ -240,21 +239,9 @@ class VGG19Features(nn.Module):
             FileNotFoundError: no such file.
             ValueError: unreadable file or keys/shapes that are not VGG19's.
         """
-        path = Path(path)
-        if not path.is_file():
-            raise FileNotFoundError(f"VGG19 weights file not found: {path}")
-        try:
-            raw = torch.load(path, map_location="cpu", weights_only=True)
-        except Exception as exc:  # pickle/zip errors come in many types
-            raise ValueError(f"cannot read VGG19 weights from {path}: {exc}") from exc
-        if isinstance(raw, Mapping) and isinstance(raw.get("state_dict"), Mapping):
-            raw = raw["state_dict"]
-        if not isinstance(raw, Mapping):
-            raise ValueError(f"{path} does not hold a state dict")
+        raw = load_local_state_dict(path, "VGG19")
         state = {}
         for key, value in raw.items():
-            if not isinstance(key, str) or not isinstance(value, Tensor):
-                raise ValueError(f"{path} does not hold a state dict of tensors")
             key = key.removeprefix("module.").removeprefix("vgg.")
             if key.startswith("classifier."):
                 continue

@@ -336,14 +336,7 @@ class DefocusNet(nn.Module):
         """
         if self.variant != "resnext50":
             raise ValueError(f"load_imagenet needs variant 'resnext50', this is {self.variant!r}")
-        path = Path(path)
-        if not path.is_file():
-            raise FileNotFoundError(f"ImageNet weights file not found: {path}")
-        try:
-            raw = torch.load(path, map_location="cpu", weights_only=True)
-        except Exception as exc:  # pickle/zip errors come in many types
-            raise ValueError(f"cannot read ImageNet weights from {path}: {exc}") from exc
-        state = _unwrap_state_dict(raw, path)
+        state = load_local_state_dict(path, "ImageNet")
         mapped = {}
         for key, value in state.items():
             for prefix in ("module.", "encoder.", "backbone."):
@@ -371,7 +364,21 @@ class DefocusNet(nn.Module):
         logger.info("loaded ImageNet encoder weights from %s", path)
 
 
-def _unwrap_state_dict(raw: object, path: Path) -> Mapping[str, Tensor]:
+def load_local_state_dict(path: str | Path, what: str) -> Mapping[str, Tensor]:
+    """Read a state dict of tensors from a LOCAL file (optionally wrapped in
+    ``{"state_dict": ...}`` or ``{"model": ...}``); ``what`` names the weights in messages.
+
+    Raises:
+        FileNotFoundError: ``path`` does not exist.
+        ValueError: the file is unreadable or does not hold a state dict of tensors.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{what} weights file not found: {path}")
+    try:
+        raw = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # pickle/zip errors come in many types
+        raise ValueError(f"cannot read {what} weights from {path}: {exc}") from exc
     if isinstance(raw, Mapping):
         for key in ("state_dict", "model"):
             if key in raw and isinstance(raw[key], Mapping):
