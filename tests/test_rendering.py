@@ -1,10 +1,12 @@
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from d2f_core import LayeredRenderer, render, render_bokeh
+from d2f_core.kernels import aperture_kernel
 from d2f_core.metrics import psnr
 from d2f_core.rendering import _layer_mask, coc_to_defocus, hdr_boost, layer_plan
 
@@ -17,6 +19,13 @@ def _ramp(h=48, w=64, lo=0.0, hi=1.0):
 def _texture(h=48, w=64, seed=0):
     g = torch.Generator().manual_seed(seed)
     return torch.rand(1, 3, h, w, generator=g) * 0.9
+
+
+def _boxed_scene():
+    """A textured 50x70 scene with a near box whose layers' support stays inside the frame."""
+    disp = torch.full((1, 1, 50, 70), 0.2)
+    disp[..., 12:31, 20:47] = 0.9
+    return _texture(50, 70, seed=10), disp + 0.05 * _ramp(50, 70)
 
 
 class TestKnownAnswers:
@@ -243,6 +252,40 @@ class TestImplementations:
         with torch.no_grad():
             same = render(img, disp, torch.tensor([0.2, 0.9]), 60.0, radiance=r0, quality=quality)
         assert torch.allclose(out, same, atol=1e-6)
+
+    @pytest.mark.parametrize("method", ["fft", "direct"])
+    def test_cropped_layers_match_plain_layered_model(self, method):
+        # the model written out plainly: every layer masked over the whole frame, convolved
+        # with a zero-padded 'same' convolution, composited back to front
+        img, disp = _boxed_scene()
+        plan = layer_plan(disp.double(), torch.full((1, 1, 1, 1), 0.5).double(), 40.0)
+        x = img.double()
+        acc = torch.zeros(1, 4, 50, 70, dtype=torch.float64)
+        for centre, size in plan.order:
+            mask = _layer_mask(plan.side_coord(centre), centre, plan.gamma)
+            z = torch.cat([mask, mask * x], dim=1)
+            r = size // 2
+            k = aperture_kernel(2 * r + 1, radius=r, dtype=torch.float64)
+            blurred = F.conv2d(F.pad(z, (r,) * 4), k.flip(-1, -2).expand(4, 1, -1, -1), groups=4)
+            acc = acc * (1 - blurred[:, :1].clamp(0, 1)) + blurred
+        expected = (acc[:, 1:] / acc[:, :1]).clamp(0, 1)
+        with torch.no_grad():
+            out = render(img, disp, 0.5, 40.0, quality="exact", method=method)
+        assert torch.allclose(out.double(), expected, atol=1e-5)
+
+    @pytest.mark.parametrize("method", ["fft", "direct"])
+    @pytest.mark.parametrize("quality", ["high", "balanced", "fast"])
+    def test_inference_layout_matches_autograd_path(self, quality, method):
+        # without gradients, layers are built channels-last in buffers padded for the
+        # convolution and pooled into preallocated buffers; with gradients they are planar
+        img, disp = _boxed_scene()
+        src = img.clone().requires_grad_()
+        with torch.enable_grad():
+            ref = render(src, disp, 0.5, 40.0, quality=quality, method=method)
+        with torch.no_grad():
+            out = render(img, disp, 0.5, 40.0, quality=quality, method=method)
+        assert ref.requires_grad and not out.requires_grad
+        assert torch.allclose(out, ref.detach(), atol=1e-5)
 
     def test_coc_to_defocus(self):
         assert coc_to_defocus(1.0) == 0.0
