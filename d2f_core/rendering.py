@@ -56,7 +56,7 @@ GAMMA = 100.0
 _MASK_EPS = 1e-4
 # Layers are located on a coarse grid of this many pixels before exact masks are computed.
 _TILE = 8
-_DIRECT_MAX_SIZE = 11
+_DIRECT_MAX_SIZE = 9
 _CL = torch.channels_last
 # Where a layer's other side is moved to in layer units: far enough that its mask is 0.
 _FAR = 1e4
@@ -93,8 +93,14 @@ def _check_tensor(name: str, x: torch.Tensor, channels: int | None) -> None:
         raise ValueError(f"{name} must have {channels} channel(s), got shape {tuple(x.shape)}")
     if not x.is_floating_point():
         raise TypeError(f"{name} must be a floating-point tensor, got {x.dtype}")
-    if not bool(torch.isfinite(x).all()):
+    if x.numel() and not all(math.isfinite(v) for v in _extremes(x)):
         raise ValueError(f"{name} contains NaN or inf")
+
+
+def _extremes(x: torch.Tensor) -> tuple[float, float]:
+    """(min, max) of ``x`` in one pass; NaN when ``x`` holds a NaN."""
+    lo, hi = torch.aminmax(x.detach())
+    return float(lo), float(hi)
 
 
 def _check_scalar(name: str, value: float, low: float, high: float) -> float:
@@ -212,8 +218,9 @@ def _interp(x: torch.Tensor, xp: list[float]) -> torch.Tensor:
     knots = torch.tensor(xp, device=x.device, dtype=x.dtype)
     xc = x.clamp(knots[0], knots[-1])
     idx = torch.searchsorted(knots, xc.detach().contiguous(), right=True).clamp(1, len(xp) - 1)
-    lo = knots[idx - 1]
-    hi = knots[idx]
+    flat = idx.view(-1)
+    lo = knots.index_select(0, flat - 1).view(idx.shape)
+    hi = knots.index_select(0, flat).view(idx.shape)
     return (idx - 1).to(x.dtype) + (xc - lo) / (hi - lo)
 
 
@@ -465,7 +472,10 @@ def _direct_pads(
 def _support_boxes(
     plan: LayerPlan, height: int, width: int
 ) -> dict[int, tuple[int, int, int, int]]:
-    """Bounding box (y0, y1, x0, x1) of each layer's mask support, on an 8-px tile grid."""
+    """Bounding box (y0, y1, x0, x1) of each layer's mask support, on an 8-px tile grid.
+
+    Every layer is tested at once on the tile grid of per-tile coordinate ranges.
+    """
     coord = plan.coord.detach()
     if coord.shape[0] > 1:
         lo_map = coord.amin(dim=0, keepdim=True)
@@ -473,21 +483,28 @@ def _support_boxes(
     else:
         lo_map = hi_map = coord
     ph, pw = (-height) % _TILE, (-width) % _TILE
-    lo = -F.max_pool2d(F.pad(-lo_map, (0, pw, 0, ph), mode="replicate"), _TILE)[0, 0]
-    hi = F.max_pool2d(F.pad(hi_map, (0, pw, 0, ph), mode="replicate"), _TILE)[0, 0]
+    lo = -F.max_pool2d(F.pad(-lo_map, (0, pw, 0, ph), mode="replicate"), _TILE)[0]
+    hi = F.max_pool2d(F.pad(hi_map, (0, pw, 0, ph), mode="replicate"), _TILE)[0]
     reach = 1.0 + _mask_reach(plan.gamma)
+    centres = [centre for centre, _ in plan.order]
+    c = torch.tensor(centres, dtype=lo.dtype, device=lo.device).view(-1, 1, 1)
+    hit = (hi > c - reach) & (lo < c + reach)  # [L, tiles down, tiles across]
+    if plan.signed:
+        # a layer on one side of focus takes no pixels from the other side
+        side = torch.sign(c)
+        hit &= (side == 0) | ((side > 0) & (hi > 0)) | ((side < 0) & (lo < 0))
     boxes = {}
-    for centre, _ in plan.order:
-        hit = (hi > centre - reach) & (lo < centre + reach)
-        if plan.signed and centre != 0:
-            hit &= (hi > 0) if centre > 0 else (lo < 0)
-        rows = torch.nonzero(hit.any(dim=1)).flatten()
-        if rows.numel() == 0:
+    for centre, rows, cols in zip(centres, hit.any(dim=2).tolist(), hit.any(dim=1).tolist()):
+        if not any(rows):
             continue
-        cols = torch.nonzero(hit.any(dim=0)).flatten()
-        y0, y1 = int(rows[0]) * _TILE, min(height, (int(rows[-1]) + 1) * _TILE)
-        x0, x1 = int(cols[0]) * _TILE, min(width, (int(cols[-1]) + 1) * _TILE)
-        boxes[centre] = (y0, y1, x0, x1)
+        r0, r1 = rows.index(True), len(rows) - rows[::-1].index(True)
+        c0, c1 = cols.index(True), len(cols) - cols[::-1].index(True)
+        boxes[centre] = (
+            r0 * _TILE,
+            min(height, r1 * _TILE),
+            c0 * _TILE,
+            min(width, c1 * _TILE),
+        )
     return boxes
 
 
@@ -724,7 +741,7 @@ def render(
 
     weights = None
     if highlight_boost:
-        if radiance is not None or bool((image >= HDR_THRESHOLD).any()):
+        if radiance is not None or (image.numel() and _extremes(image)[1] >= HDR_THRESHOLD):
             weights = hdr_boost(image, radiance)
     elif radiance is not None:
         weights = radiance
