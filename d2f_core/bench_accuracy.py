@@ -514,6 +514,19 @@ _AXIS_COLOURS = {
 }
 
 
+def _log_axis(axis) -> None:
+    """Log x scale labelled with plain numbers: at 1-9 x 10^k over less than a decade (so a
+    narrow range still gets ticks), at 1, 2, 5 x 10^k over more."""
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+
+    axis.axes.set_xscale("log")
+    lo, hi = axis.axes.get_xlim()
+    subs = tuple(range(1, 10)) if hi < 10 * lo else (1.0, 2.0, 5.0)
+    axis.set_major_locator(LogLocator(base=10, subs=subs))
+    axis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+    axis.set_minor_formatter(NullFormatter())
+
+
 def plot_accuracy(summary: Sequence[dict[str, Any]], path: Path, title: str) -> None:
     """Time against PSNR per resolution, Pareto front, paper and default marked."""
     import matplotlib
@@ -570,7 +583,7 @@ def plot_accuracy(summary: Sequence[dict[str, Any]], path: Path, title: str) -> 
         base = [e for e in summary if e["size"] == size and e["axis"] == "baseline"]
         if base:
             ax.axhline(base[0]["psnr"], color="grey", lw=0.8, ls=":", label="input (no blur)")
-        ax.set_xscale("log")
+        _log_axis(ax.xaxis)
         ax.set_xlabel("ms per frame (median, log scale)")
         ax.set_ylabel("PSNR vs thin-lens ground truth (dB)")
         ax.set_title(f"{size}, {rows[0]['cases'] if rows else 0} scene/K cases", fontsize=9)
@@ -779,7 +792,7 @@ def plot_e2e(rows: Sequence[dict[str, Any]], path: Path, title: str) -> None:
         ha="right",
         fontsize=7,
     )
-    ax.set_xscale("log")
+    _log_axis(ax.xaxis)
     ax.set_xlabel("prepare + render, s per photo (median, CPU, log scale)")
     ax.set_ylabel("PSNR vs thin-lens ground truth (dB)")
     ax.grid(True, which="both", alpha=0.3)
