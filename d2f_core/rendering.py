@@ -56,7 +56,7 @@ GAMMA = 100.0
 _MASK_EPS = 1e-4
 # Layers are located on a coarse grid of this many pixels before exact masks are computed.
 _TILE = 8
-_DIRECT_MAX_SIZE = 9
+_DIRECT_MAX_SIZE = 11
 _CL = torch.channels_last
 # Where a layer's other side is moved to in layer units: far enough that its mask is 0.
 _FAR = 1e4
