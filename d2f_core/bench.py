@@ -20,7 +20,7 @@ import torch
 from .metrics import psnr
 from .rendering import render
 
-__all__ = ["bench_scene", "main", "time_call"]
+__all__ = ["bench_scene", "machine_speed", "main", "time_call"]
 
 log = logging.getLogger(__name__)
 
@@ -37,6 +37,22 @@ def time_call(fn: Callable[[], object], repeat: int, warmup: int = 1) -> list[fl
         fn()
         times.append(time.perf_counter() - start)
     return times
+
+
+def machine_speed(repeat: int = 10) -> tuple[float, float]:
+    """This machine's speed right now: fp32 1024x1024 matmul GFLOP/s and copy GB/s (best of
+    ``repeat``), at the current torch thread count.
+
+    Shared virtual machines slow down by a third and more from minute to minute; printing this
+    next to timings says how fast the machine was while they were taken.
+    """
+    a = torch.rand(1024, 1024)
+    b = torch.rand(1024, 1024)
+    matmul = min(time_call(lambda: a @ b, repeat))
+    src = torch.rand(16 * 1024 * 1024)
+    dst = torch.empty_like(src)
+    copy = min(time_call(lambda: dst.copy_(src), repeat))
+    return 2 * 1024**3 / matmul / 1e9, 2 * src.numel() * 4 / copy / 1e9
 
 
 def bench_scene(height: int, width: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -66,6 +82,10 @@ def _bench_render(args: argparse.Namespace) -> int:
     print(
         f"# layered render, depth order, focus {args.focus}, blur = {args.blur_frac} x width, "
         f"{torch.get_num_threads()} threads, median of {args.repeat}"
+    )
+    speed_start = machine_speed()
+    print(
+        f"# machine now: {speed_start[0]:.0f} GFLOP/s fp32 matmul, {speed_start[1]:.0f} GB/s copy"
     )
     header = (
         f"{'size':>10} {'blur':>5} {'quality':>9} {'ms':>8} {'x authors':>9} {'PSNR vs exact':>13}"
@@ -124,6 +144,11 @@ def _bench_render(args: argparse.Namespace) -> int:
                 f"{'':>10} {'':>5} {'authors':>9} {base_ms:8.1f} {1.0:8.1f}x   (reference: "
                 f"{row['reference']})"
             )
+    speed_end = machine_speed()
+    print(f"# machine at the end: {speed_end[0]:.0f} GFLOP/s, {speed_end[1]:.0f} GB/s")
+    for row in rows:
+        row["machine_gflops_start_end"] = [speed_start[0], speed_end[0]]
+        row["machine_copy_gbs_start_end"] = [speed_start[1], speed_end[1]]
     if args.json:
         with open(args.json, "w", encoding="utf-8") as fh:
             json.dump(rows, fh, indent=2)

@@ -53,6 +53,34 @@ class TestQuickRun:
 
 
 class TestPieces:
+    def test_render_bench_rows(self, tmp_path, capsys):
+        # the renderer bench at a tiny size with K = 38 px (layers at 1/2 resolution): the exact
+        # preset must match the float64 direct full-frame reference to rounding, the
+        # reduced-resolution one stay above 45 dB
+        path = tmp_path / "render.json"
+        argv = [
+            "render",
+            "--sizes",
+            "64x96",
+            "--blur-frac",
+            "0.4",
+            "--quality",
+            "balanced",
+            "exact",
+        ]
+        argv += ["--repeat", "1", "--baseline-repeat", "1", "--threads", "2", "--json", str(path)]
+        rc = bench.main(argv)
+        assert rc == 0
+        rows = {r["quality"]: r for r in json.loads(path.read_text())}
+        assert rows["exact"]["psnr_vs_exact"] > 100
+        assert 45 <= rows["balanced"]["psnr_vs_exact"] < rows["exact"]["psnr_vs_exact"]
+        for r in rows.values():
+            assert r["ms"] > 0 and r["speedup"] > 0 and r["size"] == "64x96"
+            assert all(
+                v > 0 for v in r["machine_gflops_start_end"] + r["machine_copy_gbs_start_end"]
+            )
+        assert "GFLOP/s" in capsys.readouterr().out
+
     def test_pareto_front_known_answer(self):
         points = [(10, 30.0), (5, 29.0), (20, 29.5), (5, 28.0), (40, 31.0), (10, 30.0)]
         # (20, 29.5) is beaten by (10, 30); (5, 28) by (5, 29); the duplicates both stay
