@@ -42,7 +42,6 @@ import torch
 import torch.nn.functional as F
 
 from . import adaptive
-from .allocator import keep_freed_memory
 from .rendering import render
 
 __all__ = [
@@ -882,8 +881,6 @@ def main(argv: list[str] | None = None) -> int:
         # `d2f-bench accuracy -- --quick`: the dispatcher's REMAINDER keeps the separator
         argv = argv[1:]
     args = parser.parse_args(argv)
-    if argv is None:  # as d2f's commands and the app run (d2f_core/allocator.py)
-        keep_freed_memory()
     logging.basicConfig(
         level=logging.INFO if args.verbose else logging.WARNING, format="%(message)s"
     )
