@@ -4,9 +4,9 @@ A render allocates frame-sized temporaries, 144 MB per three float32 channels at
 glibc's malloc serves blocks above its mmap threshold (at most 32 MB) from fresh memory
 mappings: the kernel zero-fills them page by page on first touch and unmaps them on free, so
 every render pays those page faults again. Measured on the 2-core development machine, one
-torch thread: a 12 MP ``D2F.render`` took 0.93-1.77 s, of which 0.24-0.92 s was system time
-for 150-300 thousand minor page faults; with :func:`keep_freed_memory` the same render took
-0.70-1.03 s with 0-0.11 million faults.
+torch thread: a 12 MP ``D2F.render`` took 1.0-1.8 s, of which 0.35-0.9 s was system time for
+200-300 thousand minor page faults; with :func:`keep_freed_memory` the same render took
+0.64-0.84 s with 0-0.1 million faults.
 
 :func:`keep_freed_memory` makes malloc serve large blocks from its heap and keep up to
 ``trim_threshold`` bytes of freed memory mapped for the next render. The cost is memory: the
