@@ -189,10 +189,6 @@ def main(argv: list[str] | None = None) -> int:
         height, width = (int(v) for v in args.size.lower().split("x"))
     except ValueError:
         parser.error(f"--size must be HxW, got {args.size!r}")
-    if argv is None:  # as the app runs (d2f_core/allocator.py)
-        from d2f_core.allocator import keep_freed_memory
-
-        print(f"freed memory kept for reuse: {'yes' if keep_freed_memory() else 'no'}")
     model = None
     if args.weights:
         from d2f_core.pipeline import D2F

@@ -16,7 +16,6 @@ import gradio as gr
 
 from app.cache import SceneCache
 from app.handlers import DEPTH_KINDS, FORMATS, QUALITIES, VIEWS, RefocusApp, delete_session
-from d2f_core.allocator import keep_freed_memory
 
 log = logging.getLogger(__name__)
 
@@ -303,10 +302,6 @@ def main(argv: list[str] | None = None) -> int:
     # several renders run at once (one per session event); each on one thread keeps them
     # from stalling each other at every parallel region when cores are busy
     torch.set_num_threads(args.threads)
-    # frame-sized temporaries are kept for the next render instead of being mapped and
-    # zero-filled again by the kernel (d2f_core/allocator.py; D2F_KEEP_FREED_MEMORY=0: off)
-    if keep_freed_memory():
-        log.info("freed memory is kept for reuse between renders")
     try:
         model = load_model(args.weights)
     except (FileNotFoundError, ValueError) as err:

@@ -17,7 +17,6 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
-from .allocator import keep_freed_memory
 from .metrics import psnr
 from .rendering import render
 
@@ -202,9 +201,6 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"unrecognized arguments: {' '.join(rest)}")
     args.rest = rest
     logging.basicConfig(level=logging.WARNING)
-    if argv is None:  # the benches measure what d2f's own commands and the app run with
-        kept = "yes" if keep_freed_memory() else "no"
-        print(f"# freed memory kept for reuse (d2f_core/allocator.py): {kept}")
     return args.func(args)
 
 

@@ -27,7 +27,6 @@ from typing import Any
 
 import numpy as np
 
-from .allocator import keep_freed_memory
 from .io import (
     READ_EXTENSIONS,
     SAVE_FORMATS,
@@ -665,8 +664,6 @@ def main(argv: list[str] | None = None) -> int:
     except SystemExit as exc:  # argparse already printed usage and the message
         return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 2)
     handler, old_level = _setup_logging(args.quiet, args.verbose)
-    if argv is None:  # run as the program, not called from Python: the process is ours
-        keep_freed_memory()
     try:
         if args.command == "render":
             return _cmd_render(args)
