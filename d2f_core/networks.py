@@ -17,6 +17,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable, Mapping
 from pathlib import Path
+from typing import Any
 
 import torch
 import torch.nn.functional as F
@@ -364,6 +365,23 @@ class DefocusNet(nn.Module):
         logger.info("loaded ImageNet encoder weights from %s", path)
 
 
+def read_torch_file(path: str | Path, *, not_found: str, unreadable: str) -> Any:
+    """``torch.load`` of a LOCAL file, tensors and plain containers only (``weights_only``).
+
+    Raises:
+        FileNotFoundError: ``"{not_found}: {path}"`` when ``path`` is not a file.
+        ValueError: ``"{unreadable}: {error}"`` when the file cannot be read (corrupt,
+            truncated, not a torch file, or holding more than tensors and containers).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{not_found}: {path}")
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # pickle/zip errors come in many types
+        raise ValueError(f"{unreadable}: {exc}") from exc
+
+
 def load_local_state_dict(path: str | Path, what: str) -> Mapping[str, Tensor]:
     """Read a state dict of tensors from a LOCAL file (optionally wrapped in
     ``{"state_dict": ...}`` or ``{"model": ...}``); ``what`` names the weights in messages.
@@ -372,13 +390,11 @@ def load_local_state_dict(path: str | Path, what: str) -> Mapping[str, Tensor]:
         FileNotFoundError: ``path`` does not exist.
         ValueError: the file is unreadable or does not hold a state dict of tensors.
     """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{what} weights file not found: {path}")
-    try:
-        raw = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # pickle/zip errors come in many types
-        raise ValueError(f"cannot read {what} weights from {path}: {exc}") from exc
+    raw = read_torch_file(
+        path,
+        not_found=f"{what} weights file not found",
+        unreadable=f"cannot read {what} weights from {path}",
+    )
     if isinstance(raw, Mapping):
         for key in ("state_dict", "model"):
             if key in raw and isinstance(raw[key], Mapping):

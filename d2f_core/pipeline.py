@@ -43,7 +43,13 @@ from torch import Tensor, nn
 
 from . import adaptive, rendering
 from .kernels import PAPER_GROWING_SIZES
-from .networks import build_defocus_net, build_fusion_net, build_radiance_net, rgb_to_gray
+from .networks import (
+    build_defocus_net,
+    build_fusion_net,
+    build_radiance_net,
+    read_torch_file,
+    rgb_to_gray,
+)
 
 __all__ = ["CHECKPOINT_VERSION", "D2F", "D2FConfig", "Result", "Scene", "default_weights_path"]
 
@@ -379,12 +385,11 @@ class D2F(nn.Module):
                 version, or its weights do not match its config.
         """
         path = Path(path)
-        if not path.is_file():
-            raise FileNotFoundError(f"checkpoint not found: {path}")
-        try:
-            ckpt = torch.load(path, map_location="cpu", weights_only=True)
-        except Exception as exc:  # zip/pickle errors come in many types
-            raise ValueError(f"checkpoint {path} is corrupt or truncated: {exc}") from exc
+        ckpt = read_torch_file(
+            path,
+            not_found="checkpoint not found",
+            unreadable=f"checkpoint {path} is corrupt or truncated",
+        )
         if not isinstance(ckpt, dict) or not {"config", "state_dict"} <= set(ckpt):
             keys = sorted(ckpt) if isinstance(ckpt, dict) else type(ckpt).__name__
             raise ValueError(f"checkpoint {path} must hold 'config' and 'state_dict', got {keys}")

@@ -40,6 +40,7 @@ from torch.utils.data import DataLoader, DistributedSampler, Sampler
 from . import metrics
 from .data import EBBDataset
 from .losses import D2FLoss
+from .networks import read_torch_file
 from .pipeline import D2F, D2FConfig, _resize, _scaled_size, _size_ratio
 
 __all__ = ["TrainResult", "build_parser", "main", "train"]
@@ -236,7 +237,11 @@ def train(args: argparse.Namespace) -> TrainResult:
     # 1. model: resume > init checkpoint > fresh config
     resume = None
     if args.resume is not None:
-        resume = torch.load(args.resume, map_location="cpu", weights_only=True)
+        resume = read_torch_file(
+            args.resume,
+            not_found="--resume checkpoint not found",
+            unreadable=f"--resume {args.resume} is corrupt or truncated",
+        )
         if resume.get("stage") != stage:
             raise ValueError(
                 f"--resume {args.resume} is a stage-{resume.get('stage')} checkpoint, "

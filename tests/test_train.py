@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -90,6 +91,15 @@ def test_stage2_trains_fusion_only(stage1, data, tmp_path):
 def test_resume_wrong_stage(stage1, data, tmp_path):
     with pytest.raises(ValueError, match="stage-1 checkpoint"):
         train(_args("stage2", data, tmp_path, "--steps", "1", "--resume", str(stage1.checkpoint)))
+
+
+def test_resume_truncated_checkpoint(stage1, data, tmp_path):
+    cut = tmp_path / "cut.pt"
+    cut.write_bytes(Path(stage1.checkpoint).read_bytes()[:200])
+    with pytest.raises(ValueError, match="--resume .* is corrupt or truncated"):
+        train(_args("stage1", data, tmp_path, "--steps", "1", "--resume", str(cut)))
+    with pytest.raises(FileNotFoundError, match="--resume checkpoint not found"):
+        train(_args("stage1", data, tmp_path, "--steps", "1", "--resume", str(tmp_path / "no.pt")))
 
 
 def test_cli_errors(tmp_path, data):
