@@ -287,6 +287,83 @@ class TestImplementations:
         assert ref.requires_grad and not out.requires_grad
         assert torch.allclose(out, ref.detach(), atol=1e-5)
 
+    @pytest.mark.parametrize("channels", [4, 5, 7])
+    @pytest.mark.parametrize("size", [3, 7, 11, 23])
+    @pytest.mark.parametrize(
+        "frame,box",
+        [
+            ((50, 70), (0, 50, 0, 70)),  # whole frame
+            ((50, 70), (16, 24, 8, 40)),  # interior: output rows grown to whole strips
+            ((61, 33), (0, 9, 25, 33)),  # at a corner, odd frame height
+            ((6, 90), (2, 5, 0, 90)),  # too few rows for more than one strip
+        ],
+    )
+    def test_strip_stacked_convolution(self, channels, size, frame, box):
+        # strips of the layer stacked along channels, against one plain convolution of the
+        # whole zero-padded layer
+        from d2f_core.rendering import KernelSpec, _direct_stacked, _kernel
+
+        height, width = frame
+        y0, y1, x0, x1 = box
+        g = torch.Generator().manual_seed(size + channels)
+        layer = torch.rand(2, channels, y1 - y0, x1 - x0, generator=g, dtype=torch.float64)
+        k = _kernel(KernelSpec(), size, 1, "cpu", torch.float64)
+        r = k.shape[-1] // 2
+        full = torch.zeros(2, channels, height + 2 * r, width + 2 * r, dtype=torch.float64)
+        full[..., y0 + r : y1 + r, x0 + r : x1 + r] = layer
+        expected = F.conv2d(full, k.flip(-1, -2).expand(channels, 1, -1, -1), groups=channels)
+
+        def fill(dest, r0, r1):
+            dest.copy_(layer[..., r0:r1, :])
+
+        out, oy0, ox0 = _direct_stacked(fill, layer, channels, box, k, frame)
+        s, hs, wo = out.shape[-3:]
+        assert out.shape[:2] == (2, channels) and 0 <= oy0 and oy0 + s * hs <= height
+        got = torch.zeros_like(expected)
+        got[..., oy0 : oy0 + s * hs, ox0 : ox0 + wo] = out.flatten(2, 3)
+        # inside the output window: the convolution; outside it: nothing reaches
+        assert oy0 <= max(0, y0 - r) and oy0 + s * hs >= min(height, y1 + r)
+        assert ox0 == max(0, x0 - r) and ox0 + wo == min(width, x1 + r)
+        torch.testing.assert_close(got, expected, atol=1e-12, rtol=0)
+        if box == (0, 50, 0, 70):
+            assert s > 1  # the strips are in use, not just the single-strip fallback
+
+    @pytest.mark.skipif(
+        not hasattr(__import__("os"), "confstr")
+        or not (__import__("os").confstr("CS_GNU_LIBC_VERSION") or "").startswith("glibc"),
+        reason="glibc's malloc only",
+    )
+    def test_freed_heap_is_kept_between_renders(self):
+        # without the raised mmap threshold every render's temporaries are zero-filled again
+        # by the kernel: thousands of page faults per render instead of about none
+        import subprocess
+        import sys
+
+        script = """
+import resource, sys, torch
+from d2f_core import rendering
+if sys.argv[1] == "off":
+    rendering._keep_freed_heap = lambda: False
+g = torch.Generator().manual_seed(0)
+img, d = torch.rand(1, 3, 384, 576, generator=g), torch.rand(1, 1, 384, 576, generator=g)
+with torch.no_grad():
+    for i in range(3):
+        rendering.render(img, d, 0.5, 40.0)
+    f0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    for i in range(4):
+        rendering.render(img, d, 0.5, 40.0)
+print((resource.getrusage(resource.RUSAGE_SELF).ru_minflt - f0) / 4)
+"""
+        faults = {}
+        for mode in ("on", "off"):
+            run = subprocess.run(
+                [sys.executable, "-c", script, mode], capture_output=True, text=True, timeout=300
+            )
+            assert run.returncode == 0, run.stderr
+            faults[mode] = float(run.stdout.split()[-1])
+        assert faults["off"] > 1000, faults  # 1.3k pages are one 5-channel frame
+        assert faults["on"] * 4 < faults["off"], faults
+
     def test_coc_to_defocus(self):
         assert coc_to_defocus(1.0) == 0.0
         assert coc_to_defocus(69.0) == pytest.approx(1.0)
