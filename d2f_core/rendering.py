@@ -166,12 +166,14 @@ def hdr_boost(
         ``(B, 1, H, W)`` (or ``(B, 3, H, W)`` per channel); saturated pixels weigh up to
         ``alpha`` times more than ``R0``.
     """
-    mask = highlight_mask(image, threshold)  # [B,1,H,W]
-    base = torch.ones_like(mask) if radiance is None else radiance
-    level = image.clamp(0, 1)
-    if not per_channel:
-        level = level.amax(dim=1, keepdim=True)
-    return mask * alpha * level**beta + (1 - mask) * base
+    if per_channel:
+        mask = highlight_mask(image, threshold)  # [B,1,H,W]
+        base = torch.ones_like(mask) if radiance is None else radiance
+        return mask * alpha * image.clamp(0, 1) ** beta + (1 - mask) * base
+    # the brightest channel is at least the threshold exactly where any channel is
+    peak = image.amax(dim=1, keepdim=True)
+    boost = peak.clamp(0, 1).pow(beta).mul(alpha)
+    return torch.where(peak >= threshold, boost, 1.0 if radiance is None else radiance)
 
 
 # --------------------------------------------------------------------------------------
@@ -216,13 +218,29 @@ def _interp(x: torch.Tensor, xp: list[float]) -> torch.Tensor:
     """Piecewise-linear map of ``x`` onto the index of the increasing knots ``xp``."""
     if len(xp) == 1:
         return torch.zeros_like(x)
+    xc = x.clamp(xp[0], xp[-1])
+    if all(float(v).is_integer() for v in xp) and xp[-1] - xp[0] <= 1 << 16:
+        # knots on integers (kernel sizes): the map is linear between consecutive integers,
+        # so a table over them replaces a binary search per pixel (several times slower)
+        base, slope = _integer_table(tuple(int(v) for v in xp), x.dtype, str(x.device))
+        m = xc.detach().floor().clamp_(max=xp[-1] - 1)
+        idx = m.sub(xp[0]).long().view(-1)
+        lo = base.index_select(0, idx).view(x.shape)
+        return lo.add_((xc - m).mul_(slope.index_select(0, idx).view(x.shape)))
     knots = torch.tensor(xp, device=x.device, dtype=x.dtype)
-    xc = x.clamp(knots[0], knots[-1])
     idx = torch.searchsorted(knots, xc.detach().contiguous(), right=True).clamp(1, len(xp) - 1)
     flat = idx.view(-1)
     lo = knots.index_select(0, flat - 1).view(idx.shape)
     hi = knots.index_select(0, flat).view(idx.shape)
     return (idx - 1).to(x.dtype) + (xc - lo) / (hi - lo)
+
+
+@functools.lru_cache(maxsize=32)
+def _integer_table(xp: tuple[int, ...], dtype: torch.dtype, device: str):
+    """Knot index at each integer from ``xp[0]`` to ``xp[-1] - 1``, and the slope after it."""
+    grid = np.interp(np.arange(xp[0], xp[-1] + 1), xp, np.arange(len(xp)))
+    as_tensor = functools.partial(torch.tensor, dtype=dtype, device=device)
+    return as_tensor(grid[:-1]), as_tensor(np.diff(grid))
 
 
 def _unique_sizes(sizes: list[int]) -> list[int]:
@@ -281,7 +299,7 @@ def layer_plan(
             break
     # CoC below 1 px is sharp: it maps onto layer 0 like the 1-px kernel
     knots = [float(s) for s in sizes]
-    coord = _interp(coc, knots) * torch.sign(signed)
+    coord = torch.copysign(_interp(coc, knots), signed)
     n = len(sizes)
     layers = [(j, sizes[abs(j)]) for j in range(-(n - 1), n)]
     return LayerPlan(coord, layers, gamma / 14.0, True)
@@ -577,8 +595,13 @@ def _support_boxes(
     else:
         lo_map = hi_map = coord
     ph, pw = (-height) % _TILE, (-width) % _TILE
-    lo = -F.max_pool2d(F.pad(-lo_map, (0, pw, 0, ph), mode="replicate"), _TILE)[0]
-    hi = F.max_pool2d(F.pad(hi_map, (0, pw, 0, ph), mode="replicate"), _TILE)[0]
+    if ph or pw:
+        same = hi_map is lo_map
+        lo_map = F.pad(lo_map, (0, pw, 0, ph), mode="replicate")
+        hi_map = lo_map if same else F.pad(hi_map, (0, pw, 0, ph), mode="replicate")
+    tiles = ((height + ph) // _TILE, _TILE, (width + pw) // _TILE, _TILE)
+    lo = lo_map.reshape(tiles).amin(dim=3).amin(dim=1)[None]
+    hi = hi_map.reshape(tiles).amax(dim=3).amax(dim=1)[None]
     reach = 1.0 + _mask_reach(plan.gamma)
     centres = [centre for centre, _ in plan.order]
     c = torch.tensor(centres, dtype=lo.dtype, device=lo.device).view(-1, 1, 1)
@@ -645,8 +668,12 @@ def _composite(
     method: str,
     quality: str,
     full_frame: bool,
+    ones: bool = False,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Composite the layers of ``x`` back to front. Returns (acc, alpha).
+
+    With ``ones`` (no-gradient path only), ``x`` already carries the leading channel of ones
+    of :func:`_with_ones`.
 
     Layers whose kernel is large enough for ``quality`` are masked, pooled, blurred and
     composited on a 1/2 or 1/4 resolution grid. A run of consecutive such layers is composited
@@ -663,9 +690,13 @@ def _composite(
     b, c, height, width = x.shape
     grad = torch.is_grad_enabled() and (x.requires_grad or plan.coord.requires_grad)
     dev, dtype = str(x.device), x.dtype
-    acc = x.new_zeros(b, c + 1, height, width)  # channel 0 is the alpha
-    if not grad:
+    if ones:
+        if grad:
+            raise ValueError("a layer source with ones is for the no-gradient path only")
+        c -= 1
+    elif not grad:
         x = _with_ones(x)
+    acc = x.new_zeros(b, c + 1, height, width)  # channel 0 is the alpha
     if full_frame:
         boxes = {centre: (0, height, 0, width) for centre, _ in plan.order}
     else:
@@ -881,18 +912,28 @@ def render(
     if blur == 0 and order == "depth":
         return image.clamp(0, 1)
 
+    grad = torch.is_grad_enabled() and any(
+        t is not None and t.requires_grad for t in (image, disparity, radiance)
+    )
     weights = None
     if highlight_boost:
         if radiance is not None or (image.numel() and _extremes(image)[1] >= HDR_THRESHOLD):
             weights = hdr_boost(image, radiance)
     elif radiance is not None:
         weights = radiance
+    # a floor keeps the normalisation defined where every weight is 0 (e.g. pure red)
     if weights is None:
-        x = image
-    else:
-        # a floor keeps the normalisation defined where every weight is 0 (e.g. pure red)
+        x = image if grad else _with_ones(image)
+    elif grad:
         weights = weights + 1e-4
         x = torch.cat([weights * image, weights], dim=1)  # [B,3+Cr,H,W]
+    else:
+        # [1, w I, w] built in place: the layers are then mask * x in one product
+        cw = weights.shape[1]
+        x = image.new_empty(image.shape[0], 4 + cw, *image.shape[2:])
+        x[:, :1] = 1
+        torch.add(weights, 1e-4, out=x[:, 4:])
+        torch.mul(image, x[:, 4:], out=x[:, 1:4])
 
     plan = layer_plan(
         disparity,
@@ -907,16 +948,19 @@ def render(
         # nothing is blurred: every layer is the identity, so is the composite
         return image.clamp(0, 1)
     spec = KernelSpec(kernel, int(blades), float(rotation))
-    acc, alpha = _composite(x, plan, spec, method=method, quality=quality, full_frame=full_frame)
-    if weights is None:
-        out = acc / alpha.clamp(min=1e-6)
-        covered = alpha
-    else:
-        out = acc[:, :3] / acc[:, 3:].clamp(min=1e-8)
-        covered = acc[:, 3:]
+    acc, alpha = _composite(
+        x, plan, spec, method=method, quality=quality, full_frame=full_frame, ones=not grad
+    )
+    norm, floor = (alpha, 1e-6) if weights is None else (acc[:, 3:], 1e-8)
     # pixels no layer reached (cannot happen with soft masks, but stay defined) keep the input
-    out = torch.where(covered > 1e-6, out, image)
-    return out.clamp(0, 1)
+    covered = norm > 1e-6
+    if grad:
+        out = acc[:, :3] / norm.clamp(min=floor)
+    else:  # the composite is this call's own: normalised in place
+        out = acc[:, :3].div_(norm.clamp_(min=floor))
+    if not bool(covered.all()):
+        out = torch.where(covered, out, image)
+    return out.clamp(0, 1) if grad else out.clamp_(0, 1)
 
 
 def _to_tensor_image(image, name: str) -> torch.Tensor:

@@ -364,6 +364,33 @@ print((resource.getrusage(resource.RUSAGE_SELF).ru_minflt - f0) / 4)
         assert faults["off"] > 1000, faults  # 1.3k pages are one 5-channel frame
         assert faults["on"] * 4 < faults["off"], faults
 
+    @pytest.mark.parametrize(
+        "knots",
+        [[1.0, 3.0, 5.0, 7.0, 11.0, 15.0, 19.0, 23.0, 27.0, 33.0, 39.0, 45.0, 53.0, 61.0, 69.0],
+         [1.0, 4.0, 90.0, 91.0], [0.5, 2.25, 7.0]],
+    )  # fmt: skip
+    def test_interp_matches_numpy(self, knots):
+        # integer knots use a table over the integers, others a binary search: both are
+        # np.interp onto the knot index, with its slope as the gradient
+        from d2f_core.rendering import _interp
+
+        g = torch.Generator().manual_seed(1)
+        x = torch.rand(1, 1, 30, 40, generator=g, dtype=torch.float64) * 100 - 5
+        x[0, 0, 0, : len(knots)] = torch.tensor(knots, dtype=torch.float64)  # knots exactly
+        x.requires_grad_()
+        got = _interp(x, knots)
+        index = np.arange(len(knots), dtype=np.float64)
+        expected = np.interp(x.detach().numpy(), knots, index)
+        np.testing.assert_allclose(got.detach().numpy(), expected, rtol=0, atol=1e-12)
+        assert got[0, 0, 0, : len(knots)].tolist() == index.tolist()
+        got.sum().backward()
+        xs = x.detach().numpy()
+        inside = (xs > knots[0]) & (xs < knots[-1])
+        seg = np.clip(np.searchsorted(knots, xs, side="right"), 1, len(knots) - 1)
+        slope = 1 / (np.asarray(knots)[seg] - np.asarray(knots)[seg - 1])
+        np.testing.assert_allclose(x.grad.numpy()[inside], slope[inside], rtol=1e-12)
+        assert (x.grad.numpy()[(xs < knots[0]) | (xs > knots[-1])] == 0).all()
+
     def test_coc_to_defocus(self):
         assert coc_to_defocus(1.0) == 0.0
         assert coc_to_defocus(69.0) == pytest.approx(1.0)
