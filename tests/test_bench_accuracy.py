@@ -81,6 +81,28 @@ class TestPieces:
             )
         assert "GFLOP/s" in capsys.readouterr().out
 
+    def test_authors_baseline_is_the_same_model_unstacked(self, monkeypatch):
+        # the baseline convolves each layer on its own (no strips): same pixels, one
+        # convolution of C channels per layer
+        from d2f_core import rendering
+
+        image, disp = bench.bench_scene(40, 60)
+        calls = []
+        conv = rendering.F.conv2d
+        monkeypatch.setattr(
+            rendering.F, "conv2d", lambda x, w, **k: calls.append(x.shape[1]) or conv(x, w, **k)
+        )
+        with torch.no_grad():
+            base = bench._authors_render(image, disp, 0.6, 30.0)
+            (c,) = set(calls)  # alpha and colour (and the weight, with highlights)
+            assert c in (4, 5) and rendering._LANES == 16
+            calls.clear()
+            ours = rendering.render(
+                image, disp, 0.6, 30.0, quality="exact", method="direct", full_frame=True
+            )
+            assert all(n % c == 0 for n in calls) and max(calls) == 16 // c * c
+        torch.testing.assert_close(base, ours, atol=1e-5, rtol=0)
+
     def test_pareto_front_known_answer(self):
         points = [(10, 30.0), (5, 29.0), (20, 29.5), (5, 28.0), (40, 31.0), (10, 30.0)]
         # (20, 29.5) is beaten by (10, 30); (5, 28) by (5, 29); the duplicates both stay

@@ -391,6 +391,19 @@ print((resource.getrusage(resource.RUSAGE_SELF).ru_minflt - f0) / 4)
         np.testing.assert_allclose(x.grad.numpy()[inside], slope[inside], rtol=1e-12)
         assert (x.grad.numpy()[(xs < knots[0]) | (xs > knots[-1])] == 0).all()
 
+    @pytest.mark.parametrize("factor", [2, 4])
+    @pytest.mark.parametrize("shape", [(1, 6, 12, 18), (2, 3, 5, 7), (1, 1, 1, 1), (1, 2, 1, 9)])
+    def test_upsample_matches_interpolate(self, factor, shape):
+        from d2f_core.rendering import _upsample
+
+        z = torch.rand(*shape, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
+        height, width = shape[2] * factor - 1, shape[3] * factor - 2
+        up = F.interpolate(z, scale_factor=factor, mode="bilinear", align_corners=False)
+        expected = up[..., :height, :width]
+        torch.testing.assert_close(_upsample(z, factor, height, width), expected)
+        zg = z.clone().requires_grad_()
+        torch.testing.assert_close(_upsample(zg, factor, height, width), expected)
+
     def test_coc_to_defocus(self):
         assert coc_to_defocus(1.0) == 0.0
         assert coc_to_defocus(69.0) == pytest.approx(1.0)
