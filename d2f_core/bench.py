@@ -76,6 +76,16 @@ def bench_scene(height: int, width: int) -> tuple[torch.Tensor, torch.Tensor]:
     return img_t, torch.from_numpy(disp)[None, None].contiguous()
 
 
+def _minor_faults() -> int:
+    """Minor page faults of this process so far (0 where ``resource`` is missing): memory the
+    kernel mapped and zero-filled afresh, a cost that moves render times between runs."""
+    try:
+        import resource
+    except ImportError:  # not POSIX
+        return 0
+    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+
+
 def _authors_render(image, disparity, focus: float, blur: float) -> torch.Tensor:
     """The authors' way: every layer over the whole frame at full resolution, one direct
     depthwise convolution per layer (no strips stacked along channels), float32."""
@@ -104,7 +114,7 @@ def _bench_render(args: argparse.Namespace) -> int:
     )
     header = (
         f"{'size':>10} {'blur':>5} {'quality':>9} {'ms':>8} {'best ms':>8} {'x authors':>9} "
-        f"{'PSNR vs exact':>13}"
+        f"{'PSNR vs exact':>13} {'faults':>8}"
     )
     print(header)
     for height, width in sizes:
@@ -133,10 +143,12 @@ def _bench_render(args: argparse.Namespace) -> int:
             # presets take turns, round by round, so a slow minute of the shared machine
             # falls on all of them alike
             times: dict[str, list[float]] = {q: [] for q in args.quality}
+            faults = dict.fromkeys(args.quality, 0)
             for quality in args.quality:  # warm-up
                 render(image, disp, args.focus, blur, quality=quality)
             for _ in range(args.repeat):
                 for quality in args.quality:
+                    before = _minor_faults()
                     times[quality] += time_call(
                         lambda im=image, d=disp, b=blur, q=quality: render(
                             im, d, args.focus, b, quality=q
@@ -144,6 +156,7 @@ def _bench_render(args: argparse.Namespace) -> int:
                         repeat=1,
                         warmup=0,
                     )
+                    faults[quality] += _minor_faults() - before
             for quality in args.quality:
                 out = render(image, disp, args.focus, blur, quality=quality)
                 ms = 1000 * statistics.median(times[quality])
@@ -156,12 +169,14 @@ def _bench_render(args: argparse.Namespace) -> int:
                     "authors_ms": base_ms,
                     "speedup": base_ms / ms,
                     "psnr_vs_exact": psnr(out.double(), reference),
+                    "page_faults_per_render": faults[quality] / args.repeat,
                     "reference": f"float64 {ref_method}, full frame, all layers ({ref_s:.1f} s)",
                 }
                 rows.append(row)
                 print(
                     f"{row['size']:>10} {blur:5.0f} {quality:>9} {ms:8.1f} {row['best_ms']:8.1f} "
-                    f"{row['speedup']:8.1f}x {row['psnr_vs_exact']:10.1f} dB"
+                    f"{row['speedup']:8.1f}x {row['psnr_vs_exact']:10.1f} dB "
+                    f"{row['page_faults_per_render']:8.0f}"
                 )
             print(
                 f"{'':>10} {'':>5} {'authors':>9} {base_ms:8.1f} {'':>8} {1.0:8.1f}x   "

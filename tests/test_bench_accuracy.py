@@ -76,6 +76,7 @@ class TestPieces:
         assert 45 <= rows["balanced"]["psnr_vs_exact"] < rows["exact"]["psnr_vs_exact"]
         for r in rows.values():
             assert 0 < r["best_ms"] <= r["ms"] and r["speedup"] > 0 and r["size"] == "64x96"
+            assert r["page_faults_per_render"] >= 0
             assert all(
                 v > 0 for v in r["machine_gflops_start_end"] + r["machine_copy_gbs_start_end"]
             )
