@@ -415,6 +415,21 @@ def _pool(z: torch.Tensor, factor: int, out: torch.Tensor | None = None) -> torc
     return z
 
 
+def _pool_product(
+    x: torch.Tensor, mask: torch.Tensor, factor: int, out: torch.Tensor | None = None
+) -> torch.Tensor:
+    """``_pool(mask * x, factor)`` without building ``mask * x`` at full resolution: the rows
+    of each cell are multiplied and summed in one step (height and width divisible by
+    ``factor``)."""
+    rows = x[..., 0::2, :] * mask[..., 0::2, :]
+    rows.addcmul_(x[..., 1::2, :], mask[..., 1::2, :])
+    if factor == 2 and out is not None:
+        torch.add(rows[..., 0::2], rows[..., 1::2], out=out)
+        return out.mul_(0.25)
+    z = (rows[..., 0::2] + rows[..., 1::2]).mul_(0.25)
+    return _pool(z, factor // 2, out=out) if factor > 2 else z
+
+
 def _empty_padded(
     like: torch.Tensor,
     channels: int,
@@ -768,22 +783,39 @@ def _composite(
             group = (factor, x.new_zeros(b, c + 1, lh, lw), transmit)
         # zero padding past the frame edge: the pooled alpha there is partial, as it should be
         bh, bw = (-(y1 - y0)) % factor, (-(x1 - x0)) % factor
-        z = _layer_input(x, coord, centre, plan.gamma, (y0, y1, x0, x1), (0, bh, 0, bw), grad)
         cbox = (y0 // factor, (y1 + bh) // factor, x0 // factor, (x1 + bw) // factor)
+        if grad or bh or bw:
+            z = _layer_input(x, coord, centre, plan.gamma, (y0, y1, x0, x1), (0, bh, 0, bw), grad)
+
+            def pooled(r0, r1, out=None, z=z, factor=factor):
+                return _pool(z[..., r0 * factor : r1 * factor, :], factor, out=out)
+
+        else:
+            # the product and the first pooling step in one: no full-resolution layer is built
+            mask = _layer_mask(coord[..., y0:y1, x0:x1], centre, plan.gamma, False)
+            xs = x[..., y0:y1, x0:x1]
+
+            def pooled(r0, r1, out=None, mask=mask, xs=xs, factor=factor):
+                rows = slice(r0 * factor, r1 * factor)
+                return _pool_product(xs[..., rows, :], mask[..., rows, :], factor, out=out)
+
         if direct and not grad:
-
-            def fill(dest, r0, r1, z=z, factor=factor):
-                _pool(z[..., r0 * factor : r1 * factor, :], factor, out=dest)
-
-            out, oy0, ox0 = _direct_stacked(fill, x, c + 1, cbox, k, (lh, lw))
+            out, oy0, ox0 = _direct_stacked(
+                lambda dest, r0, r1, pooled=pooled: pooled(r0, r1, out=dest),
+                x,
+                c + 1,
+                cbox,
+                k,
+                (lh, lw),
+            )
             _blend_stacked(group[1], out, oy0, ox0, transmit=group[2])
             continue
         if direct:
             pads, oy0, ox0 = _direct_pads(cbox, r, lh, lw)
-            zc = F.pad(_pool(z, factor), (pads[2], pads[3], pads[0], pads[1]))
+            zc = F.pad(pooled(0, cbox[1] - cbox[0]), (pads[2], pads[3], pads[0], pads[1]))
             blurred = _direct(zc, k)
         else:
-            blurred = _fft(_pool(z, factor), spec, size, factor)
+            blurred = _fft(pooled(0, cbox[1] - cbox[0]), spec, size, factor)
             oy0, ox0 = cbox[0] - r, cbox[2] - r
         colour = _blend(group[1], blurred, oy0, ox0, grad)
         transmit = group[2]

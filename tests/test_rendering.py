@@ -404,6 +404,19 @@ print((resource.getrusage(resource.RUSAGE_SELF).ru_minflt - f0) / 4)
         zg = z.clone().requires_grad_()
         torch.testing.assert_close(_upsample(zg, factor, height, width), expected)
 
+    @pytest.mark.parametrize("factor", [2, 4])
+    def test_pooled_product_matches_pooling_the_product(self, factor):
+        from d2f_core.rendering import _pool_product
+
+        g = torch.Generator().manual_seed(factor)
+        x = torch.rand(2, 5, 24, 40, generator=g, dtype=torch.float64)
+        mask = torch.rand(2, 1, 24, 40, generator=g, dtype=torch.float64)
+        expected = F.avg_pool2d(mask * x, factor)
+        torch.testing.assert_close(_pool_product(x, mask, factor), expected)
+        out = torch.empty_like(expected)
+        assert _pool_product(x, mask, factor, out=out) is out
+        torch.testing.assert_close(out, expected)
+
     def test_coc_to_defocus(self):
         assert coc_to_defocus(1.0) == 0.0
         assert coc_to_defocus(69.0) == pytest.approx(1.0)
