@@ -589,11 +589,12 @@ def _blend_stacked(
     region = acc[..., oy0 : oy0 + s * hs, ox0 : ox0 + wo].unflatten(2, (s, hs))
     # in the accumulator's (planar) layout: elementwise ops on mixed layouts are several
     # times slower
-    keep = torch.clamp(out[:, :1], 0, 1, out=region.new_empty(region[:, :1].shape))
-    keep.neg_().add_(1)
-    region.mul_(keep).add_(out)
+    alpha = torch.clamp(out[:, :1], 0, 1, out=region.new_empty(region[:, :1].shape))
+    # acc (1 - alpha) as acc - acc alpha: one pass
+    region.addcmul_(region, alpha, value=-1).add_(out)
     if transmit is not None:
-        transmit[..., oy0 : oy0 + s * hs, ox0 : ox0 + wo].unflatten(2, (s, hs)).mul_(keep)
+        t = transmit[..., oy0 : oy0 + s * hs, ox0 : ox0 + wo].unflatten(2, (s, hs))
+        t.addcmul_(t, alpha, value=-1)
 
 
 def _support_boxes(
@@ -665,13 +666,13 @@ def _blend(acc: torch.Tensor, part: torch.Tensor, y0: int, x0: int, grad: bool) 
     if ty1 <= ty0 or tx1 <= tx0:
         return acc
     part = part[..., by0 : by0 + ty1 - ty0, bx0 : bx0 + tx1 - tx0]
-    keep = 1 - part[:, :1].clamp(0, 1)
     region = acc[..., ty0:ty1, tx0:tx1]
     if grad:
+        keep = 1 - part[:, :1].clamp(0, 1)
         acc = acc.clone()
         acc[..., ty0:ty1, tx0:tx1] = region * keep + part
-    else:
-        region.mul_(keep).add_(part)
+    else:  # acc (1 - alpha) as acc - acc alpha: one pass
+        region.addcmul_(region, part[:, :1].clamp(0, 1), value=-1).add_(part)
     return acc
 
 
@@ -892,7 +893,8 @@ def _keep_freed_heap() -> bool:
     render's temporaries are mapped, unmapped or trimmed and then zero-filled page by page again
     on the next render: 5-7 thousand page faults per 384x576 render, 5-14 thousand at 512x768.
     Freeing one 31 MB block moves the threshold where it would move in any long-running process
-    that freed such a block, so the heap keeps up to 62 MB of free memory between renders.
+    that freed such a block: blocks under 31 MB then come from the heap, which glibc trims only
+    when more than 62 MB is free at its top.
     Blocks over 31 MB (5-channel frames above about 1.6 MP) are still mapped each time.
     """
     try:
