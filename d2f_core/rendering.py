@@ -489,6 +489,33 @@ def _layer_input(
     return z
 
 
+def _layer_rows(
+    x: torch.Tensor,
+    coord: torch.Tensor,
+    centre: int,
+    gamma: float,
+    box: tuple[int, int, int, int],
+    factor: int,
+):
+    """The premultiplied layer ``mask * [1, x]`` inside ``box``, pooled by ``factor``, row by
+    row on demand (no-gradient path; ``x`` is ``[1, x]``, the box a whole number of cells).
+
+    Returns ``rows(r0, r1, out=None)``: rows ``r0:r1`` of the (pooled) layer, written into
+    ``out`` when given. Only the mask is computed at once.
+    """
+    y0, y1, x0, x1 = box
+    mask = _layer_mask(coord[..., y0:y1, x0:x1], centre, gamma, False)
+    xs = x[..., y0:y1, x0:x1]
+
+    def rows(r0: int, r1: int, out: torch.Tensor | None = None) -> torch.Tensor:
+        span = slice(r0 * factor, r1 * factor)
+        if factor == 1:
+            return torch.mul(xs[..., span, :], mask[..., span, :], out=out)
+        return _pool_product(xs[..., span, :], mask[..., span, :], factor, out=out)
+
+    return rows
+
+
 def _with_ones(x: torch.Tensor) -> torch.Tensor:
     """``[1, x]``: a premultiplied layer is then ``mask * [1, x]`` in one product."""
     out = x.new_empty(x.shape[0], x.shape[1] + 1, *x.shape[2:])
@@ -524,7 +551,7 @@ def _strip_count(channels: int, rows: int, r: int, frame_rows: int) -> int:
 
 
 def _direct_stacked(
-    fill,
+    rows_of,
     like: torch.Tensor,
     channels: int,
     box: tuple[int, int, int, int],
@@ -535,9 +562,10 @@ def _direct_stacked(
     grown by the kernel radius and clipped to ``frame``, with the layer's strips stacked along
     the channel axis.
 
-    ``fill(dest, r0, r1)`` writes rows ``r0:r1`` of the layer inside its box into ``dest``,
-    ``(B, channels, r1 - r0, box width)``. The output rows are rounded up to a whole number
-    of strips, growing into the frame: the extra rows hold zeros, which composite as nothing.
+    ``rows_of(r0, r1, out=dest)`` writes rows ``r0:r1`` of the layer inside its box into
+    ``dest``, ``(B, channels, r1 - r0, box width)`` (see :func:`_layer_rows`). The output
+    rows are rounded up to a whole number of strips, growing into the frame: the extra rows
+    hold zeros, which composite as nothing.
 
     Returns ``(out, oy0, ox0)``: ``out`` is ``(B, channels, strips, rows per strip, width)``
     and covers the frame from ``(oy0, ox0)``.
@@ -572,7 +600,7 @@ def _direct_stacked(
             strip[..., :a, :].zero_()
         if e < rows:
             strip[..., e:, :].zero_()
-        fill(strip[..., a:e, :], i * hs + a - top, i * hs + e - top)
+        rows_of(i * hs + a - top, i * hs + e - top, out=strip[..., a:e, :])
     stacked = base.view(b, rows, wp, s * channels).permute(0, 3, 1, 2)  # channels-last
     weight = k.flip(-1, -2).expand(s * channels, 1, -1, -1)
     out = F.conv2d(stacked, weight, groups=s * channels).permute(0, 2, 3, 1).contiguous()
@@ -756,14 +784,8 @@ def _composite(
                 z = _layer_input(x, coord, centre, plan.gamma, box, (0, 0, 0, 0), grad)
                 acc = _blend(acc, z, box[0], box[2], grad)
             elif direct and not grad:
-                y0, y1, x0, x1 = box
-                mask = _layer_mask(coord[..., y0:y1, x0:x1], centre, plan.gamma, False)
-                xs = x[..., y0:y1, x0:x1]
-
-                def fill(dest, r0, r1, mask=mask, xs=xs):
-                    torch.mul(xs[..., r0:r1, :], mask[..., r0:r1, :], out=dest)
-
-                out, oy0, ox0 = _direct_stacked(fill, x, c + 1, box, k, (height, width))
+                rows = _layer_rows(x, coord, centre, plan.gamma, box, 1)
+                out, oy0, ox0 = _direct_stacked(rows, x, c + 1, box, k, (height, width))
                 _blend_stacked(acc, out, oy0, ox0)
             elif direct:
                 pads, oy0, ox0 = _direct_pads(box, r, height, width)
@@ -788,35 +810,21 @@ def _composite(
         if grad or bh or bw:
             z = _layer_input(x, coord, centre, plan.gamma, (y0, y1, x0, x1), (0, bh, 0, bw), grad)
 
-            def pooled(r0, r1, out=None, z=z, factor=factor):
+            def rows(r0, r1, out=None, z=z, factor=factor):
                 return _pool(z[..., r0 * factor : r1 * factor, :], factor, out=out)
 
-        else:
-            # the product and the first pooling step in one: no full-resolution layer is built
-            mask = _layer_mask(coord[..., y0:y1, x0:x1], centre, plan.gamma, False)
-            xs = x[..., y0:y1, x0:x1]
-
-            def pooled(r0, r1, out=None, mask=mask, xs=xs, factor=factor):
-                rows = slice(r0 * factor, r1 * factor)
-                return _pool_product(xs[..., rows, :], mask[..., rows, :], factor, out=out)
-
+        else:  # product and pooling in one: no full-resolution layer is built
+            rows = _layer_rows(x, coord, centre, plan.gamma, (y0, y1, x0, x1), factor)
         if direct and not grad:
-            out, oy0, ox0 = _direct_stacked(
-                lambda dest, r0, r1, pooled=pooled: pooled(r0, r1, out=dest),
-                x,
-                c + 1,
-                cbox,
-                k,
-                (lh, lw),
-            )
+            out, oy0, ox0 = _direct_stacked(rows, x, c + 1, cbox, k, (lh, lw))
             _blend_stacked(group[1], out, oy0, ox0, transmit=group[2])
             continue
         if direct:
             pads, oy0, ox0 = _direct_pads(cbox, r, lh, lw)
-            zc = F.pad(pooled(0, cbox[1] - cbox[0]), (pads[2], pads[3], pads[0], pads[1]))
+            zc = F.pad(rows(0, cbox[1] - cbox[0]), (pads[2], pads[3], pads[0], pads[1]))
             blurred = _direct(zc, k)
         else:
-            blurred = _fft(pooled(0, cbox[1] - cbox[0]), spec, size, factor)
+            blurred = _fft(rows(0, cbox[1] - cbox[0]), spec, size, factor)
             oy0, ox0 = cbox[0] - r, cbox[2] - r
         colour = _blend(group[1], blurred, oy0, ox0, grad)
         transmit = group[2]

@@ -313,10 +313,10 @@ class TestImplementations:
         full[..., y0 + r : y1 + r, x0 + r : x1 + r] = layer
         expected = F.conv2d(full, k.flip(-1, -2).expand(channels, 1, -1, -1), groups=channels)
 
-        def fill(dest, r0, r1):
-            dest.copy_(layer[..., r0:r1, :])
+        def rows(r0, r1, out):
+            return out.copy_(layer[..., r0:r1, :])
 
-        out, oy0, ox0 = _direct_stacked(fill, layer, channels, box, k, frame)
+        out, oy0, ox0 = _direct_stacked(rows, layer, channels, box, k, frame)
         s, hs, wo = out.shape[-3:]
         assert out.shape[:2] == (2, channels) and 0 <= oy0 and oy0 + s * hs <= height
         got = torch.zeros_like(expected)
