@@ -396,7 +396,12 @@ def _fft(z: torch.Tensor, spec: KernelSpec, size: int, factor: int) -> torch.Ten
     h, w = z.shape[-2:]
     fh, fw = _fast_len(h + 2 * r), _fast_len(w + 2 * r)
     spec_k = _spectrum(spec, size, factor, fh, fw, str(z.device), z.dtype)
-    out = torch.fft.irfft2(torch.fft.rfft2(z.contiguous(), s=(fh, fw)) * spec_k, s=(fh, fw))
+    spectrum = torch.fft.rfft2(z.contiguous(), s=(fh, fw))
+    if torch.is_grad_enabled() and z.requires_grad:
+        spectrum = spectrum * spec_k
+    else:
+        spectrum.mul_(spec_k)
+    out = torch.fft.irfft2(spectrum, s=(fh, fw))
     return out[..., : h + 2 * r, : w + 2 * r]
 
 
