@@ -406,18 +406,14 @@ def _fft(z: torch.Tensor, spec: KernelSpec, size: int, factor: int) -> torch.Ten
 
 
 def _pool(z: torch.Tensor, factor: int, out: torch.Tensor | None = None) -> torch.Tensor:
-    """Mean over ``factor x factor`` cells (a power of 2 dividing H and W).
+    """Mean over ``factor x factor`` cells (a power of 2 dividing H and W), written into
+    ``out`` when given.
 
     Sums of strided views: several times faster than ``avg_pool2d`` on CPU.
     """
-    while factor > 1:
-        rows = z[..., 0::2, :] + z[..., 1::2, :]
-        factor //= 2
-        if factor == 1 and out is not None:
-            torch.add(rows[..., 0::2], rows[..., 1::2], out=out)
-            return out.mul_(0.25)
-        z = (rows[..., 0::2] + rows[..., 1::2]) * 0.25
-    return z
+    if factor == 1:
+        return z
+    return _pool_from_rows(z[..., 0::2, :] + z[..., 1::2, :], factor, out)
 
 
 def _pool_product(
@@ -427,12 +423,17 @@ def _pool_product(
     of each cell are multiplied and summed in one step (height and width divisible by
     ``factor``)."""
     rows = x[..., 0::2, :] * mask[..., 0::2, :]
-    rows.addcmul_(x[..., 1::2, :], mask[..., 1::2, :])
+    return _pool_from_rows(rows.addcmul_(x[..., 1::2, :], mask[..., 1::2, :]), factor, out)
+
+
+def _pool_from_rows(rows: torch.Tensor, factor: int, out: torch.Tensor | None) -> torch.Tensor:
+    """The rest of :func:`_pool` once row pairs are summed: column pairs, the mean, and the
+    further halvings."""
     if factor == 2 and out is not None:
         torch.add(rows[..., 0::2], rows[..., 1::2], out=out)
         return out.mul_(0.25)
     z = (rows[..., 0::2] + rows[..., 1::2]).mul_(0.25)
-    return _pool(z, factor // 2, out=out) if factor > 2 else z
+    return _pool(z, factor // 2, out=out)
 
 
 def _empty_padded(

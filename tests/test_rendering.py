@@ -411,18 +411,21 @@ print(libc.mallinfo2().hblkhd - before)
         zg = z.clone().requires_grad_()
         torch.testing.assert_close(_upsample(zg, factor, height, width), expected)
 
-    @pytest.mark.parametrize("factor", [2, 4])
-    def test_pooled_product_matches_pooling_the_product(self, factor):
-        from d2f_core.rendering import _pool_product
+    @pytest.mark.parametrize("factor", [2, 4, 8])
+    def test_pooling_matches_avg_pool(self, factor):
+        from d2f_core.rendering import _pool, _pool_product
 
         g = torch.Generator().manual_seed(factor)
         x = torch.rand(2, 5, 24, 40, generator=g, dtype=torch.float64)
         mask = torch.rand(2, 1, 24, 40, generator=g, dtype=torch.float64)
         expected = F.avg_pool2d(mask * x, factor)
+        torch.testing.assert_close(_pool(mask * x, factor), expected)
         torch.testing.assert_close(_pool_product(x, mask, factor), expected)
-        out = torch.empty_like(expected)
-        assert _pool_product(x, mask, factor, out=out) is out
+        out, out_product = torch.empty_like(expected), torch.empty_like(expected)
+        assert _pool(mask * x, factor, out) is out
+        assert _pool_product(x, mask, factor, out_product) is out_product
         torch.testing.assert_close(out, expected)
+        torch.testing.assert_close(out_product, expected)
 
     def test_coc_to_defocus(self):
         assert coc_to_defocus(1.0) == 0.0
