@@ -85,7 +85,8 @@ QUALITY_PRESETS: dict[str, QualityPreset] = {
 # --------------------------------------------------------------------------------------
 
 
-def _check_tensor(name: str, x: torch.Tensor, channels: int | None) -> None:
+def _check_tensor(name: str, x: torch.Tensor, channels: int | None) -> tuple[float, float]:
+    """Check shape, dtype and finiteness; returns ``x``'s (min, max) ((0, 0) when empty)."""
     if not isinstance(x, torch.Tensor):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
     if x.ndim != 4:
@@ -94,8 +95,12 @@ def _check_tensor(name: str, x: torch.Tensor, channels: int | None) -> None:
         raise ValueError(f"{name} must have {channels} channel(s), got shape {tuple(x.shape)}")
     if not x.is_floating_point():
         raise TypeError(f"{name} must be a floating-point tensor, got {x.dtype}")
-    if x.numel() and not all(math.isfinite(v) for v in _extremes(x)):
+    if not x.numel():
+        return 0.0, 0.0
+    extremes = _extremes(x)
+    if not all(math.isfinite(v) for v in extremes):
         raise ValueError(f"{name} contains NaN or inf")
+    return extremes
 
 
 def _extremes(x: torch.Tensor) -> tuple[float, float]:
@@ -962,8 +967,8 @@ def render(
     Returns:
         ``(B, 3, H, W)`` in [0, 1].
     """
-    _check_tensor("image", image, 3)
-    _check_tensor("disparity", disparity, 1)
+    image_max = _check_tensor("image", image, 3)[1]
+    disparity_range = _check_tensor("disparity", disparity, 1)
     if disparity.shape[0] != image.shape[0] or disparity.shape[-2:] != image.shape[-2:]:
         raise ValueError(
             f"disparity shape {tuple(disparity.shape)} does not match image {tuple(image.shape)}"
@@ -985,7 +990,8 @@ def render(
         raise ValueError(f"num_layers must be a positive integer, got {num_layers!r}")
     f = _focus_tensor(focus, image.shape[0], image)
     _keep_freed_heap()
-    disparity = disparity.clamp(0, 1)
+    if disparity_range[0] < 0 or disparity_range[1] > 1:
+        disparity = disparity.clamp(0, 1)
     if blur == 0 and order == "depth":
         return image.clamp(0, 1)
 
@@ -994,7 +1000,7 @@ def render(
     )
     weights = None
     if highlight_boost:
-        if radiance is not None or (image.numel() and _extremes(image)[1] >= HDR_THRESHOLD):
+        if radiance is not None or image_max >= HDR_THRESHOLD:
             weights = hdr_boost(image, radiance)
     elif radiance is not None:
         weights = radiance
