@@ -736,9 +736,11 @@ def _composite(
     accumulator once, ``acc = acc * T + C``, which is exact at the coarse level because
     compositing is linear in the accumulator.
 
-    Without gradients a layer convolved directly is built channels-last (the layout CPU
-    depthwise convolution is fast in), straight into a zero-padded buffer sized so that only
-    the part of its blur that lands in the frame is computed. Everything else stays planar.
+    Without gradients a layer convolved directly is written strip by strip into a
+    channels-last buffer that stacks its strips along the channel axis (:func:`_direct_stacked`),
+    sized so that only the part of its blur that lands in the frame is computed, and coarse
+    layers are pooled straight from the product (:func:`_layer_rows`). The accumulator and
+    everything else stay planar.
 
     Shape: ``x (B, C, H, W) -> acc (B, C, H, W), alpha (B, 1, H, W)``.
     """

@@ -276,8 +276,8 @@ class TestImplementations:
     @pytest.mark.parametrize("method", ["fft", "direct"])
     @pytest.mark.parametrize("quality", ["high", "balanced", "fast"])
     def test_inference_layout_matches_autograd_path(self, quality, method):
-        # without gradients, layers are built channels-last in buffers padded for the
-        # convolution and pooled into preallocated buffers; with gradients they are planar
+        # without gradients, directly convolved layers are stacked in strips along channels
+        # and coarse layers pooled straight from the product; with gradients all are planar
         img, disp = _boxed_scene()
         src = img.clone().requires_grad_()
         with torch.enable_grad():
