@@ -426,6 +426,24 @@ print(libc.mallinfo2().hblkhd - before)
         assert _pool_product(x, mask, factor, out_product) is out_product
         torch.testing.assert_close(out, expected)
         torch.testing.assert_close(out_product, expected)
+        # sums (the no-gradient path: the kernel carries the 1 / factor**2)
+        sums = expected * factor**2
+        torch.testing.assert_close(_pool(mask * x, factor, mean=False), sums)
+        torch.testing.assert_close(_pool_product(x, mask, factor, out, mean=False), sums)
+
+    def test_coarse_kernel_gain(self):
+        # the no-gradient path blurs cell sums with the kernel times 1 / factor**2: the same
+        # composite as cell means with the plain kernel, in direct and FFT convolution
+        from d2f_core.rendering import KernelSpec, _fft, _kernel
+
+        spec = KernelSpec()
+        k = _kernel(spec, 23, 2, "cpu", torch.float64)
+        k4 = _kernel(spec, 23, 2, "cpu", torch.float64, 0.25)
+        torch.testing.assert_close(k4, k / 4, atol=0, rtol=0)
+        z = torch.rand(
+            1, 5, 20, 30, dtype=torch.float64, generator=torch.Generator().manual_seed(3)
+        )
+        torch.testing.assert_close(_fft(4 * z, spec, 23, 2, 0.25), _fft(z, spec, 23, 2))
 
     def test_coc_to_defocus(self):
         assert coc_to_defocus(1.0) == 0.0
