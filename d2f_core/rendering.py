@@ -1015,6 +1015,35 @@ def render(
     if int(num_layers) != num_layers or num_layers < 1:
         raise ValueError(f"num_layers must be a positive integer, got {num_layers!r}")
     f = _focus_tensor(focus, image.shape[0], image)
+    if image.shape[0] > 1:
+        # one layer plan per image: the kernel schedule and the support boxes follow each
+        # image's own CoCs, so a batch renders exactly as its images do one by one
+        options = dict(
+            order=order,
+            num_layers=num_layers,
+            schedule=schedule,
+            kernel=kernel,
+            blades=blades,
+            rotation=rotation,
+            highlight_boost=highlight_boost,
+            method=method,
+            quality=quality,
+            gamma=gamma,
+            full_frame=full_frame,
+        )
+        return torch.cat(
+            [
+                render(
+                    image[i : i + 1],
+                    disparity[i : i + 1],
+                    f[i],
+                    blur,
+                    radiance=None if radiance is None else radiance[i : i + 1],
+                    **options,
+                )
+                for i in range(image.shape[0])
+            ]
+        )
     _keep_freed_heap()
     if disparity_range[0] < 0 or disparity_range[1] > 1:
         disparity = disparity.clamp(0, 1)
