@@ -53,34 +53,37 @@ COC_BINS: tuple[float, ...] = (4.0, 8.0, 16.0, 32.0, 64.0, 128.0)
 
 #: Worst-case PSNR (dB) against the exact 15-layer reference, per largest-CoC bin (one value
 #: per bin of :data:`COC_BINS` plus the open bin; ``None`` = not measured), depth order, soft
-#: disk, growing schedule. The minimum over these runs of ``d2f-bench accuracy --calibrate``
-#: (:func:`d2f_core.bench_accuracy.calibrate`; three focal planes per scene):
+#: disk, growing schedule, either layer placement. The minimum over these runs of
+#: ``d2f-bench accuracy --calibrate`` (:func:`d2f_core.bench_accuracy.calibrate`; three focal
+#: planes per scene, both placements):
 #: ``--sizes 512x768 --seeds 207 208 --k-fracs 0.02 0.05 0.1 0.17``,
 #: ``--sizes 256x384 --seeds 201 202 --k-fracs 0.005 0.01 0.03 0.3``,
 #: ``--sizes 256x384 --seeds 201 202 203 --k-fracs 0.015 0.02 0.06 0.12`` and
 #: ``--sizes 512x768 --seeds 209 --k-fracs 0.3`` and
-#: ``--sizes 96x144 128x192 --seeds 211 212 213 214 --k-fracs 0.02 0.05 0.1 0.2 0.4``.
-#: Reduced resolution costs 41-66 dB; fewer layers cost far more (18-44 dB).
+#: ``--sizes 96x144 128x192 --seeds 211 212 213 214 --k-fracs 0.02 0.05 0.1 0.2 0.4`` and
+#: ``--sizes 96x144 128x192 --seeds 211 212 213 214 --k-fracs 0.7 1.0 1.4`` (CoCs of 100-200 px
+#: on a small frame: the open bin's worst cases).
+#: Reduced resolution costs 40-52 dB; fewer layers cost far more (18-35 dB).
 CALIBRATION: dict[tuple[int, str], tuple[float | None, ...]] = {
-    (5, "exact"): (25.4, 18.2, 24.9, 22.3, 22.1, 29.2, 33.1),
-    (5, "high"): (25.4, 18.2, 24.9, 22.3, 22.1, 29.3, 33.1),
-    (5, "balanced"): (25.4, 18.2, 24.9, 22.3, 22.1, 29.4, 33.2),
-    (5, "fast"): (25.4, 18.2, 24.9, 22.2, 22.1, 29.3, 33.2),
-    (7, "exact"): (25.4, 29.0, 21.8, 25.3, 29.1, 33.3, 35.8),
-    (7, "high"): (25.4, 29.0, 21.8, 25.3, 29.1, 33.3, 35.8),
-    (7, "balanced"): (25.4, 29.0, 21.8, 25.3, 29.1, 33.3, 35.8),
-    (7, "fast"): (25.4, 29.0, 21.8, 25.4, 28.8, 33.5, 35.7),
-    (9, "exact"): (25.4, 29.4, 26.3, 26.2, 32.0, 35.9, 39.0),
-    (9, "high"): (25.4, 29.4, 26.3, 26.2, 32.0, 36.1, 38.8),
-    (9, "balanced"): (25.4, 29.4, 26.3, 26.2, 32.3, 36.1, 38.8),
-    (9, "fast"): (25.4, 29.4, 26.3, 26.2, 32.3, 36.3, 38.8),
-    (11, "exact"): (44.2, 25.9, 29.9, 32.5, 31.3, 38.8, 41.6),
-    (11, "high"): (44.2, 25.9, 29.9, 32.3, 31.3, 38.6, 41.5),
-    (11, "balanced"): (44.2, 25.9, 29.9, 32.0, 31.3, 38.5, 41.5),
-    (11, "fast"): (44.2, 25.9, 30.4, 31.8, 31.1, 38.5, 41.6),
-    (15, "high"): (100.0, 100.0, 100.0, 49.5, 48.2, 52.7, 59.0),
-    (15, "balanced"): (100.0, 100.0, 47.7, 43.2, 46.6, 51.0, 58.1),
-    (15, "fast"): (100.0, 65.9, 42.1, 41.0, 42.7, 50.1, 57.2),
+    (5, "exact"): (20.9, 18.2, 21.6, 22.2, 22.1, 25.0, 25.1),
+    (5, "high"): (20.9, 18.2, 21.6, 22.2, 22.1, 25.0, 25.1),
+    (5, "balanced"): (20.9, 18.2, 21.6, 22.2, 22.1, 25.0, 25.4),
+    (5, "fast"): (20.9, 18.2, 21.6, 22.2, 22.1, 25.3, 25.4),
+    (7, "exact"): (25.4, 27.2, 21.8, 25.3, 29.1, 27.4, 26.5),
+    (7, "high"): (25.4, 27.2, 21.8, 25.3, 29.1, 27.4, 26.6),
+    (7, "balanced"): (25.4, 27.2, 21.8, 25.3, 29.1, 27.3, 26.6),
+    (7, "fast"): (25.4, 27.2, 21.8, 25.4, 28.8, 27.3, 27.0),
+    (9, "exact"): (25.4, 28.6, 24.7, 26.2, 31.0, 32.5, 32.4),
+    (9, "high"): (25.4, 28.6, 24.7, 26.2, 31.0, 32.3, 32.4),
+    (9, "balanced"): (25.4, 28.6, 24.7, 26.2, 31.0, 32.3, 32.8),
+    (9, "fast"): (25.4, 28.6, 24.7, 26.2, 31.0, 32.8, 32.6),
+    (11, "exact"): (31.2, 25.9, 29.9, 31.8, 31.3, 34.5, 34.5),
+    (11, "high"): (31.2, 25.9, 29.9, 31.8, 31.3, 34.5, 34.6),
+    (11, "balanced"): (31.2, 25.9, 29.9, 31.8, 31.3, 34.4, 34.6),
+    (11, "fast"): (31.2, 25.9, 30.4, 31.3, 31.1, 33.4, 34.7),
+    (15, "high"): (100.0, 100.0, 100.0, 47.4, 48.2, 49.0, 49.5),
+    (15, "balanced"): (100.0, 100.0, 45.3, 43.2, 46.6, 46.1, 48.2),
+    (15, "fast"): (100.0, 51.6, 41.9, 40.3, 42.7, 42.7, 41.9),
 }
 
 # Subtracted from the calibrated worst case: the calibration scenes are not the user's. The
@@ -174,11 +177,18 @@ def _probe(disparity: torch.Tensor) -> torch.Tensor:
 
 
 def _occupancy(
-    disparity: torch.Tensor, focus: float, blur: float, num_layers: int, schedule: str
+    disparity: torch.Tensor,
+    focus: float,
+    blur: float,
+    num_layers: int,
+    schedule: str,
+    placement: str = "nearest",
 ) -> list[tuple[int, int, float]]:
     """``(centre, kernel px, share of pixels)`` of each layer that holds pixels."""
     f = torch.full((1, 1, 1, 1), focus, dtype=disparity.dtype)
-    plan = layer_plan(disparity, f, blur, num_layers=num_layers, schedule=schedule)
+    plan = layer_plan(
+        disparity, f, blur, num_layers=num_layers, schedule=schedule, placement=placement
+    )
     coord = plan.coord.flatten()[None]  # [1,P]
     centres = torch.tensor([c for c, _ in plan.order], dtype=coord.dtype)[:, None]  # [n,1]
     # a layer takes the pixels within one layer unit of its centre, on its side of focus
@@ -215,6 +225,7 @@ def choose_settings(
     schedule: str = "growing",
     full_scale: float = 1.0,
     fusion_coc: float = FUSION_COC_PX,
+    placement: str = "nearest",
 ) -> RenderSettings:
     """Cheapest renderer settings whose expected error stays within a PSNR budget.
 
@@ -230,6 +241,7 @@ def choose_settings(
         full_scale: full-resolution px per px of ``disparity`` (2 for a half-resolution pass);
             used for the identity and fusion decisions, which concern the full-size output.
         fusion_coc: full-resolution CoC (px) below which fusion can change a pixel.
+        placement: the render's layer placement (``rendering.layer_plan``).
 
     Returns:
         :class:`RenderSettings`; ``settings.render_options()`` goes to ``rendering.render``.
@@ -268,7 +280,7 @@ def choose_settings(
         if expected < budget:
             continue
         if num_layers not in occupancy:
-            occupancy[num_layers] = _occupancy(probe, focus, blur, num_layers, schedule)
+            occupancy[num_layers] = _occupancy(probe, focus, blur, num_layers, schedule, placement)
         layers = occupancy[num_layers]
         cost = _cost(layers, preset)
         if best is None or (cost, -expected) < (best.cost, -best.predicted_psnr):
@@ -306,9 +318,14 @@ def render_adaptive(
     for key in ("num_layers", "quality"):
         if key in options:
             raise ValueError(f"options must not contain {key!r}: render_adaptive picks it")
-    schedule = options.get("schedule", "growing")
     settings = choose_settings(
-        disparity, focus, blur, budget_db=budget_db, quality=quality, schedule=schedule
+        disparity,
+        focus,
+        blur,
+        budget_db=budget_db,
+        quality=quality,
+        schedule=options.get("schedule", "growing"),
+        placement=options.get("placement", "nearest"),
     )
     if settings.identity and options.get("order", "depth") == "depth":
         if not isinstance(image, torch.Tensor) or image.ndim != 4 or image.shape[1] != 3:

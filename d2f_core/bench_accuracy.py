@@ -24,6 +24,7 @@ ground truth needed). Nothing here asserts a time; figures are as measured on th
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import logging
 import math
@@ -352,6 +353,7 @@ def default_settings(quick: bool = False) -> list[Setting]:
         _setting("quality fast", "resolution", quality="fast"),
         _setting("direct conv", "method", method="direct"),
         _setting("paper order", "order", order="paper"),
+        _setting("paper placement", "placement", placement="paper"),
         _setting("no HDR boost", "hdr", highlight_boost=False),
         Setting("paper", "paper", tuple(sorted(PAPER_OPTIONS.items()))),
         _setting("paper, FFT", "combined", **(PAPER_OPTIONS | {"method": "fft"})),
@@ -507,6 +509,7 @@ _AXIS_COLOURS = {
     "resolution": "tab:green",
     "method": "tab:brown",
     "order": "tab:red",
+    "placement": "tab:gray",
     "hdr": "tab:pink",
     "paper": "tab:red",
     "combined": "tab:purple",
@@ -595,7 +598,7 @@ def plot_accuracy(summary: Sequence[dict[str, Any]], path: Path, title: str) -> 
         plt.Line2D([], [], color="grey", ls="--"),
     ]
     labels = ["paper configuration", "default", "adaptive", "Pareto front"]
-    for axis in ("layers", "resolution", "order", "combined"):
+    for axis in ("layers", "resolution", "order", "placement", "combined"):
         handles.append(plt.Line2D([], [], marker="o", ls="none", color=_AXIS_COLOURS[axis]))
         labels.append(axis)
     fig.legend(
@@ -622,7 +625,9 @@ def calibrate(
     15-layer reference, per largest-CoC bin of :data:`adaptive.COC_BINS`.
 
     Scenes are generated (pinhole view and exact disparity); three focal planes per scene
-    (main subject, farthest object, nearest object). No ground truth is needed.
+    (main subject, farthest object, nearest object), each with both layer placements
+    (``rendering.layer_plan``; the candidate against the reference of the same placement). No
+    ground truth is needed.
     """
     from .synth import linear_to_srgb, make_scene, render_pinhole
 
@@ -641,15 +646,18 @@ def calibrate(
                 d = torch.from_numpy(disp)[None, None].contiguous()
                 orders = [float(lay.order) for lay in scene.layers]
                 for focus in (scene.subject, min(orders[1:] or orders), max(orders)):
-                    for k_frac in k_fracs:
+                    for k_frac, placement in itertools.product(k_fracs, ("nearest", "paper")):
                         blur = k_frac * size[1]
                         max_coc = blur * float((d - focus).abs().max())
-                        ref = render(image, d, focus, blur, quality="exact", num_layers=15)
+                        kw = {"placement": placement}
+                        ref = render(image, d, focus, blur, quality="exact", num_layers=15, **kw)
                         b = adaptive._coc_bin(max_coc)
                         for cand in adaptive.CANDIDATES:
                             if cand == (15, "exact"):
                                 continue
-                            out = render(image, d, focus, blur, num_layers=cand[0], quality=cand[1])
+                            out = render(
+                                image, d, focus, blur, num_layers=cand[0], quality=cand[1], **kw
+                            )
                             mse = float(((out - ref) ** 2).mean())
                             value = 100.0 if mse <= 1e-10 else -10 * math.log10(mse)
                             cell = table[cand][b]
@@ -663,6 +671,7 @@ def calibrate(
                                     "max_coc": max_coc,
                                     "layers": cand[0],
                                     "quality": cand[1],
+                                    "placement": placement,
                                     "psnr": value,
                                 }
                             )

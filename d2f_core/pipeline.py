@@ -79,6 +79,9 @@ class D2FConfig:
         render_scale: scale of the low-resolution rendering pass (paper: 0.5).
         max_render_side: cap on the long side of the low-resolution pass (px).
         order: compositing order passed to ``rendering.render`` (``"depth"`` or ``"paper"``).
+        placement: layer placement passed to ``rendering.render`` (``"paper"`` or
+            ``"nearest"``, see ``rendering.layer_plan``). A model renders with the placement
+            it was trained with: the shipped ``lite`` weights use ``"paper"``.
         train_focus: focal disparity used for training pairs without ``params`` (EBB!
             focuses on the nearest subject, so 1.0 = nearest).
         train_blur: ``K`` (px at the pair's full resolution) for pairs without ``params``;
@@ -95,6 +98,7 @@ class D2FConfig:
     render_scale: float = 0.5
     max_render_side: int = 1024
     order: str = "depth"
+    placement: str = "paper"
     train_focus: float = 1.0
     train_blur: float = 138.0
     fusion_theta: float = 0.25
@@ -116,6 +120,10 @@ class D2FConfig:
                 raise TypeError(f"config.{f.name} must be {kind.__name__}, got {value!r}")
         if self.order not in ("depth", "paper"):
             raise ValueError(f"config.order must be 'depth' or 'paper', got {self.order!r}")
+        if self.placement not in ("nearest", "paper"):
+            raise ValueError(
+                f"config.placement must be 'nearest' or 'paper', got {self.placement!r}"
+            )
         if not 0 < self.render_scale <= 1:
             raise ValueError(f"config.render_scale must be in (0, 1], got {self.render_scale}")
         if self.network_size < 32 or self.max_render_side < 16:
@@ -644,6 +652,7 @@ class D2F(nn.Module):
         if "radiance" in render_options:
             raise ValueError("render_options must not contain 'radiance' (it comes from scene)")
         render_options.setdefault("order", self.config.order)
+        render_options.setdefault("placement", self.config.placement)
         named = isinstance(budget, str)
         if named and budget not in adaptive.BUDGETS:
             names = sorted(adaptive.BUDGETS)
@@ -694,6 +703,7 @@ class D2F(nn.Module):
                 budget_db=None if named else budget,
                 quality=budget if named else adaptive.DEFAULT_QUALITY,
                 schedule=render_options.get("schedule", "growing"),
+                placement=render_options["placement"],
                 full_scale=1.0 / lr_ratio if full else 1.0,
                 fusion_coc=gate_coc,
             )
@@ -826,6 +836,7 @@ class D2F(nn.Module):
         """
         b = image_lr.shape[0]
         options.setdefault("order", self.config.order)
+        options.setdefault("placement", self.config.placement)
         disparity = self.defocus_net(image_lr)  # [B,1,h,w]
         radiance = self.radiance_net(image_lr)  # [B,1,h,w]
         f = _per_sample(focus, b, image_lr).reshape(-1)

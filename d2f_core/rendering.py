@@ -8,7 +8,10 @@ Two compositing orders are provided:
   (1 = nearest), a focal disparity ``focus`` and a blur amount ``K`` (px), a pixel's
   circle-of-confusion (CoC) diameter is ``K * |d - focus|``. Pixels behind and in front of the
   focal plane go to separate layers, and layers are composited far to near, so a blurred
-  foreground spills over a sharp subject as it does through a real lens.
+  foreground spills over a sharp subject as it does through a real lens. With
+  ``placement="nearest"`` (default) each pixel is drawn with the kernel nearest its CoC on
+  both sides of focus; ``placement="paper"`` reads the kernel sizes as CoCs, which draws CoCs
+  behind the focal plane with the next smaller kernel (see :func:`layer_plan`).
 * ``order="paper"``: the authors' ordering by unsigned defocus ``D = |d - focus|`` (most blurred
   layer first, the sharp layer always on top), with layer ``l`` covering ``D = l / (L - 1)`` and
   the kernel schedule stretched so that ``D = 1`` gets a kernel of ``K`` px. With ``K = 69`` and
@@ -279,8 +282,20 @@ def layer_plan(
     schedule: str = "growing",
     gamma: float = GAMMA,
     max_size: float = 69.0,
+    placement: str = "nearest",
 ) -> LayerPlan:
-    """Assign pixels to layers (back-to-front compositing order)."""
+    """Assign pixels to layers (back-to-front compositing order).
+
+    ``placement`` (depth order only) says where a pixel goes between two layers:
+
+    * ``"nearest"``: layer ``j`` sits at the CoC its kernel draws (``size - 1`` px across) and
+      pixels move half a layer toward the side the overlapping soft masks hide, so every pixel
+      shows the kernel nearest its CoC on both sides of focus.
+    * ``"paper"``: layer ``j`` sits at a CoC of ``size`` px, as the paper's schedule reads.
+      Where two layers overlap the nearer one wins, so behind the focal plane a CoC is drawn
+      with the next smaller kernel (a 10 px CoC with the 7 px one) and in front with the next
+      larger. The shipped ``lite`` weights were trained with it.
+    """
     signed = disparity - focus  # [B,1,H,W]
     if order == "paper":
         sizes = kernel_sizes(num_layers, max_size=max(blur, 1.0), schedule=schedule)
@@ -291,20 +306,31 @@ def layer_plan(
         return LayerPlan(coord, layers, gamma / max(n - 1, 1), False)
     if order != "depth":
         raise ValueError(f"order must be 'depth' or 'paper', got {order!r}")
+    if placement not in ("nearest", "paper"):
+        raise ValueError(f"placement must be 'nearest' or 'paper', got {placement!r}")
     coc = signed.abs() * blur
     max_coc = float(coc.detach().max()) if coc.numel() else 0.0
-    # The schedule is in absolute px (the paper's sizes up to 69 px, stretched only for larger
-    # CoCs), cut after the first size that covers the scene's largest CoC: a small blur
-    # needs few layers.
-    full = kernel_sizes(num_layers, max_size=max(max_coc, max_size), schedule=schedule)
+    # A kernel of s px (radius s // 2) draws a disc s - 1 px across, which is where layer j
+    # sits with "nearest" placement (the 1-px kernel at CoC 0). The schedule is in absolute px
+    # (the paper's sizes up to 69 px, stretched only for larger CoCs), cut after the first
+    # kernel that covers the scene's largest CoC: a small blur needs few layers, and a largest
+    # CoC of at most 1 px none.
+    nearest = placement == "nearest"
+    full = kernel_sizes(num_layers, max_size=max(max_coc + nearest, max_size), schedule=schedule)
     sizes = []
     for size in _unique_sizes(full):
         sizes.append(size)
-        if size >= max_coc:
+        if size - nearest >= max_coc or max_coc <= 1:
             break
-    # CoC below 1 px is sharp: it maps onto layer 0 like the 1-px kernel
-    knots = [float(s) for s in sizes]
-    coord = torch.copysign(_interp(coc, knots), signed)
+    u = _interp(coc, [float(s - nearest) for s in sizes])
+    if nearest and len(sizes) > 1:
+        # Between two layers both soft masks are close to 1 and the nearer layer hides the
+        # other: behind the focal plane that is the sharper one, in front the more blurred
+        # one. Half a layer toward the hidden side makes every pixel show the layer whose
+        # kernel is nearest its CoC, on both sides; in front, CoCs under half a layer (1 px)
+        # stay on the sharp layer.
+        u = torch.where(signed < 0, u + 0.5, (u - 0.5).clamp(min=0))
+    coord = torch.copysign(u, signed)
     n = len(sizes)
     layers = [(j, sizes[abs(j)]) for j in range(-(n - 1), n)]
     return LayerPlan(coord, layers, gamma / 14.0, True)
@@ -970,6 +996,7 @@ def render(
     quality: str = "balanced",
     gamma: float = GAMMA,
     full_frame: bool = False,
+    placement: str = "nearest",
 ) -> torch.Tensor:
     """Render bokeh with weighted layered rendering.
 
@@ -989,6 +1016,8 @@ def render(
         quality: ``"exact"``, ``"high"``, ``"balanced"`` or ``"fast"``: how large a kernel
             must be before it is applied at 1/2 or 1/4 resolution.
         full_frame: disable the per-layer support boxes and empty-layer skipping (reference).
+        placement: ``"nearest"`` or ``"paper"``: which layer a pixel between two layers goes
+            to (depth order; see :func:`layer_plan`).
 
     Returns:
         ``(B, 3, H, W)`` in [0, 1].
@@ -1012,6 +1041,8 @@ def render(
         raise ValueError(f"quality must be one of {sorted(QUALITY_PRESETS)}, got {quality!r}")
     if kernel not in ("soft", "hard"):
         raise ValueError(f"kernel must be 'soft' or 'hard', got {kernel!r}")
+    if placement not in ("nearest", "paper"):
+        raise ValueError(f"placement must be 'nearest' or 'paper', got {placement!r}")
     if int(num_layers) != num_layers or num_layers < 1:
         raise ValueError(f"num_layers must be a positive integer, got {num_layers!r}")
     f = _focus_tensor(focus, image.shape[0], image)
@@ -1030,6 +1061,7 @@ def render(
             quality=quality,
             gamma=gamma,
             full_frame=full_frame,
+            placement=placement,
         )
         return torch.cat(
             [
@@ -1081,6 +1113,7 @@ def render(
         num_layers=int(num_layers),
         schedule=schedule,
         gamma=gamma,
+        placement=placement,
     )
     if all(size <= 1 for _, size in plan.order):
         # nothing is blurred: every layer is the identity, so is the composite

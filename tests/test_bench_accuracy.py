@@ -148,7 +148,7 @@ class TestConventions:
     """The renderer's ``blur`` and the synth ground truth's ``blur`` mean the same ``K``."""
 
     @staticmethod
-    def _plane(disparity: float, focus: float, blur: float):
+    def _plane(disparity: float, focus: float, blur: float, **options):
         g = np.random.default_rng(3)
         h, w, m = 64, 96, 24
         yy, xx = np.mgrid[-m : h + m, -m : w + m]
@@ -167,6 +167,7 @@ class TestConventions:
             quality="exact",
             kernel="hard",
             highlight_boost=False,
+            **options,
         )
         crop = int(blur * abs(disparity - focus) / 2) + 2
         pred = out[0].permute(1, 2, 0).numpy()[crop:-crop, crop:-crop]
@@ -180,11 +181,22 @@ class TestConventions:
         assert unblurred < 15
         assert got > 40
 
-    @pytest.mark.xfail(
-        strict=True,
-        reason="behind the focal plane the sharper of the two overlapping layers is composited "
-        "on top, so a 10 px CoC is rendered with the 7 px kernel (17.7 dB; K x 1.3 gives 46 dB)",
-    )
     def test_plane_behind_focus_matches_ground_truth(self):
-        got, _ = self._plane(0.1, 0.6, 20.0)
+        # behind the focal plane the nearer of two overlapping layers is the sharper one;
+        # "nearest" placement puts pixels half a layer back, "paper" placement draws this
+        # 10 px CoC with the 7 px kernel
+        got, unblurred = self._plane(0.1, 0.6, 20.0)
+        assert unblurred < 15
         assert got > 40
+        paper, _ = self._plane(0.1, 0.6, 20.0, placement="paper")
+        assert paper < 25
+
+    @pytest.mark.parametrize("coc", [2.0, 4.0, 6.0, 10.0])
+    def test_both_sides_of_focus_get_the_same_blur(self, coc):
+        # a CoC on a kernel's diameter (size - 1 px) is drawn with that kernel on either side
+        # of the focal plane; with placement="paper", behind focus measures 20-24 dB here
+        front, _ = self._plane(0.9, 0.4, coc / 0.5)
+        behind, unblurred = self._plane(0.1, 0.6, coc / 0.5)
+        assert behind > 38 and front > 38
+        assert abs(behind - front) < 1.0
+        assert behind > unblurred + 10

@@ -212,7 +212,8 @@ def test_stripe_subject_does_not_bleed_into_background(model):
     blurred background just above/below it (red minus mean(green, blue), 0.8 in the stripe).
 
     Measured, 6 rows next to the stripe / rows 60-68 / rows 40-50:
-    render_bokeh (depth order) 0.0132 / 0.0052 / 0.0000; order="paper" 0.0273 / 0.0 / 0.0.
+    render_bokeh (depth order, either placement) 0.0000 / 0.0000 / 0.0000; order="paper"
+    0.0273 / 0.0 / 0.0.
     METHOD FAILURE (partial) in the pipeline: 0.1215 / 0.0126 / 0.0000. About 15 % of the
     subject's colour smears into the first 6 px of background, because the half-resolution
     pass blends subject and background disparities at the edge and the result is upsampled

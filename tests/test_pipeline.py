@@ -72,6 +72,7 @@ class TestPrepareRender:
             0.3,
             10.0,  # K scales with the pass: 24x32 is half of 48x64
             radiance=scene.radiance_lr,
+            placement=model.config.placement,
         )
         np.testing.assert_allclose(res.bokeh_lr, expected, atol=1e-6)
 
@@ -82,7 +83,13 @@ class TestPrepareRender:
         scene = model.prepare(image, disparity=disp)
         res = model.render(scene, focus=0.6, blur=9.0, fusion=False, highlight_boost=False)
         expected = rendering.render_bokeh(
-            image, disp, 0.6, 9.0, radiance=scene.radiance_lr, highlight_boost=False
+            image,
+            disp,
+            0.6,
+            9.0,
+            radiance=scene.radiance_lr,
+            highlight_boost=False,
+            placement=model.config.placement,
         )
         np.testing.assert_allclose(res.bokeh, expected, atol=1e-6)
         assert not res.fusion_mask.any()
@@ -229,6 +236,27 @@ class TestInputChecks:
             D2F.from_config({"defocus": "vit"})
         with pytest.raises(TypeError, match="network_size"):
             D2FConfig(network_size="big")
+        with pytest.raises(ValueError, match="placement"):
+            D2FConfig(placement="middle")
+
+    def test_placement_comes_from_the_config(self, model):
+        # the shipped weights were trained with "paper" placement: a model renders with its
+        # config's placement unless the call names one
+        assert model.config.placement == "paper"
+        scene = model.prepare(_image(), disparity=_ramp())
+        kw = {"fusion": False, "budget": None}
+        default = model.render(scene, 0.9, 24.0, **kw).bokeh
+        paper = model.render(scene, 0.9, 24.0, placement="paper", **kw).bokeh
+        nearest = model.render(scene, 0.9, 24.0, placement="nearest", **kw).bokeh
+        np.testing.assert_array_equal(default, paper)
+        assert np.abs(nearest - paper).max() > 0.01  # CoCs behind focus get the next kernel
+        other = D2F.from_config({"placement": "nearest"})
+        other.load_state_dict(model.state_dict())
+        np.testing.assert_allclose(
+            other.render(other.prepare(_image(), disparity=_ramp()), 0.9, 24.0, **kw).bokeh,
+            nearest,
+            atol=1e-6,
+        )
 
 
 class TestCheckpoints:
@@ -374,9 +402,17 @@ class TestAdaptive:
             assert res.settings.num_layers in (5, 7, 9, 11, 15)
             score = psnr(res.bokeh_lr, ref.bokeh_lr)
             assert score >= limit, (focus, blur, res.settings, score)
-            if budget == "fast" and blur == 400.0:
-                # CoCs over 128 px: the 30 dB budget affords fewer layers (7 measured here)
-                assert res.settings.num_layers < 15
+
+    def test_low_budget_affords_fewer_layers(self):
+        # CoCs over 128 px and a 20 dB budget: a coarser schedule is cheaper and still within it
+        torch.manual_seed(0)
+        model = D2F.from_config({"render_scale": 0.5})
+        radiance, disp = render_pinhole(make_scene((192, 288), seed=11))
+        scene = model.prepare(linear_to_srgb(radiance), disparity=disp)
+        res = model.render(scene, 0.0, 400.0, fusion=False, budget=20.0)
+        ref = model.render(scene, 0.0, 400.0, fusion=False, budget=None, quality="exact")
+        assert res.settings.num_layers < 15
+        assert psnr(res.bokeh_lr, ref.bokeh_lr) >= 20.0  # 7 layers, 34.6 dB measured
 
     def test_fixed_settings_pick_nothing(self, model):
         scene = model.prepare(_image(), disparity=_ramp())

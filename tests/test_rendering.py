@@ -160,6 +160,41 @@ class TestOcclusion:
         assert len(few.order) < len(many.order)
         assert max(s for _, s in few.order) <= 7
 
+    def test_layer_coordinates_round_to_the_nearest_kernel(self):
+        # kernels 1, 3, 5, 7, 11 px draw discs 0, 2, 4, 6, 10 px across (layers 0-4); a pixel
+        # sits half a layer toward the side its overlapping layers hide: further out behind
+        # focus (the nearer, sharper layer is on top), further in in front of it
+        focus = torch.tensor(0.5).view(1, 1, 1, 1)
+        coc = torch.tensor([10.0, 8.0, 5.0, 3.0, 0.8, 0.0])  # px at K = 20: |d - f| = coc / 20
+        behind = (0.5 - coc / 20).view(1, 1, 1, -1)
+        front = (0.5 + coc / 20).view(1, 1, 1, -1)
+        plan_b = layer_plan(torch.cat([behind, front], dim=-1), focus, 20.0)
+        assert [s for c, s in plan_b.order if c >= 0] == [1, 3, 5, 7, 11]
+        got = plan_b.coord.view(-1)
+        u = torch.tensor([4.0, 3.5, 2.5, 1.5, 0.4, 0.0])
+        torch.testing.assert_close(got[:6], -(u + 0.5) * (coc > 0) + 0.0, atol=1e-5, rtol=0)
+        torch.testing.assert_close(got[6:], (u - 0.5).clamp(min=0), atol=1e-5, rtol=0)
+        # the schedule stops at the first kernel whose disc covers the largest CoC
+        assert max(s for _, s in layer_plan(front, focus, 12.0).order) == 7  # 6 px CoC
+        assert max(s for _, s in layer_plan(front, focus, 12.2).order) == 11
+        # a largest CoC of at most 1 px needs no blurred layer at all
+        assert layer_plan(front, focus, 2.0).order == [(0, 1)]
+
+    def test_paper_placement_reads_kernel_sizes_as_cocs(self):
+        # knots at the sizes 1, 3, 5, 7, 11 and no shift: the nearer of two overlapping layers
+        # wins, which is the smaller kernel behind focus
+        focus = torch.tensor(0.5).view(1, 1, 1, 1)
+        coc = torch.tensor([10.0, 8.0, 5.0, 3.0, 0.8])
+        disp = torch.cat([0.5 - coc / 20, 0.5 + coc / 20]).view(1, 1, 1, -1)
+        plan = layer_plan(disp, focus, 20.0, placement="paper")
+        u = torch.tensor([3.75, 3.25, 2.0, 1.0, 0.0])
+        torch.testing.assert_close(plan.coord.view(-1), torch.cat([-u, u]), atol=1e-5, rtol=0)
+        assert max(s for _, s in plan.order) == 11
+        with pytest.raises(ValueError, match="placement"):
+            layer_plan(disp, focus, 20.0, placement="middle")
+        with pytest.raises(ValueError, match="placement"):
+            render(torch.rand(1, 3, 8, 8), torch.rand(1, 1, 8, 8), 0.5, 5.0, placement="x")
+
 
 class TestHighlights:
     def test_boost_makes_brighter_disc(self):
