@@ -254,7 +254,12 @@ def train(args: argparse.Namespace) -> TrainResult:
         if stage == 2:
             logger.warning("stage 2 without --init: the defocus/radiance networks are random")
         model = D2F.from_config(
-            {"defocus": args.variant, "fusion": args.fusion, "render_scale": args.render_scale}
+            {
+                "defocus": args.variant,
+                "fusion": args.fusion,
+                "render_scale": args.render_scale,
+                "placement": args.placement,
+            }
         )
         if args.imagenet is not None:
             model.defocus_net.load_imagenet(args.imagenet)
@@ -403,6 +408,12 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--variant", choices=("lite", "resnext50"), default="lite")
         p.add_argument("--fusion", choices=("lite", "paper"), default="lite")
         p.add_argument("--render-scale", type=float, default=0.5)
+        p.add_argument(
+            "--placement",
+            choices=("paper", "nearest"),
+            default="paper",
+            help="renderer layer placement of a new model (kept from --init/--resume)",
+        )
         p.add_argument("--steps", type=int, default=100_000)
         p.add_argument("--batch-size", type=int, default=4)
         p.add_argument("--crop", type=int, default=crop, help="square crop, px of the data images")

@@ -124,3 +124,16 @@ def test_export_applies_config_and_drops_optimizer(stage1, tmp_path):
         assert torch.equal(value, shipped.state_dict()[key])
     assert main(["export", str(ckpt), str(out), "--set", "no_such_key=1"]) == 2
     assert main(["export", str(ckpt), str(out), "--set", "render_scale=2"]) == 2
+
+
+def test_placement_of_a_new_model(data, tmp_path, stage1):
+    # a new model renders, trains and is saved with the placement it is given ("paper" for the
+    # shipped weights' recipe by default)
+    assert stage1.model.config.placement == "paper"
+    run = train(
+        _args(
+            "stage1", data, tmp_path, "--steps", "1", "--val-every", "0", "--placement", "nearest"
+        )
+    )
+    assert run.model.config.placement == "nearest"
+    assert D2F.from_checkpoint(run.checkpoint).config.placement == "nearest"
