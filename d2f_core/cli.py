@@ -178,6 +178,14 @@ def build_parser() -> argparse.ArgumentParser:
         "renderer (default: balanced)",
     )
     focus.add_argument(
+        "--placement",
+        choices=("paper", "nearest"),
+        default=None,
+        help="which kernel a CoC between two of them gets: nearest (on both sides of focus) or "
+        "paper (the next smaller behind the focal plane); default: the weights' own (paper "
+        "for the shipped ones), nearest without weights",
+    )
+    focus.add_argument(
         "--no-fusion",
         action="store_true",
         help="skip the full-resolution fusion (plain upsampling of the bokeh pass)",
@@ -470,6 +478,8 @@ def render_file(
             logger.info("%s: no focus given; focusing on the image centre", src)
 
     options: dict[str, Any] = {"blades": args.aperture_blades, "rotation": args.rotation}
+    if args.placement is not None:
+        options["placement"] = args.placement
     model = engine.model()
     if model is not None:
         scene = model.prepare(image, disparity=disparity)
