@@ -43,7 +43,7 @@ import torch
 import torch.nn.functional as F
 
 from . import adaptive
-from .rendering import render
+from .rendering import PLACEMENTS, render
 
 __all__ = [
     "Case",
@@ -646,7 +646,7 @@ def calibrate(
                 d = torch.from_numpy(disp)[None, None].contiguous()
                 orders = [float(lay.order) for lay in scene.layers]
                 for focus in (scene.subject, min(orders[1:] or orders), max(orders)):
-                    for k_frac, placement in itertools.product(k_fracs, ("nearest", "paper")):
+                    for k_frac, placement in itertools.product(k_fracs, PLACEMENTS):
                         blur = k_frac * size[1]
                         max_coc = blur * float((d - focus).abs().max())
                         kw = {"placement": placement}

@@ -179,7 +179,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     focus.add_argument(
         "--placement",
-        choices=("paper", "nearest"),
+        choices=("nearest", "paper"),  # rendering.PLACEMENTS: torch is imported lazily here
         default=None,
         help="which kernel a CoC between two of them gets: nearest (on both sides of focus) or "
         "paper (the next smaller behind the focal plane); default: the weights' own (paper "

@@ -120,9 +120,9 @@ class D2FConfig:
                 raise TypeError(f"config.{f.name} must be {kind.__name__}, got {value!r}")
         if self.order not in ("depth", "paper"):
             raise ValueError(f"config.order must be 'depth' or 'paper', got {self.order!r}")
-        if self.placement not in ("nearest", "paper"):
+        if self.placement not in rendering.PLACEMENTS:
             raise ValueError(
-                f"config.placement must be 'nearest' or 'paper', got {self.placement!r}"
+                f"config.placement must be one of {rendering.PLACEMENTS}, got {self.placement!r}"
             )
         if not 0 < self.render_scale <= 1:
             raise ValueError(f"config.render_scale must be in (0, 1], got {self.render_scale}")

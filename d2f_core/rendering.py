@@ -42,6 +42,7 @@ from torch import nn
 from .kernels import PAPER_GROWING_SIZES, aperture_kernel, kernel_sizes
 
 __all__ = [
+    "PLACEMENTS",
     "QUALITY_PRESETS",
     "LayeredRenderer",
     "coc_to_defocus",
@@ -64,6 +65,8 @@ _DIRECT_MAX_SIZE = 11
 _CL = torch.channels_last
 # Where a layer's other side is moved to in layer units: far enough that its mask is 0.
 _FAR = 1e4
+#: Layer placements of the depth order (:func:`layer_plan`), the default first.
+PLACEMENTS = ("nearest", "paper")
 
 
 @dataclass(frozen=True)
@@ -122,6 +125,11 @@ def _check_scalar(name: str, value: float, low: float, high: float) -> float:
     if not low <= value <= high:
         raise ValueError(f"{name} must be in [{low}, {high}], got {value}")
     return value
+
+
+def _check_placement(placement: str) -> None:
+    if placement not in PLACEMENTS:
+        raise ValueError(f"placement must be one of {PLACEMENTS}, got {placement!r}")
 
 
 def _focus_tensor(focus, batch: int, ref: torch.Tensor) -> torch.Tensor:
@@ -306,8 +314,7 @@ def layer_plan(
         return LayerPlan(coord, layers, gamma / max(n - 1, 1), False)
     if order != "depth":
         raise ValueError(f"order must be 'depth' or 'paper', got {order!r}")
-    if placement not in ("nearest", "paper"):
-        raise ValueError(f"placement must be 'nearest' or 'paper', got {placement!r}")
+    _check_placement(placement)
     coc = signed.abs() * blur
     max_coc = float(coc.detach().max()) if coc.numel() else 0.0
     # A kernel of s px (radius s // 2) draws a disc s - 1 px across, which is where layer j
@@ -684,24 +691,18 @@ def _blend_stacked(
 def _support_boxes(
     plan: LayerPlan, height: int, width: int
 ) -> dict[int, tuple[int, int, int, int]]:
-    """Bounding box (y0, y1, x0, x1) of each layer's mask support, on an 8-px tile grid.
+    """Bounding box (y0, y1, x0, x1) of each layer's mask support, on an 8-px tile grid, for
+    the plan of one image (``render`` plans a batch image by image).
 
     Every layer is tested at once on the tile grid of per-tile coordinate ranges.
     """
     coord = plan.coord.detach()
-    if coord.shape[0] > 1:
-        lo_map = coord.amin(dim=0, keepdim=True)
-        hi_map = coord.amax(dim=0, keepdim=True)
-    else:
-        lo_map = hi_map = coord
     ph, pw = (-height) % _TILE, (-width) % _TILE
     if ph or pw:
-        same = hi_map is lo_map
-        lo_map = F.pad(lo_map, (0, pw, 0, ph), mode="replicate")
-        hi_map = lo_map if same else F.pad(hi_map, (0, pw, 0, ph), mode="replicate")
-    tiles = ((height + ph) // _TILE, _TILE, (width + pw) // _TILE, _TILE)
-    lo = lo_map.reshape(tiles).amin(dim=3).amin(dim=1)[None]
-    hi = hi_map.reshape(tiles).amax(dim=3).amax(dim=1)[None]
+        coord = F.pad(coord, (0, pw, 0, ph), mode="replicate")
+    tiles = coord.reshape((height + ph) // _TILE, _TILE, (width + pw) // _TILE, _TILE)
+    lo = tiles.amin(dim=3).amin(dim=1)[None]
+    hi = tiles.amax(dim=3).amax(dim=1)[None]
     reach = 1.0 + _mask_reach(plan.gamma)
     centres = [centre for centre, _ in plan.order]
     c = torch.tensor(centres, dtype=lo.dtype, device=lo.device).view(-1, 1, 1)
@@ -768,12 +769,10 @@ def _composite(
     method: str,
     quality: str,
     full_frame: bool,
-    ones: bool = False,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Composite the layers of ``x`` back to front. Returns (acc, alpha).
 
-    With ``ones`` (no-gradient path only), ``x`` already carries the leading channel of ones
-    of :func:`_with_ones`.
+    Without gradients ``x`` carries the leading channel of ones of :func:`_with_ones`.
 
     Layers whose kernel is large enough for ``quality`` are masked, pooled, blurred and
     composited on a 1/2 or 1/4 resolution grid. A run of consecutive such layers is composited
@@ -792,12 +791,8 @@ def _composite(
     b, c, height, width = x.shape
     grad = torch.is_grad_enabled() and (x.requires_grad or plan.coord.requires_grad)
     dev, dtype = str(x.device), x.dtype
-    if ones:
-        if grad:
-            raise ValueError("a layer source with ones is for the no-gradient path only")
-        c -= 1
-    elif not grad:
-        x = _with_ones(x)
+    if not grad:
+        c -= 1  # the channel of ones
     acc = x.new_zeros(b, c + 1, height, width)  # channel 0 is the alpha
     if full_frame:
         boxes = {centre: (0, height, 0, width) for centre, _ in plan.order}
@@ -1041,8 +1036,7 @@ def render(
         raise ValueError(f"quality must be one of {sorted(QUALITY_PRESETS)}, got {quality!r}")
     if kernel not in ("soft", "hard"):
         raise ValueError(f"kernel must be 'soft' or 'hard', got {kernel!r}")
-    if placement not in ("nearest", "paper"):
-        raise ValueError(f"placement must be 'nearest' or 'paper', got {placement!r}")
+    _check_placement(placement)
     if int(num_layers) != num_layers or num_layers < 1:
         raise ValueError(f"num_layers must be a positive integer, got {num_layers!r}")
     f = _focus_tensor(focus, image.shape[0], image)
@@ -1119,9 +1113,7 @@ def render(
         # nothing is blurred: every layer is the identity, so is the composite
         return image.clamp(0, 1)
     spec = KernelSpec(kernel, int(blades), float(rotation))
-    acc, alpha = _composite(
-        x, plan, spec, method=method, quality=quality, full_frame=full_frame, ones=not grad
-    )
+    acc, alpha = _composite(x, plan, spec, method=method, quality=quality, full_frame=full_frame)
     norm, floor = (alpha, 1e-6) if weights is None else (acc[:, 3:], 1e-8)
     # pixels no layer reached (cannot happen with soft masks, but stay defined) keep the input
     covered = norm > 1e-6

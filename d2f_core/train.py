@@ -42,6 +42,7 @@ from .data import EBBDataset
 from .losses import D2FLoss
 from .networks import read_torch_file
 from .pipeline import D2F, D2FConfig, _resize, _scaled_size, _size_ratio
+from .rendering import PLACEMENTS
 
 __all__ = ["TrainResult", "build_parser", "main", "train"]
 
@@ -410,7 +411,7 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--render-scale", type=float, default=0.5)
         p.add_argument(
             "--placement",
-            choices=("paper", "nearest"),
+            choices=PLACEMENTS,
             default="paper",
             help="renderer layer placement of a new model (kept from --init/--resume)",
         )
