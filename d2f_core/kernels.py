@@ -14,6 +14,7 @@ import torch
 __all__ = [
     "PAPER_GROWING_SIZES",
     "aperture_kernel",
+    "coarse_kernel",
     "hard_disk_kernel",
     "kernel_sizes",
     "polygon_kernel",
@@ -109,6 +110,69 @@ def aperture_kernel(
     else:
         kernel = (rho2 <= r * r + 1e-6).to(dtype)
     return _normalise(kernel)
+
+
+def _bilinear_matrix(n: int, factor: int, dtype: torch.dtype) -> torch.Tensor:
+    """``(n * factor, n)``: 1-D bilinear upsampling by ``factor`` (``align_corners=False``),
+    zero outside the ``n`` samples."""
+    pos = (torch.arange(n * factor, dtype=dtype) + 0.5) / factor - 0.5
+    lo = torch.floor(pos)
+    frac = pos - lo
+    cols = torch.arange(n, dtype=dtype)
+    return (cols == lo[:, None]) * (1 - frac[:, None]) + (cols == lo[:, None] + 1) * frac[:, None]
+
+
+def coarse_kernel(
+    size: int,
+    factor: int,
+    *,
+    shape: str = "soft",
+    blades: int = 0,
+    rotation: float = 0.0,
+    device: torch.device | str | None = None,
+    dtype: torch.dtype | None = None,
+) -> torch.Tensor:
+    """The aperture kernel of ``size`` px for a layer rendered at ``1 / factor`` resolution.
+
+    A reduced-resolution layer is averaged over ``factor x factor`` cells, convolved on the
+    coarse grid and upsampled bilinearly (``align_corners=False``). Sampling the aperture on
+    the coarse grid and then upsampling blurs its rim twice more (the cell average and the
+    interpolation). This kernel is instead the least-squares fit: upsampled, it is closest to
+    the full-resolution kernel averaged over a cell, the most a cell average can keep of it.
+    The fit has small negative taps just outside the rim.
+
+    ``factor == 1`` returns the full-resolution kernel.
+
+    Returns:
+        ``(n, n)`` with ``n = 2 ceil(r / factor + 1/2) + 1``, ``r = size // 2``; sums to 1.
+    """
+    size = _check_size(size)
+    if isinstance(factor, bool) or int(factor) != factor or factor < 1:
+        raise ValueError(f"factor must be a positive integer, got {factor!r}")
+    factor = int(factor)
+    dtype = dtype or torch.get_default_dtype()
+    options = dict(shape=shape, blades=blades, rotation=rotation)
+    if factor == 1:
+        return aperture_kernel(size, **options, device=device, dtype=dtype)
+    radius = size // 2
+    half = int(math.ceil(radius / factor + 0.5))
+    fine = aperture_kernel(2 * radius + 1, **options, dtype=torch.float64)
+    # the full-resolution kernel averaged over the pixels of one cell
+    cell = torch.full((1, 1, factor, factor), 1.0 / factor**2, dtype=torch.float64)
+    target_small = torch.nn.functional.conv2d(fine[None, None], cell, padding=factor - 1)[0, 0]
+    # on a fine canvas one coarse sample wider than the taps on every side, the centre tap's
+    # cell centred where the target is
+    n = 2 * half + 1
+    canvas = (n + 2) * factor
+    target = torch.zeros(canvas, canvas, dtype=torch.float64)
+    o = (half + 1) * factor - radius
+    target[o : o + target_small.shape[0], o : o + target_small.shape[1]] = target_small
+    # the taps upsampled are u kc u^T (u is separable), so the least-squares kc is
+    # g^-1 u^T target u g^-1 with g = u^T u; the scale is set by the normalisation
+    u = _bilinear_matrix(n + 2, factor, torch.float64)[:, 1:-1]
+    g_inv = torch.linalg.inv(u.T @ u)
+    kernel = g_inv @ u.T @ target @ u @ g_inv
+    return _normalise(kernel).to(device=device, dtype=dtype)
 
 
 def soft_disk_kernel(

@@ -39,7 +39,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .kernels import PAPER_GROWING_SIZES, aperture_kernel, kernel_sizes
+from .kernels import PAPER_GROWING_SIZES, coarse_kernel, kernel_sizes
 
 __all__ = [
     "PLACEMENTS",
@@ -392,17 +392,15 @@ class KernelSpec:
 def _kernel(
     spec: KernelSpec, size: int, factor: int, device: str, dtype: torch.dtype, gain: float = 1.0
 ):
-    """Kernel for a full-res CoC of ``size`` px sampled on a grid ``factor`` px apart, times
-    ``gain`` (``1 / factor**2`` applies it to cell sums instead of cell means)."""
-    radius = size // 2
-    half = int(math.ceil(radius / factor + 0.5)) if factor > 1 else radius
-    k = aperture_kernel(
-        2 * half + 1,
+    """Kernel for a full-res CoC of ``size`` px applied on a grid ``factor`` px apart (the
+    least-squares fit of :func:`coarse_kernel` to the full-resolution kernel), times ``gain``
+    (``1 / factor**2`` applies it to cell sums instead of cell means)."""
+    k = coarse_kernel(
+        size,
+        factor,
         shape=spec.shape,
         blades=spec.blades,
         rotation=spec.rotation,
-        radius=radius,
-        scale=float(factor),
         device=device,
         dtype=dtype,
     )
