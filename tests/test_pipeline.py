@@ -412,7 +412,7 @@ class TestAdaptive:
         res = model.render(scene, 0.0, 400.0, fusion=False, budget=20.0)
         ref = model.render(scene, 0.0, 400.0, fusion=False, budget=None, quality="exact")
         assert res.settings.num_layers < 15
-        assert psnr(res.bokeh_lr, ref.bokeh_lr) >= 20.0  # 7 layers, 34.6 dB measured
+        assert psnr(res.bokeh_lr, ref.bokeh_lr) >= 20.0  # 7 layers, 34.8 dB measured
 
     def test_fixed_settings_pick_nothing(self, model):
         scene = model.prepare(_image(), disparity=_ramp())

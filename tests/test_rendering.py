@@ -1,3 +1,5 @@
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -6,7 +8,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from d2f_core import LayeredRenderer, render, render_bokeh
-from d2f_core.kernels import aperture_kernel
+from d2f_core.kernels import aperture_kernel, coarse_kernel
 from d2f_core.metrics import psnr
 from d2f_core.rendering import _layer_mask, coc_to_defocus, hdr_boost, layer_plan
 
@@ -321,6 +323,44 @@ class TestImplementations:
             out = render(img, disp, 0.5, 40.0, quality=quality, method=method)
         assert ref.requires_grad and not out.requires_grad
         assert torch.allclose(out, ref.detach(), atol=1e-5)
+
+    def test_coarse_layers_use_fitted_kernels_up_to_the_cap(self):
+        from d2f_core.rendering import _FIT_MAX_SIZE, KernelSpec, _kernel
+
+        spec = KernelSpec("soft", 6, 10.0)
+        fitted = _kernel(spec, 33, 2, "cpu", torch.float32)
+        assert torch.equal(fitted, coarse_kernel(33, 2, blades=6, rotation=10.0))
+        quarter = _kernel(spec, 33, 2, "cpu", torch.float32, 0.25)
+        assert torch.allclose(quarter, 0.25 * fitted, rtol=1e-6, atol=0)
+        assert torch.equal(
+            _kernel(spec, 7, 1, "cpu", torch.float32), aperture_kernel(7, blades=6, rotation=10.0)
+        )
+        # above the cap the aperture is sampled on the coarse grid
+        size = _FIT_MAX_SIZE + 88
+        r = size // 2
+        half = math.ceil(r / 4 + 0.5)
+        sampled = aperture_kernel(2 * half + 1, blades=6, rotation=10.0, radius=r, scale=4.0)
+        assert torch.equal(_kernel(spec, size, 4, "cpu", torch.float32), sampled)
+
+    def test_reduced_resolution_keeps_polygon_corners(self):
+        # a 6-blade aperture at half resolution is as wide across its corners as at full
+        # resolution (the sampled coarse kernel rounded them: 1.057 against 1.121)
+        img = torch.full((1, 3, 96, 96), 0.05)
+        img[..., 47:50, 47:50] = 1.0
+        disp = torch.zeros(1, 1, 96, 96)
+
+        def aspect(out):
+            lum = out[0].mean(0) - 0.05
+            inside = (lum > 0.5 * lum[48, 48]).nonzero()
+            ys, xs = inside[:, 0], inside[:, 1]
+            return float(xs.max() - xs.min() + 1) / float(ys.max() - ys.min() + 1)
+
+        exact = aspect(render(img, disp, 1.0, 40.0, blades=6, quality="exact"))
+        assert exact > 1.1
+        for quality in ("high", "balanced", "fast"):
+            assert aspect(render(img, disp, 1.0, 40.0, blades=6, quality=quality)) == pytest.approx(
+                exact, abs=0.02
+            )
 
     @pytest.mark.parametrize("channels", [4, 5, 7])
     @pytest.mark.parametrize("size", [3, 7, 11, 23])
