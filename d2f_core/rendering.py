@@ -257,6 +257,7 @@ def _interp(x: torch.Tensor, xp: list[float]) -> torch.Tensor:
 
 
 @functools.lru_cache(maxsize=32)
+@torch.inference_mode(False)
 def _integer_table(xp: tuple[int, ...], dtype: torch.dtype, device: str):
     """Knot index at each integer from ``xp[0]`` to ``xp[-1] - 1``, and the slope after it."""
     grid = np.interp(np.arange(xp[0], xp[-1] + 1), xp, np.arange(len(xp)))
@@ -394,6 +395,7 @@ class KernelSpec:
 
 
 @functools.lru_cache(maxsize=64)
+@torch.inference_mode(False)
 def _kernel(
     spec: KernelSpec, size: int, factor: int, device: str, dtype: torch.dtype, gain: float = 1.0
 ):
@@ -418,6 +420,7 @@ def _kernel(
 # A spectrum of a 1024-px frame is several MB: 32 entries keep the cache to a few hundred MB
 # while covering every kernel size of a render.
 @functools.lru_cache(maxsize=32)
+@torch.inference_mode(False)
 def _spectrum(
     spec: KernelSpec, size: int, factor: int, fh: int, fw: int, device: str, dtype, gain: float
 ):
@@ -1085,48 +1088,64 @@ def render(
     grad = torch.is_grad_enabled() and any(
         t is not None and t.requires_grad for t in (image, disparity, radiance)
     )
-    weights = None
-    if highlight_boost:
-        if radiance is not None or image_max >= HDR_THRESHOLD:
-            weights = hdr_boost(image, radiance)
-    elif radiance is not None:
-        weights = radiance
-    # a floor keeps the normalisation defined where every weight is 0 (e.g. pure red)
-    if weights is None:
-        x = image if grad else _with_ones(image)
-    elif grad:
-        weights = weights + 1e-4
-        x = torch.cat([weights * image, weights], dim=1)  # [B,3+Cr,H,W]
-    else:
-        # [1, w I, w] built in place: the layers are then mask * x in one product
-        cw = weights.shape[1]
-        x = image.new_empty(image.shape[0], 4 + cw, *image.shape[2:])
-        x[:, :1] = 1
-        torch.add(weights, 1e-4, out=x[:, 4:])
-        torch.mul(image, x[:, 4:], out=x[:, 1:4])
 
-    plan = layer_plan(
-        disparity,
-        f,
-        blur,
-        order=order,
-        num_layers=int(num_layers),
-        schedule=schedule,
-        gamma=gamma,
-        placement=placement,
-    )
-    if all(size <= 1 for _, size in plan.order):
-        # nothing is blurred: every layer is the identity, so is the composite
-        return image.clamp(0, 1)
-    spec = KernelSpec(kernel, int(blades), float(rotation))
-    acc, alpha = _composite(x, plan, spec, method=method, quality=quality, full_frame=full_frame)
-    norm, floor = (alpha, 1e-6) if weights is None else (acc[:, 3:], 1e-8)
-    # pixels no layer reached (cannot happen with soft masks, but stay defined) keep the input
-    covered = norm > 1e-6
+    def composite() -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
+        """The composite's colour, its clamped normaliser and where it is defined (``None``:
+        nothing is blurred)."""
+        weights = None
+        if highlight_boost:
+            if radiance is not None or image_max >= HDR_THRESHOLD:
+                weights = hdr_boost(image, radiance)
+        elif radiance is not None:
+            weights = radiance
+        # a floor keeps the normalisation defined where every weight is 0 (e.g. pure red)
+        if weights is None:
+            x = image if grad else _with_ones(image)
+        elif grad:
+            weights = weights + 1e-4
+            x = torch.cat([weights * image, weights], dim=1)  # [B,3+Cr,H,W]
+        else:
+            # [1, w I, w] built in place: the layers are then mask * x in one product
+            cw = weights.shape[1]
+            x = image.new_empty(image.shape[0], 4 + cw, *image.shape[2:])
+            x[:, :1] = 1
+            torch.add(weights, 1e-4, out=x[:, 4:])
+            torch.mul(image, x[:, 4:], out=x[:, 1:4])
+
+        plan = layer_plan(
+            disparity,
+            f,
+            blur,
+            order=order,
+            num_layers=int(num_layers),
+            schedule=schedule,
+            gamma=gamma,
+            placement=placement,
+        )
+        if all(size <= 1 for _, size in plan.order):
+            return None  # every layer is the identity, so is the composite
+        spec = KernelSpec(kernel, int(blades), float(rotation))
+        acc, alpha = _composite(
+            x, plan, spec, method=method, quality=quality, full_frame=full_frame
+        )
+        norm, floor = (alpha, 1e-6) if weights is None else (acc[:, 3:], 1e-8)
+        # pixels no layer reached (cannot happen with soft masks, but stay defined) keep the
+        # input
+        covered = norm > 1e-6
+        return acc[:, :3], norm.clamp(min=floor) if grad else norm.clamp_(min=floor), covered
+
     if grad:
-        out = acc[:, :3] / norm.clamp(min=floor)
-    else:  # the composite is this call's own: normalised in place
-        out = acc[:, :3].div_(norm.clamp_(min=floor))
+        parts = composite()
+    else:
+        # without autograd's bookkeeping: about 1 ms less per render in a few hundred small
+        # tensor operations. The result is divided out of inference mode, so callers get an
+        # ordinary tensor.
+        with torch.inference_mode():
+            parts = composite()
+    if parts is None:
+        return image.clamp(0, 1)
+    colour, norm, covered = parts
+    out = colour / norm
     if not bool(covered.all()):
         out = torch.where(covered, out, image)
     return out.clamp(0, 1) if grad else out.clamp_(0, 1)

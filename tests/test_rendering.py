@@ -324,6 +324,31 @@ class TestImplementations:
         assert ref.requires_grad and not out.requires_grad
         assert torch.allclose(out, ref.detach(), atol=1e-5)
 
+    def test_inference_mode_inside_leaves_ordinary_tensors(self):
+        # without gradients the layers run in inference mode; the result and the cached
+        # kernels must still be ordinary tensors that autograd and in-place ops accept
+        from d2f_core.rendering import KernelSpec, _integer_table, _kernel, _spectrum
+
+        for cache in (_kernel, _spectrum, _integer_table):
+            cache.cache_clear()
+        with torch.inference_mode():  # first built in inference mode, as a render does
+            built = [
+                _kernel(KernelSpec(), 15, 2, "cpu", torch.float32),
+                _spectrum(KernelSpec(), 15, 2, 32, 32, "cpu", torch.float32, 0.25),
+                *_integer_table((0, 2, 4), torch.float32, "cpu"),
+            ]
+        assert not any(t.is_inference() for t in built)
+        img, disp = _texture(), _ramp()
+        with torch.no_grad():
+            out = render(img, disp, 0.4, 60.0)
+        assert not out.is_inference()
+        out.mul_(0.5)  # in place, outside inference mode
+        src = img.clone().requires_grad_()
+        again = render(src, disp, 0.4, 60.0)  # the same cached kernels, now with autograd
+        again.mean().backward()
+        assert src.grad is not None and src.grad.abs().sum() > 0
+        assert torch.allclose(again.detach(), 2 * out, atol=1e-5)
+
     def test_coarse_layers_use_fitted_kernels_up_to_the_cap(self):
         from d2f_core.rendering import _FIT_MAX_SIZE, KernelSpec, _kernel
 
