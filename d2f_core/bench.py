@@ -21,11 +21,17 @@ from . import rendering
 from .metrics import psnr
 from .rendering import render
 
-__all__ = ["bench_scene", "machine_speed", "main", "time_call"]
+__all__ = ["bench_scene", "machine_speed", "main", "plot_render", "time_call"]
 
 log = logging.getLogger(__name__)
 
 RENDER_SIZES = ((384, 576), (512, 768), (1024, 1536))
+#: Slider re-render targets (ms) of the default preset, by frame size.
+RENDER_TARGETS_MS = {"384x576": 40.0, "512x768": 120.0}
+#: The least PSNR (dB) against the exact reference a reduced-resolution preset may reach.
+RENDER_MIN_PSNR = 45.0
+# Exact renders match the float64 reference to float32 rounding (~140 dB); drawn at this height.
+_CHART_TOP_DB = 80.0
 
 
 def time_call(fn: Callable[[], object], repeat: int, warmup: int = 1) -> list[float]:
@@ -190,7 +196,72 @@ def _bench_render(args: argparse.Namespace) -> int:
     if args.json:
         with open(args.json, "w", encoding="utf-8") as fh:
             json.dump(rows, fh, indent=2)
+    if args.chart:
+        plot_render(rows, args.chart)
+        print(f"# chart: {args.chart}")
     return 0
+
+
+def plot_render(rows: list[dict], path: str) -> None:
+    """Median ms against PSNR vs the exact reference, one panel per size: each preset, the
+    authors' way, the size's target time and the 45 dB floor (``rows`` as written by
+    ``--json``)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+
+    sizes = list(dict.fromkeys(r["size"] for r in rows))
+    fig, axes = plt.subplots(1, len(sizes), figsize=(4.6 * len(sizes), 4.2), squeeze=False)
+    for ax, size in zip(axes[0], sizes, strict=True):
+        part = [r for r in rows if r["size"] == size]
+        for r in part:
+            db = min(r["psnr_vs_exact"], _CHART_TOP_DB)
+            ax.plot(r["ms"], db, "o", ms=7)
+            label = r["quality"]
+            if db < r["psnr_vs_exact"]:  # drawn at the top of the panel
+                label += f" ({r['psnr_vs_exact']:.0f} dB)"
+            ax.annotate(label, (r["ms"], db), textcoords="offset points", xytext=(5, 4), fontsize=8)
+        authors = part[0]["authors_ms"]
+        ax.plot(authors, _CHART_TOP_DB, "*", ms=13, color="black")
+        ax.annotate(
+            "authors' way",
+            (authors, _CHART_TOP_DB),
+            textcoords="offset points",
+            xytext=(-10, -14),
+            fontsize=8,
+            ha="right",
+        )
+        ax.axhline(RENDER_MIN_PSNR, color="grey", ls=":", lw=1)
+        if size in RENDER_TARGETS_MS:
+            target = RENDER_TARGETS_MS[size]
+            ax.axvline(target, color="grey", ls="--", lw=1)
+            ax.annotate(
+                f"{target:g} ms",
+                (target, RENDER_MIN_PSNR - 4),
+                xytext=(3, 0),
+                textcoords="offset points",
+                fontsize=8,
+                color="grey",
+            )
+        ax.set_xscale("log")
+        ax.xaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
+        ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+        ax.xaxis.set_minor_formatter(NullFormatter())
+        ax.set_ylim(RENDER_MIN_PSNR - 5, _CHART_TOP_DB + 5)
+        ax.set_title(f"{size}, K = {part[0]['blur']:.0f} px", fontsize=9)
+        ax.set_xlabel("ms per render (median, log scale)")
+        ax.set_ylabel("PSNR vs exact reference (dB)")
+        ax.grid(alpha=0.3)
+    fig.suptitle(
+        "Renderer presets: time against error vs the exact model (dotted: 45 dB floor, "
+        "dashed: slider target; authors' way drawn at the top)",
+        fontsize=10,
+    )
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 def _bench_app(args: argparse.Namespace) -> int:
@@ -226,6 +297,7 @@ def main(argv: list[str] | None = None) -> int:
         help="larger frames use a float64 FFT reference (direct float64 takes many minutes)",
     )
     p.add_argument("--json", help="also write the rows to this JSON file")
+    p.add_argument("--chart", help="also draw ms against PSNR to this PNG (needs matplotlib)")
     p.set_defaults(func=_bench_render)
     for name, func, text in (
         ("app", _bench_app, "app handler latency (see app/bench.py)"),

@@ -69,8 +69,11 @@ class TestPieces:
             "exact",
         ]
         argv += ["--repeat", "1", "--baseline-repeat", "1", "--threads", "2", "--json", str(path)]
+        chart = tmp_path / "render.png"
+        argv += ["--chart", str(chart)]
         rc = bench.main(argv)
         assert rc == 0
+        assert chart.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and chart.stat().st_size > 10_000
         rows = {r["quality"]: r for r in json.loads(path.read_text())}
         assert rows["exact"]["psnr_vs_exact"] > 100
         assert 45 <= rows["balanced"]["psnr_vs_exact"] < rows["exact"]["psnr_vs_exact"]
