@@ -45,12 +45,17 @@ class TestKnownAnswers:
 
     @pytest.mark.parametrize("order", ["depth", "paper"])
     @pytest.mark.parametrize("quality", ["exact", "fast"])
-    def test_constant_image_stays_constant(self, order, quality):
+    @pytest.mark.parametrize(
+        "aperture", [{}, {"blades": 6, "rotation": 10.0}, {"kernel": "hard"}], ids=str
+    )
+    def test_constant_image_stays_constant(self, order, quality, aperture):
+        # fitted coarse kernels have negative taps: colour and alpha carry the same weights,
+        # so the normalised colour still cannot move
         colour = torch.tensor([0.2, 0.5, 0.8]).view(1, 3, 1, 1)
         img = colour.expand(1, 3, 40, 56).clone()
         g = torch.Generator().manual_seed(1)
         disp = torch.rand(1, 1, 40, 56, generator=g)
-        out = render(img, disp, 0.5, 60.0, order=order, quality=quality)
+        out = render(img, disp, 0.5, 60.0, order=order, quality=quality, **aperture)
         assert torch.allclose(out, img, atol=1e-5)
 
     def test_radiance_normalisation_keeps_flat_colour(self):
@@ -603,16 +608,22 @@ class TestNumpyAPI:
     blur=st.floats(0, 200),
     order=st.sampled_from(["depth", "paper"]),
     quality=st.sampled_from(["exact", "balanced", "fast"]),
+    blades=st.sampled_from([0, 0, 5, 6]),
+    kernel=st.sampled_from(["soft", "hard"]),
     seed=st.integers(0, 2**16),
     saturate=st.booleans(),
 )
-def test_output_finite_and_in_range(h, w, focus, blur, order, quality, seed, saturate):
+def test_output_finite_and_in_range(
+    h, w, focus, blur, order, quality, blades, kernel, seed, saturate
+):
     rng = np.random.default_rng(seed)
     img = rng.random((h, w, 3)).astype(np.float32)
     if saturate:
         img[rng.random((h, w)) < 0.2] = 1.0
     disp = rng.random((h, w)).astype(np.float32)
-    out = render_bokeh(img, disp, focus, blur, order=order, quality=quality)
+    out = render_bokeh(
+        img, disp, focus, blur, order=order, quality=quality, blades=blades, kernel=kernel
+    )
     assert out.shape == (h, w, 3)
     assert np.isfinite(out).all()
     assert out.min() >= 0.0 and out.max() <= 1.0
