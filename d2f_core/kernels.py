@@ -129,6 +129,7 @@ def coarse_kernel(
     shape: str = "soft",
     blades: int = 0,
     rotation: float = 0.0,
+    fit: bool = True,
     device: torch.device | str | None = None,
     dtype: torch.dtype | None = None,
 ) -> torch.Tensor:
@@ -139,7 +140,8 @@ def coarse_kernel(
     the coarse grid and then upsampling blurs its rim twice more (the cell average and the
     interpolation). This kernel is instead the least-squares fit: upsampled, it is closest to
     the full-resolution kernel averaged over a cell, the most a cell average can keep of it.
-    The fit has small negative taps just outside the rim.
+    The fit has small negative taps just outside the rim. ``fit=False`` gives the aperture
+    sampled on the coarse grid instead, with the same taps.
 
     ``factor == 1`` returns the full-resolution kernel. The fit works in float64 on a canvas
     about ``size`` px wide, so its cost grows with ``size**2`` (40 ms at 513 px and factor 4
@@ -158,6 +160,10 @@ def coarse_kernel(
         return aperture_kernel(size, **options, device=device, dtype=dtype)
     radius = size // 2
     half = int(math.ceil(radius / factor + 0.5))
+    if not fit:
+        return aperture_kernel(
+            2 * half + 1, **options, radius=radius, scale=float(factor), device=device, dtype=dtype
+        )
     fine = aperture_kernel(2 * radius + 1, **options, dtype=torch.float64)
     # the full-resolution kernel averaged over the pixels of one cell
     cell = torch.full((1, 1, factor, factor), 1.0 / factor**2, dtype=torch.float64)

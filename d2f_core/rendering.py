@@ -40,7 +40,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .kernels import PAPER_GROWING_SIZES, aperture_kernel, coarse_kernel, kernel_sizes
+from .kernels import PAPER_GROWING_SIZES, coarse_kernel, kernel_sizes
 
 __all__ = [
     "PLACEMENTS",
@@ -408,13 +408,15 @@ def _kernel(
     """
     if gain != 1.0:
         return _kernel(spec, size, factor, device, dtype) * gain
-    options = dict(shape=spec.shape, blades=spec.blades, rotation=spec.rotation)
-    if factor == 1 or size <= _FIT_MAX_SIZE:
-        return coarse_kernel(size, factor, **options, device=device, dtype=dtype)
-    radius = size // 2
-    half = int(math.ceil(radius / factor + 0.5))
-    return aperture_kernel(
-        2 * half + 1, **options, radius=radius, scale=float(factor), device=device, dtype=dtype
+    return coarse_kernel(
+        size,
+        factor,
+        shape=spec.shape,
+        blades=spec.blades,
+        rotation=spec.rotation,
+        fit=size <= _FIT_MAX_SIZE,
+        device=device,
+        dtype=dtype,
     )
 
 

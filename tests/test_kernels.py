@@ -103,6 +103,7 @@ class TestCoarseKernel:
         sampled = aperture_kernel(2 * half + 1, radius=r, scale=factor, dtype=x.dtype)
         fitted = coarse_kernel(size, factor, dtype=x.dtype)
         assert fitted.shape == sampled.shape
+        assert torch.equal(coarse_kernel(size, factor, fit=False, dtype=x.dtype), sampled)
 
         def db(k):
             err = (self._reduced(x, k, factor) - ref)[..., 48:-48, 48:-48]
