@@ -700,40 +700,65 @@ def _blend_stacked(
         t.addcmul_(t, alpha, value=-1)
 
 
+# Layer-coordinate bins per layer in the support histograms (:func:`_support_boxes`).
+_BINS = 4
+
+
 def _support_boxes(
     plan: LayerPlan, height: int, width: int
 ) -> dict[int, tuple[int, int, int, int]]:
     """Bounding box (y0, y1, x0, x1) of each layer's mask support, on an 8-px tile grid, for
     the plan of one image (``render`` plans a batch image by image).
 
-    Every layer is tested at once on the tile grid of per-tile coordinate ranges.
+    A layer reaches a pixel whose layer coordinate is within the mask's reach of it, on its
+    side of focus. Two histograms of the coordinate (bins a quarter of a layer wide), one per
+    row of tiles and one per column of tiles, answer for every layer at once: the box spans
+    the rows and the columns of tiles holding a pixel the layer reaches (or one up to a
+    quarter layer farther). A tile across a depth edge thus counts only for the layers its
+    pixels are in, not for every layer between the two sides of the edge, and a layer no
+    pixel is near is skipped.
     """
-    coord = plan.coord.detach()
-    ph, pw = (-height) % _TILE, (-width) % _TILE
-    if ph or pw:
-        coord = F.pad(coord, (0, pw, 0, ph), mode="replicate")
-    tiles = coord.reshape((height + ph) // _TILE, _TILE, (width + pw) // _TILE, _TILE)
-    lo = tiles.amin(dim=3).amin(dim=1)[None]
-    hi = tiles.amax(dim=3).amax(dim=1)[None]
+    coord = plan.coord.detach().reshape(height, width)
+    dev = coord.device
+    down, across = -(-height // _TILE), -(-width // _TILE)
     reach = 1.0 + _mask_reach(plan.gamma)
-    centres = [centre for centre, _ in plan.order]
-    c = torch.tensor(centres, dtype=lo.dtype, device=lo.device).view(-1, 1, 1)
-    hit = (hi > c - reach) & (lo < c + reach)  # [L, tiles down, tiles across]
+    centres = np.array([centre for centre, _ in plan.order], dtype=np.float64)
+    # Bin b > 0 holds coordinates in ((b - 1) / _BINS, b / _BINS], b < 0 in [b / _BINS,
+    # (b + 1) / _BINS), and bin 0 holds 0 alone: an in-focus pixel is on neither side.
+    low = math.floor(_BINS * (centres.min() - reach))
+    high = math.ceil(_BINS * (centres.max() + reach))
+    nbins = high - low + 1
+    # in float32 (exact: far below 2**24), cast once for the counts
+    scaled = coord.mul(_BINS)
+    bins = scaled.abs().ceil_().copysign_(scaled).clamp_(low, high).sub_(low)
+    row = torch.arange(height, device=dev, dtype=bins.dtype).div_(_TILE).floor_().view(-1, 1)
+    col = torch.arange(width, device=dev, dtype=bins.dtype).div_(_TILE).floor_().view(1, -1)
+    index = torch.addcmul(row, bins, torch.tensor(float(down), dtype=bins.dtype, device=dev))
+    per_row = torch.bincount(index.long().view(-1), minlength=nbins * down)
+    index = torch.addcmul(col, bins, torch.tensor(float(across), dtype=bins.dtype, device=dev))
+    per_col = torch.bincount(index.long().view(-1), minlength=nbins * across)
+    # window[j, b]: bin b holds coordinates within reach of layer j, on its side of focus
+    b = np.arange(low, high + 1)
+    lo = np.where(b > 0, b - 1, np.where(b < 0, b, 0)) / _BINS
+    hi = np.where(b > 0, b, np.where(b < 0, b + 1, 0)) / _BINS
+    c = centres[:, None]
+    window = (lo < c + reach) & (hi > c - reach)
     if plan.signed:
-        # a layer on one side of focus takes no pixels from the other side
-        side = torch.sign(c)
-        hit &= (side == 0) | ((side > 0) & (hi > 0)) | ((side < 0) & (lo < 0))
+        window &= ((c > 0) & (b > 0)) | ((c < 0) & (b < 0)) | (c == 0)
+    window = window.astype(np.int64)
+    rows_hit = window @ per_row.view(nbins, down).cpu().numpy() > 0  # [L, tile rows]
+    cols_hit = window @ per_col.view(nbins, across).cpu().numpy() > 0  # [L, tile columns]
     boxes = {}
-    for centre, rows, cols in zip(centres, hit.any(dim=2).tolist(), hit.any(dim=1).tolist()):
-        if not any(rows):
+    for (centre, _), rows, cols in zip(plan.order, rows_hit, cols_hit):
+        if not rows.any():
             continue
-        r0, r1 = rows.index(True), len(rows) - rows[::-1].index(True)
-        c0, c1 = cols.index(True), len(cols) - cols[::-1].index(True)
+        r = np.flatnonzero(rows)
+        c = np.flatnonzero(cols)
         boxes[centre] = (
-            r0 * _TILE,
-            min(height, r1 * _TILE),
-            c0 * _TILE,
-            min(width, c1 * _TILE),
+            int(r[0]) * _TILE,
+            min(height, (int(r[-1]) + 1) * _TILE),
+            int(c[0]) * _TILE,
+            min(width, (int(c[-1]) + 1) * _TILE),
         )
     return boxes
 

@@ -10,7 +10,15 @@ from hypothesis import strategies as st
 from d2f_core import LayeredRenderer, render, render_bokeh
 from d2f_core.kernels import aperture_kernel, coarse_kernel
 from d2f_core.metrics import psnr
-from d2f_core.rendering import _layer_mask, coc_to_defocus, hdr_boost, layer_plan
+from d2f_core.rendering import (
+    _MASK_EPS,
+    _TILE,
+    _layer_mask,
+    _support_boxes,
+    coc_to_defocus,
+    hdr_boost,
+    layer_plan,
+)
 
 
 def _ramp(h=48, w=64, lo=0.0, hi=1.0):
@@ -294,6 +302,62 @@ class TestImplementations:
         with torch.no_grad():
             same = render(img, disp, torch.tensor([0.2, 0.9]), 60.0, radiance=r0, quality=quality)
         assert torch.allclose(out, same, atol=1e-6)
+
+    @staticmethod
+    def _true_support(plan, centre, height, width):
+        """Tiles where the layer's exact mask reaches _MASK_EPS: [tile rows], [tile columns]."""
+        mask = _layer_mask(plan.side_coord(centre), centre, plan.gamma)[0, 0]
+        hit = F.max_pool2d(mask[None, None], _TILE, ceil_mode=True)[0, 0] >= _MASK_EPS
+        return hit.any(dim=1), hit.any(dim=0)
+
+    @pytest.mark.parametrize("order", ["depth", "paper"])
+    @pytest.mark.parametrize("placement", ["nearest", "paper"])
+    @pytest.mark.parametrize("scene", ["edge", "noise", "ramp"])
+    def test_support_boxes_hold_every_reached_pixel(self, order, placement, scene):
+        # a layer's box must hold every pixel its mask reaches, and a layer that reaches a
+        # pixel must have a box
+        g = torch.Generator().manual_seed(12)
+        height, width = 61, 83  # not whole tiles
+        if scene == "edge":
+            disp = torch.full((1, 1, height, width), 0.05)
+            disp[..., 9:40, 17:51] = 0.93
+        elif scene == "noise":
+            disp = torch.rand(1, 1, height, width, generator=g) ** 3
+        else:
+            disp = _ramp(height, width)
+        for focus in (0.0, 0.31, 0.93, 1.0):
+            plan = layer_plan(
+                disp, torch.full((1, 1, 1, 1), focus), 70.0, order=order, placement=placement
+            )
+            boxes = _support_boxes(plan, height, width)
+            for centre, _ in plan.order:
+                rows, cols = self._true_support(plan, centre, height, width)
+                if not rows.any():
+                    continue
+                assert centre in boxes, (focus, centre)
+                y0, y1, x0, x1 = boxes[centre]
+                r = torch.nonzero(rows).flatten()
+                c = torch.nonzero(cols).flatten()
+                assert y0 <= r[0] * _TILE and min(height, (r[-1] + 1) * _TILE) <= y1
+                assert x0 <= c[0] * _TILE and min(width, (c[-1] + 1) * _TILE) <= x1
+
+    def test_depth_edge_skips_the_layers_between_its_sides(self):
+        # a sharp subject over a far background: every 8-px tile on the silhouette holds both
+        # depths, but no pixel lies between them, so the layers in between get no box, and a
+        # layer on one side gets a box around that side's pixels only
+        height, width = 96, 128
+        disp = torch.full((1, 1, height, width), 0.1)
+        disp[..., 28:70, 37:91] = 0.85
+        plan = layer_plan(disp, torch.full((1, 1, 1, 1), 0.85), 60.0)
+        boxes = _support_boxes(plan, height, width)
+        reached = {
+            centre
+            for centre, _ in plan.order
+            if self._true_support(plan, centre, height, width)[0].any()
+        }
+        assert len(plan.order) > 2 * len(reached)  # most layers hold no pixel
+        assert set(boxes) == reached
+        assert boxes[0] == (24, 72, 32, 96)  # the subject, grown to whole tiles
 
     @pytest.mark.parametrize("method", ["fft", "direct"])
     def test_cropped_layers_match_plain_layered_model(self, method):
