@@ -241,6 +241,9 @@ class TestHighlights:
         assert torch.allclose(per, 3 * torch.tensor([1.0, 0.5, 0.2]) ** 5)
         dim = torch.full((1, 3, 1, 1), 0.5)
         assert hdr_boost(dim, r0).item() == pytest.approx(0.4)
+        near = torch.tensor([0.2, 0.995, 0.4]).view(1, 3, 1, 1)
+        assert hdr_boost(near, r0).item() == pytest.approx(3.0 * 0.995**5, rel=1e-6)
+        assert hdr_boost(near, r0, beta=2.5).item() == pytest.approx(3.0 * 0.995**2.5, rel=1e-6)
 
 
 class TestImplementations:
