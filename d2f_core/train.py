@@ -226,6 +226,29 @@ def _optimizer_to(optimizer: torch.optim.Optimizer, device) -> None:
                 state[k] = v.to(device)
 
 
+class _NoBar:
+    """Stands in for a tqdm bar when tqdm (the ``[train]`` extra) is not installed: the CSV log
+    and the logger still report every step."""
+
+    def update(self, n: int = 1) -> None:
+        pass
+
+    def set_postfix(self, **values) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+def _progress(**options):
+    """A tqdm progress bar, or :class:`_NoBar` without tqdm."""
+    try:
+        from tqdm import tqdm
+    except ImportError:
+        return _NoBar()
+    return tqdm(**options)
+
+
 def train(args: argparse.Namespace) -> TrainResult:
     """Run one training stage described by parsed ``d2f-train`` arguments."""
     stage = 1 if args.stage == "stage1" else 2
@@ -346,11 +369,9 @@ def train(args: argparse.Namespace) -> TrainResult:
         return scores
 
     # 4. loop
-    from tqdm import tqdm  # a train-only dependency
-
     val_scores = None
     start = time.perf_counter()
-    bar = tqdm(total=args.steps, initial=step, disable=not ddp.main, desc=f"stage{stage}")
+    bar = _progress(total=args.steps, initial=step, disable=not ddp.main, desc=f"stage{stage}")
     while step < args.steps:
         for batch in loader:
             terms = batch_loss(forward, batch, stage, criterion, device)

@@ -137,3 +137,14 @@ def test_placement_of_a_new_model(data, tmp_path, stage1):
     )
     assert run.model.config.placement == "nearest"
     assert D2F.from_checkpoint(run.checkpoint).config.placement == "nearest"
+
+
+def test_trains_without_tqdm(data, tmp_path, monkeypatch):
+    # tqdm is the [train] extra, not a runtime dependency: without it training runs and logs
+    import sys
+
+    monkeypatch.setitem(sys.modules, "tqdm", None)  # import tqdm now raises ImportError
+    with pytest.raises(ImportError):
+        import tqdm  # noqa: F401
+    result = train(_args("stage1", data, tmp_path, "--steps", "2", "--val-every", "0"))
+    assert len(_totals(result.log)) == 2 and result.checkpoint.is_file()
