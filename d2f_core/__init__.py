@@ -21,6 +21,7 @@ __version__ = "0.1.0"
 
 _LAZY = {
     "D2F": "pipeline",
+    "InputTypeError": "errors",
     "Scene": "pipeline",
     "Result": "pipeline",
     "LayeredRenderer": "rendering",

@@ -26,6 +26,7 @@ from dataclasses import asdict, dataclass, field
 import torch
 import torch.nn.functional as F
 
+from .errors import InputTypeError
 from .rendering import _factor_for, layer_plan, render
 
 __all__ = [
@@ -252,7 +253,7 @@ def choose_settings(
     try:
         focus, blur = float(focus), float(blur)
     except (TypeError, ValueError):
-        raise TypeError(f"focus and blur must be numbers, got {focus!r}, {blur!r}") from None
+        raise InputTypeError(f"focus and blur must be numbers, got {focus!r}, {blur!r}") from None
     if not (math.isfinite(focus) and 0.0 <= focus <= 1.0):
         raise ValueError(f"focus must be in [0, 1], got {focus}")
     if not (math.isfinite(blur) and blur >= 0.0):

@@ -11,6 +11,8 @@ import math
 
 import torch
 
+from .errors import InputTypeError
+
 __all__ = [
     "PAPER_GROWING_SIZES",
     "aperture_kernel",
@@ -30,7 +32,7 @@ SOFT_PHI = 0.5
 
 def _check_size(size: int) -> int:
     if isinstance(size, bool) or not isinstance(size, (int,)) and not float(size).is_integer():
-        raise TypeError(f"size must be an integer, got {size!r}")
+        raise InputTypeError(f"size must be an integer, got {size!r}")
     size = int(size)
     if size < 1 or size % 2 == 0:
         raise ValueError(f"size must be a positive odd integer, got {size}")

@@ -21,6 +21,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from .errors import InputTypeError
 from .networks import _IMAGENET_MEAN, _IMAGENET_STD, load_local_state_dict
 
 __all__ = [
@@ -42,7 +43,7 @@ logger = logging.getLogger(__name__)
 
 def _check_pair(pred: Tensor, target: Tensor) -> None:
     if not isinstance(pred, Tensor) or not isinstance(target, Tensor):
-        raise TypeError("pred and target must be torch.Tensors")
+        raise InputTypeError("pred and target must be torch.Tensors")
     if pred.ndim != 4:
         raise ValueError(f"pred must have shape [B,C,H,W], got {tuple(pred.shape)}")
     if pred.shape != target.shape:

@@ -23,6 +23,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from .errors import InputTypeError
+
 __all__ = [
     "DEFOCUS_NETS",
     "FUSION_NETS",
@@ -63,7 +65,7 @@ def rgb_to_gray(image: Tensor) -> Tensor:
 
 def _check_image(image: Tensor, name: str = "image") -> None:
     if not isinstance(image, Tensor):
-        raise TypeError(f"{name} must be a torch.Tensor, got {type(image).__name__}")
+        raise InputTypeError(f"{name} must be a torch.Tensor, got {type(image).__name__}")
     if image.ndim != 4 or image.shape[1] != 3:
         raise ValueError(f"{name} must have shape [B,3,H,W], got {tuple(image.shape)}")
 

@@ -42,6 +42,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from . import adaptive, rendering
+from .errors import InputTypeError
 from .kernels import PAPER_GROWING_SIZES
 from .networks import (
     build_defocus_net,
@@ -117,7 +118,7 @@ class D2FConfig:
                 value = float(value)
                 setattr(self, f.name, value)
             if not isinstance(value, kind) or isinstance(value, bool):
-                raise TypeError(f"config.{f.name} must be {kind.__name__}, got {value!r}")
+                raise InputTypeError(f"config.{f.name} must be {kind.__name__}, got {value!r}")
         if self.order not in ("depth", "paper"):
             raise ValueError(f"config.order must be 'depth' or 'paper', got {self.order!r}")
         if self.placement not in rendering.PLACEMENTS:
@@ -137,7 +138,7 @@ class D2FConfig:
     def from_dict(cls, data: dict[str, Any]) -> D2FConfig:
         """Build from a dict; unknown keys raise ``ValueError``."""
         if not isinstance(data, dict):
-            raise TypeError(f"config must be a dict, got {type(data).__name__}")
+            raise InputTypeError(f"config must be a dict, got {type(data).__name__}")
         known = {f.name for f in fields(cls)}
         unknown = sorted(set(data) - known)
         if unknown:
@@ -263,7 +264,7 @@ def _image_to_tensor(image: Any) -> Tensor:
         if x.dtype == torch.uint8:
             x = x.float() / 255.0
         elif not x.is_floating_point():
-            raise TypeError(f"image tensor must be uint8 or float, got {x.dtype}")
+            raise InputTypeError(f"image tensor must be uint8 or float, got {x.dtype}")
         x = x.detach().float()
     elif isinstance(image, np.ndarray):
         if image.ndim != 3 or image.shape[2] != 3:
@@ -275,9 +276,10 @@ def _image_to_tensor(image: Any) -> Tensor:
             x = torch.from_numpy(np.ascontiguousarray(image, dtype=np.float32))
             x = x.permute(2, 0, 1)[None]
         else:
-            raise TypeError(f"image must be uint8 or float, got {image.dtype}")
+            raise InputTypeError(f"image must be uint8 or float, got {image.dtype}")
     else:
-        raise TypeError(f"image must be a numpy array or torch tensor, got {type(image).__name__}")
+        kind = type(image).__name__
+        raise InputTypeError(f"image must be a numpy array or torch tensor, got {kind}")
     if min(x.shape[-2:]) < 1:
         raise ValueError(f"image is empty: shape {tuple(x.shape)}")
     if not bool(torch.isfinite(x).all()):
@@ -290,13 +292,16 @@ def _image_to_tensor(image: Any) -> Tensor:
 
 def _disparity_to_tensor(disparity: Any) -> Tensor:
     if isinstance(disparity, Tensor):
+        if disparity.is_complex() or disparity.dtype == torch.bool:
+            raise InputTypeError(f"disparity must be real numbers, got {disparity.dtype}")
         d = disparity.detach()
     elif isinstance(disparity, np.ndarray):
-        if not np.issubdtype(disparity.dtype, np.number) or disparity.dtype == np.bool_:
-            raise TypeError(f"disparity must be numeric, got {disparity.dtype}")
+        kind = disparity.dtype
+        if not (np.issubdtype(kind, np.integer) or np.issubdtype(kind, np.floating)):
+            raise InputTypeError(f"disparity must be real numbers, got {disparity.dtype}")
         d = torch.from_numpy(np.ascontiguousarray(disparity, dtype=np.float32))
     else:
-        raise TypeError(
+        raise InputTypeError(
             f"disparity must be a numpy array or torch tensor, got {type(disparity).__name__}"
         )
     while d.ndim > 2 and d.shape[0] == 1:
@@ -318,7 +323,7 @@ def _check_focus_blur(focus: Any, blur: Any) -> tuple[float, float]:
     try:
         f, b = float(focus), float(blur)
     except (TypeError, ValueError):
-        raise TypeError(f"focus and blur must be numbers, got {focus!r}, {blur!r}") from None
+        raise InputTypeError(f"focus and blur must be numbers, got {focus!r}, {blur!r}") from None
     if not math.isfinite(f) or not 0 <= f <= 1:
         raise ValueError(f"focus must be in [0, 1], got {focus!r}")
     if not math.isfinite(b) or b < 0:
@@ -365,7 +370,7 @@ class D2F(nn.Module):
         elif isinstance(config, dict):
             config = D2FConfig.from_dict(config)
         elif not isinstance(config, D2FConfig):
-            raise TypeError(f"config must be a D2FConfig or dict, got {type(config).__name__}")
+            raise InputTypeError(f"config must be a D2FConfig or dict, got {type(config).__name__}")
         self.config = config
         self.defocus_net = build_defocus_net(config.defocus)
         self.radiance_net = build_radiance_net(config.radiance)
@@ -645,7 +650,8 @@ class D2F(nn.Module):
             :class:`Result`; ``result.settings`` says what was picked.
         """
         if not isinstance(scene, Scene):
-            raise TypeError(f"scene must be a Scene from prepare(), got {type(scene).__name__}")
+            kind = type(scene).__name__
+            raise InputTypeError(f"scene must be a Scene from prepare(), got {kind}")
         focus, blur = _check_focus_blur(focus, blur)
         if max_side is not None and (isinstance(max_side, bool) or int(max_side) < 1):
             raise ValueError(f"max_side must be a positive integer or None, got {max_side!r}")
@@ -772,11 +778,12 @@ class D2F(nn.Module):
             Focal disparity in [0, 1] for :meth:`render`.
         """
         if not isinstance(scene, Scene):
-            raise TypeError(f"scene must be a Scene from prepare(), got {type(scene).__name__}")
+            kind = type(scene).__name__
+            raise InputTypeError(f"scene must be a Scene from prepare(), got {kind}")
         try:
             xf, yf = float(x), float(y)
         except (TypeError, ValueError):
-            raise TypeError(f"x and y must be numbers, got {x!r}, {y!r}") from None
+            raise InputTypeError(f"x and y must be numbers, got {x!r}, {y!r}") from None
         if not (math.isfinite(xf) and math.isfinite(yf)):
             raise ValueError(f"x and y must be finite, got {x!r}, {y!r}")
         height, width = scene.size

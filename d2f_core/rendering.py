@@ -40,6 +40,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from .errors import InputTypeError
 from .kernels import PAPER_GROWING_SIZES, coarse_kernel, kernel_sizes
 
 __all__ = [
@@ -100,13 +101,13 @@ QUALITY_PRESETS: dict[str, QualityPreset] = {
 def _check_tensor(name: str, x: torch.Tensor, channels: int | None) -> tuple[float, float]:
     """Check shape, dtype and finiteness; returns ``x``'s (min, max) ((0, 0) when empty)."""
     if not isinstance(x, torch.Tensor):
-        raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
+        raise InputTypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
     if x.ndim != 4:
         raise ValueError(f"{name} must have shape (B, C, H, W), got {tuple(x.shape)}")
     if channels is not None and x.shape[1] != channels:
         raise ValueError(f"{name} must have {channels} channel(s), got shape {tuple(x.shape)}")
     if not x.is_floating_point():
-        raise TypeError(f"{name} must be a floating-point tensor, got {x.dtype}")
+        raise InputTypeError(f"{name} must be a floating-point tensor, got {x.dtype}")
     if not x.numel():
         return 0.0, 0.0
     extremes = _extremes(x)
@@ -125,7 +126,7 @@ def _check_scalar(name: str, value: float, low: float, high: float) -> float:
     try:
         value = float(value)
     except (TypeError, ValueError):
-        raise TypeError(f"{name} must be a number, got {value!r}") from None
+        raise InputTypeError(f"{name} must be a number, got {value!r}") from None
     if not math.isfinite(value):
         raise ValueError(f"{name} must be finite, got {value}")
     if not low <= value <= high:
@@ -1206,7 +1207,7 @@ def _to_tensor_image(image, name: str) -> torch.Tensor:
                 f"{name} float values must be in [0, 1], got [{arr.min():.3g}, {arr.max():.3g}]"
             )
     else:
-        raise TypeError(f"{name} must be uint8 or float, got {arr.dtype}")
+        raise InputTypeError(f"{name} must be uint8 or float, got {arr.dtype}")
     return torch.from_numpy(np.ascontiguousarray(arr)).permute(2, 0, 1)[None]
 
 
@@ -1218,8 +1219,8 @@ def _to_tensor_disparity(disparity, shape: tuple[int, int]) -> torch.Tensor:
         raise ValueError(f"disparity must have shape (H, W), got {arr.shape}")
     if arr.shape != shape:
         raise ValueError(f"disparity shape {arr.shape} does not match image shape {shape}")
-    if not np.issubdtype(arr.dtype, np.number):
-        raise TypeError(f"disparity must be numeric, got {arr.dtype}")
+    if not (np.issubdtype(arr.dtype, np.integer) or np.issubdtype(arr.dtype, np.floating)):
+        raise InputTypeError(f"disparity must be real numbers, got {arr.dtype}")
     arr = arr.astype(np.float32)
     if not np.isfinite(arr).all():
         raise ValueError("disparity contains NaN or inf")

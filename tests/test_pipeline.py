@@ -207,6 +207,11 @@ class TestInputChecks:
             model.prepare(np.full((8, 8, 3), np.nan, np.float32))
         with pytest.raises(TypeError, match="image"):
             model.prepare([[1, 2, 3]])
+        # wrong types and dtypes are ValueErrors too: one except clause catches all bad input
+        with pytest.raises(ValueError, match="uint8 or float"):
+            model.prepare(np.zeros((8, 8, 3), np.int16))
+        with pytest.raises(ValueError, match="image"):
+            model.prepare("photo.jpg")
 
     def test_bad_disparity(self, model):
         nan = np.zeros((8, 8), np.float32)
@@ -217,6 +222,11 @@ class TestInputChecks:
             model.prepare(_image(), disparity=np.zeros((4, 4, 3), np.float32))
         with pytest.raises(ValueError, match=r"disparity must be in \[0, 1\]"):
             model.prepare(_image(), disparity=np.full((4, 4), 3.0, np.float32))
+        for kind in (np.complex64, np.bool_):
+            with pytest.raises(ValueError, match="disparity must be real numbers"):
+                model.prepare(_image(), disparity=np.zeros((4, 4), kind))
+        with pytest.raises(ValueError, match="disparity must be real numbers"):
+            model.prepare(_image(), disparity=torch.zeros(4, 4, dtype=torch.complex64))
 
     def test_bad_focus_blur(self, model):
         scene = model.prepare(_image())

@@ -653,6 +653,13 @@ class TestNumpyAPI:
             ({"image": np.full((12, 16, 3), 1.5, np.float32)}, r"\[0, 1\]"),
             ({"order": "random"}, "order"),
             ({"quality": "ultra"}, "quality"),
+            # wrong types and dtypes: InputTypeError, a ValueError and a TypeError
+            ({"image": np.zeros((12, 16, 3), np.int16)}, "uint8 or float"),
+            ({"image": "photo.jpg"}, "image"),
+            ({"disparity": np.zeros((12, 16), np.complex64)}, "disparity"),
+            ({"disparity": np.zeros((12, 16), dtype=object)}, "disparity"),
+            ({"focus": "near"}, "focus"),
+            ({"blur": None}, "blur"),
         ],
     )
     def test_bad_inputs_raise_value_error(self, kwargs, match):

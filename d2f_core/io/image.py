@@ -26,6 +26,8 @@ from typing import Literal, Union
 import numpy as np
 from PIL import Image, ImageCms, UnidentifiedImageError
 
+from ..errors import InputTypeError
+
 logger = logging.getLogger(__name__)
 
 ImageSource = Union[str, os.PathLike, bytes, bytearray, memoryview]  # noqa: UP007 (runtime alias)
@@ -101,7 +103,7 @@ def read_source_bytes(src: ImageSource) -> bytes:
         data = bytes(src)
     else:
         if not isinstance(src, (str, os.PathLike)):
-            raise TypeError(f"src: expected a path or bytes, got {type(src).__name__}")
+            raise InputTypeError(f"src: expected a path or bytes, got {type(src).__name__}")
         path = Path(src)
         if not path.exists():
             raise FileNotFoundError(f"{name}: no such file")
@@ -467,7 +469,8 @@ def resize_float(array: np.ndarray, size: tuple[int, int], resample: str = "lanc
 def _check_limits(max_pixels: int | None, on_too_large: str) -> None:
     if max_pixels is not None:
         if isinstance(max_pixels, bool) or not isinstance(max_pixels, (int, np.integer)):
-            raise TypeError(f"max_pixels: expected an int or None, got {type(max_pixels).__name__}")
+            kind = type(max_pixels).__name__
+            raise InputTypeError(f"max_pixels: expected an int or None, got {kind}")
         if max_pixels < 1:
             raise ValueError(f"max_pixels: must be >= 1, got {max_pixels}")
     if on_too_large not in ("resize", "error"):
@@ -617,7 +620,7 @@ def to_uint8(array: np.ndarray, name: str = "array") -> np.ndarray:
     if a.dtype == np.bool_:
         return a.astype(np.uint8) * 255
     if not np.issubdtype(a.dtype, np.floating):
-        raise TypeError(f"{name}: expected float [0, 1] or uint8 values, got dtype {a.dtype}")
+        raise InputTypeError(f"{name}: expected float [0, 1] or uint8 values, got dtype {a.dtype}")
     if not np.isfinite(a).all():
         raise ValueError(f"{name}: contains NaN or infinite values")
     # clip, scale and add 0.5 in one float32 buffer: rounds half up, 2x faster than np.round

@@ -12,6 +12,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from ..errors import InputTypeError
+
 logger = logging.getLogger(__name__)
 
 
@@ -117,7 +119,7 @@ def aperture_samples(n: int, *, pattern: str = "fibonacci") -> np.ndarray:
 
 def _check_scene(scene: Scene) -> None:
     if not isinstance(scene, Scene):
-        raise TypeError(f"scene must be a Scene, got {type(scene).__name__}")
+        raise InputTypeError(f"scene must be a Scene, got {type(scene).__name__}")
     if not scene.layers:
         raise ValueError("scene has no layers")
 
