@@ -298,7 +298,7 @@ def _disparity_to_tensor(disparity: Any) -> Tensor:
     elif isinstance(disparity, np.ndarray):
         kind = disparity.dtype
         if not (np.issubdtype(kind, np.integer) or np.issubdtype(kind, np.floating)):
-            raise InputTypeError(f"disparity must be real numbers, got {disparity.dtype}")
+            raise InputTypeError(f"disparity must be real numbers, got {kind}")
         d = torch.from_numpy(np.ascontiguousarray(disparity, dtype=np.float32))
     else:
         raise InputTypeError(

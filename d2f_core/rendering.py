@@ -747,15 +747,17 @@ def _support_boxes(
     low = math.floor(_BINS * (centres.min() - reach))
     high = math.ceil(_BINS * (centres.max() + reach))
     nbins = high - low + 1
-    # in float32 (exact: far below 2**24), cast once for the counts
-    scaled = coord.mul(_BINS)
+    # the indices in floating point (float32 holds whole numbers exactly up to 2**24), cast
+    # once for the counts
+    dtype = coord.dtype if nbins * max(down, across) < 1 << 24 else torch.float64
+    scaled = coord.to(dtype).mul(_BINS)
     bins = scaled.abs().ceil_().copysign_(scaled).clamp_(low, high).sub_(low)
-    row = torch.arange(height, device=dev, dtype=bins.dtype).div_(_TILE).floor_().view(-1, 1)
-    col = torch.arange(width, device=dev, dtype=bins.dtype).div_(_TILE).floor_().view(1, -1)
-    index = torch.addcmul(row, bins, torch.tensor(float(down), dtype=bins.dtype, device=dev))
-    per_row = torch.bincount(index.long().view(-1), minlength=nbins * down)
-    index = torch.addcmul(col, bins, torch.tensor(float(across), dtype=bins.dtype, device=dev))
-    per_col = torch.bincount(index.long().view(-1), minlength=nbins * across)
+    row = torch.arange(height, device=dev, dtype=dtype).div_(_TILE).floor_().view(-1, 1)
+    col = torch.arange(width, device=dev, dtype=dtype).div_(_TILE).floor_().view(1, -1)
+    index = torch.add(row, bins, alpha=down).long().view(-1)
+    per_row = torch.bincount(index, minlength=nbins * down)
+    index = torch.add(col, bins, alpha=across).long().view(-1)
+    per_col = torch.bincount(index, minlength=nbins * across)
     # window[j, b]: bin b holds coordinates within reach of layer j, on its side of focus
     b = np.arange(low, high + 1)
     lo = np.where(b > 0, b - 1, np.where(b < 0, b, 0)) / _BINS
@@ -771,13 +773,12 @@ def _support_boxes(
     for (centre, _), rows, cols in zip(plan.order, rows_hit, cols_hit):
         if not rows.any():
             continue
-        r = np.flatnonzero(rows)
-        c = np.flatnonzero(cols)
+        rows, cols = np.flatnonzero(rows), np.flatnonzero(cols)
         boxes[centre] = (
-            int(r[0]) * _TILE,
-            min(height, (int(r[-1]) + 1) * _TILE),
-            int(c[0]) * _TILE,
-            min(width, (int(c[-1]) + 1) * _TILE),
+            int(rows[0]) * _TILE,
+            min(height, (int(rows[-1]) + 1) * _TILE),
+            int(cols[0]) * _TILE,
+            min(width, (int(cols[-1]) + 1) * _TILE),
         )
     return boxes
 
