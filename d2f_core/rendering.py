@@ -210,7 +210,7 @@ def hdr_boost(
     if per_channel:
         mask = highlight_mask(image, threshold)  # [B,1,H,W]
         base = torch.ones_like(mask) if radiance is None else radiance
-        return mask * alpha * image.clamp(0, 1) ** beta + (1 - mask) * base
+        return mask * alpha * _power(image.clamp(0, 1), beta) + (1 - mask) * base
     # the brightest channel is at least the threshold exactly where any channel is
     peak = image.amax(dim=1, keepdim=True)
     boost = _power(peak.clamp(0, 1), beta).mul_(alpha)
