@@ -290,35 +290,6 @@ def _image_to_tensor(image: Any) -> Tensor:
     return x.contiguous()
 
 
-def _disparity_to_tensor(disparity: Any) -> Tensor:
-    if isinstance(disparity, Tensor):
-        if disparity.is_complex() or disparity.dtype == torch.bool:
-            raise InputTypeError(f"disparity must be real numbers, got {disparity.dtype}")
-        d = disparity.detach()
-    elif isinstance(disparity, np.ndarray):
-        kind = disparity.dtype
-        if not (np.issubdtype(kind, np.integer) or np.issubdtype(kind, np.floating)):
-            raise InputTypeError(f"disparity must be real numbers, got {kind}")
-        d = torch.from_numpy(np.ascontiguousarray(disparity, dtype=np.float32))
-    else:
-        raise InputTypeError(
-            f"disparity must be a numpy array or torch tensor, got {type(disparity).__name__}"
-        )
-    while d.ndim > 2 and d.shape[0] == 1:
-        d = d[0]
-    if d.ndim == 3 and d.shape[-1] == 1:
-        d = d[..., 0]
-    if d.ndim != 2 or min(d.shape) < 1:
-        raise ValueError(f"disparity must have shape (H, W), got {tuple(disparity.shape)}")
-    d = d.float()
-    if not bool(torch.isfinite(d).all()):
-        raise ValueError("disparity contains NaN or inf")
-    lo, hi = float(d.min()), float(d.max())
-    if lo < -1e-3 or hi > 1 + 1e-3:
-        raise ValueError(f"disparity must be in [0, 1], got [{lo:.3g}, {hi:.3g}]")
-    return d.clamp(0, 1)[None, None].contiguous()
-
-
 def _check_focus_blur(focus: Any, blur: Any) -> tuple[float, float]:
     try:
         f, b = float(focus), float(blur)
@@ -584,7 +555,7 @@ class D2F(nn.Module):
         """
         device = self.device
         image_t = _image_to_tensor(image).to(device)  # [1,3,H,W]
-        given = None if disparity is None else _disparity_to_tensor(disparity).to(device)
+        given = None if disparity is None else rendering.disparity_tensor(disparity).to(device)
         size = (int(image_t.shape[-2]), int(image_t.shape[-1]))
         lr_size = _scaled_size(size, self.config.render_scale, self.config.max_render_side)
         image_lr = _resize(image_t, lr_size).clamp_(0, 1)  # [1,3,h,w]

@@ -48,6 +48,7 @@ __all__ = [
     "QUALITY_PRESETS",
     "LayeredRenderer",
     "coc_to_defocus",
+    "disparity_tensor",
     "hdr_boost",
     "highlight_mask",
     "layer_plan",
@@ -1212,22 +1213,45 @@ def _to_tensor_image(image, name: str) -> torch.Tensor:
     return torch.from_numpy(np.ascontiguousarray(arr)).permute(2, 0, 1)[None]
 
 
-def _to_tensor_disparity(disparity, shape: tuple[int, int]) -> torch.Tensor:
-    arr = np.asarray(disparity)
-    if arr.ndim == 3 and arr.shape[2] == 1:
-        arr = arr[..., 0]
-    if arr.ndim != 2:
-        raise ValueError(f"disparity must have shape (H, W), got {arr.shape}")
-    if arr.shape != shape:
-        raise ValueError(f"disparity shape {arr.shape} does not match image shape {shape}")
-    if not (np.issubdtype(arr.dtype, np.integer) or np.issubdtype(arr.dtype, np.floating)):
-        raise InputTypeError(f"disparity must be real numbers, got {arr.dtype}")
-    arr = arr.astype(np.float32)
-    if not np.isfinite(arr).all():
+# Disparity maps converted from 8- or 16-bit depth round a little past [0, 1]: that much is
+# clamped, anything beyond it refused.
+_DISPARITY_SLACK = 1e-3
+
+
+def disparity_tensor(disparity) -> torch.Tensor:
+    """Check a disparity map (numpy array or tensor, ``H x W``, ``H x W x 1`` or with leading
+    axes of 1) and return it as a ``(1, 1, H, W)`` float32 tensor in [0, 1].
+
+    Raises ``ValueError`` (:class:`~d2f_core.InputTypeError` for a wrong type or dtype) for a
+    map that is not real numbers, not 2-D, empty, holds NaN or inf, or leaves [0, 1] by more
+    than 1e-3 (values within it are clamped).
+    """
+    if isinstance(disparity, torch.Tensor):
+        if disparity.is_complex() or disparity.dtype == torch.bool:
+            raise InputTypeError(f"disparity must be real numbers, got {disparity.dtype}")
+        d = disparity.detach()
+    elif isinstance(disparity, np.ndarray):
+        kind = disparity.dtype
+        if not (np.issubdtype(kind, np.integer) or np.issubdtype(kind, np.floating)):
+            raise InputTypeError(f"disparity must be real numbers, got {kind}")
+        d = torch.from_numpy(np.ascontiguousarray(disparity, dtype=np.float32))
+    else:
+        raise InputTypeError(
+            f"disparity must be a numpy array or torch tensor, got {type(disparity).__name__}"
+        )
+    while d.ndim > 2 and d.shape[0] == 1:
+        d = d[0]
+    if d.ndim == 3 and d.shape[-1] == 1:
+        d = d[..., 0]
+    if d.ndim != 2 or min(d.shape) < 1:
+        raise ValueError(f"disparity must have shape (H, W), got {tuple(disparity.shape)}")
+    d = d.float()
+    if not bool(torch.isfinite(d).all()):
         raise ValueError("disparity contains NaN or inf")
-    if arr.min() < 0 or arr.max() > 1:
-        raise ValueError(f"disparity must be in [0, 1], got [{arr.min():.3g}, {arr.max():.3g}]")
-    return torch.from_numpy(np.ascontiguousarray(arr))[None, None]
+    lo, hi = float(d.min()), float(d.max())
+    if lo < -_DISPARITY_SLACK or hi > 1 + _DISPARITY_SLACK:
+        raise ValueError(f"disparity must be in [0, 1], got [{lo:.3g}, {hi:.3g}]")
+    return d.clamp(0, 1)[None, None].contiguous()
 
 
 def render_bokeh(image, disparity, focus: float, blur: float, **options) -> np.ndarray:
@@ -1235,7 +1259,8 @@ def render_bokeh(image, disparity, focus: float, blur: float, **options) -> np.n
 
     Args:
         image: ``H x W x 3``, float32 in [0, 1] or uint8.
-        disparity: ``H x W`` in [0, 1], 1 = nearest.
+        disparity: ``H x W`` in [0, 1], 1 = nearest (checked by :func:`disparity_tensor`:
+            values up to 1e-3 outside [0, 1] are clamped).
         focus: focal disparity in [0, 1].
         blur: ``K``, CoC diameter in px for ``|d - focus| = 1``, at the image's resolution.
         **options: passed to :func:`render` (``order``, ``num_layers``, ``kernel``, ``blades``,
@@ -1245,7 +1270,14 @@ def render_bokeh(image, disparity, focus: float, blur: float, **options) -> np.n
         ``H x W x 3`` float32 in [0, 1].
     """
     img = _to_tensor_image(image, "image")
-    disp = _to_tensor_disparity(disparity, tuple(img.shape[-2:]))
+    if not isinstance(disparity, torch.Tensor):
+        disparity = np.asarray(disparity)  # nested lists as numpy reads them
+    disp = disparity_tensor(disparity)
+    if disp.shape[-2:] != img.shape[-2:]:
+        raise ValueError(
+            f"disparity shape {tuple(disp.shape[-2:])} does not match image shape "
+            f"{tuple(img.shape[-2:])}"
+        )
     _check_scalar("focus", focus, 0.0, 1.0)
     with torch.no_grad():
         out = render(img, disp, focus, blur, **options)

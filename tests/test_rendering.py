@@ -635,6 +635,32 @@ class TestNumpyAPI:
         assert a.dtype == np.float32 and a.shape == (30, 40, 3)
         np.testing.assert_allclose(a, b, atol=1e-6)
 
+    def test_disparity_rounding_slack_is_clamped_beyond_it_refused(self):
+        """Maps converted from 8/16-bit depth overshoot [0, 1] by rounding: up to 1e-3 is
+        clamped (the render equals the clamped map's), more is refused, the same way as
+        D2F.prepare (one checker)."""
+        rng = np.random.default_rng(1)
+        img = rng.random((20, 24, 3)).astype(np.float32)
+        disp = rng.random((20, 24)).astype(np.float32)
+        over = disp.copy()
+        over[0, :12], over[1, :12] = 1.0008, -0.0008
+        clamped = np.clip(over, 0, 1)
+        np.testing.assert_array_equal(
+            render_bokeh(img, over, 0.5, 12.0), render_bokeh(img, clamped, 0.5, 12.0)
+        )
+        assert not np.array_equal(
+            render_bokeh(img, clamped, 0.5, 12.0), render_bokeh(img, disp, 0.5, 12.0)
+        )
+        for bad in (1.002, -0.002):
+            wrong = disp.copy()
+            wrong[3, 3] = bad
+            with pytest.raises(ValueError, match=r"disparity must be in \[0, 1\]"):
+                render_bokeh(img, wrong, 0.5, 12.0)
+        # tensors, H x W x 1 and nested lists are read as the same map
+        ref = render_bokeh(img, disp, 0.5, 12.0)
+        for form in (torch.from_numpy(disp), disp[..., None], disp.tolist()):
+            np.testing.assert_array_equal(render_bokeh(img, form, 0.5, 12.0), ref)
+
     @pytest.mark.parametrize(
         "kwargs,match",
         [
