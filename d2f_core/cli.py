@@ -16,7 +16,6 @@ Errors go to stderr as ``d2f: error: ...``, without a traceback.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import logging
 import math
 import os
@@ -36,6 +35,7 @@ from .io import (
     save_depth,
     save_image,
 )
+from .progress import logs_above_bar, progress
 
 # named explicitly: under "python -m d2f_core.cli" __name__ is "__main__"
 logger = logging.getLogger("d2f_core.cli")
@@ -625,25 +625,10 @@ def _cmd_batch(args: argparse.Namespace) -> int:
     engine = Engine(args.weights)
     failed: list[Path] = []
 
-    try:
-        from tqdm import tqdm
-        from tqdm.contrib.logging import logging_redirect_tqdm
-    except ImportError:  # tqdm is optional: no progress bar then
-        tqdm = None
-    redirect = (
-        logging_redirect_tqdm(loggers=[logging.getLogger("d2f_core")])
-        if tqdm is not None
-        else contextlib.nullcontext()
-    )
-    with redirect:
-        bar = (
-            tqdm(pairs, desc="d2f", unit="photo", disable=True if args.quiet else None)
-            if tqdm is not None
-            else pairs
-        )
+    with logs_above_bar():
+        bar = progress(pairs, desc="d2f", unit="photo", disable=True if args.quiet else None)
         for src, dst in bar:
-            if tqdm is not None:
-                bar.set_postfix_str(src.name, refresh=False)
+            bar.set_postfix_str(src.name, refresh=False)
             depth_file = _find_depth_file(args.depth, src.stem) if args.depth else None
             try:
                 render_file(src, dst, args, engine, depth_file)

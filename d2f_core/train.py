@@ -42,6 +42,7 @@ from .data import EBBDataset
 from .losses import D2FLoss
 from .networks import read_torch_file
 from .pipeline import D2F, D2FConfig, _resize, _scaled_size, _size_ratio
+from .progress import progress
 from .rendering import PLACEMENTS
 
 __all__ = ["TrainResult", "build_parser", "main", "train"]
@@ -226,29 +227,6 @@ def _optimizer_to(optimizer: torch.optim.Optimizer, device) -> None:
                 state[k] = v.to(device)
 
 
-class _NoBar:
-    """Stands in for a tqdm bar when tqdm (the ``[train]`` extra) is not installed: the CSV log
-    and the logger still report every step."""
-
-    def update(self, n: int = 1) -> None:
-        pass
-
-    def set_postfix(self, **values) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
-
-
-def _progress(**options):
-    """A tqdm progress bar, or :class:`_NoBar` without tqdm."""
-    try:
-        from tqdm import tqdm
-    except ImportError:
-        return _NoBar()
-    return tqdm(**options)
-
-
 def train(args: argparse.Namespace) -> TrainResult:
     """Run one training stage described by parsed ``d2f-train`` arguments."""
     stage = 1 if args.stage == "stage1" else 2
@@ -371,7 +349,7 @@ def train(args: argparse.Namespace) -> TrainResult:
     # 4. loop
     val_scores = None
     start = time.perf_counter()
-    bar = _progress(total=args.steps, initial=step, disable=not ddp.main, desc=f"stage{stage}")
+    bar = progress(total=args.steps, initial=step, disable=not ddp.main, desc=f"stage{stage}")
     while step < args.steps:
         for batch in loader:
             terms = batch_loss(forward, batch, stage, criterion, device)

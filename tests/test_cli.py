@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -317,6 +318,17 @@ class TestBatch:
         assert sorted(p.name for p in out.iterdir()) == ["img0_bokeh.jpg", "img1_bokeh.jpg"]
 
     def test_unreadable_file_is_skipped_and_reported(self, tmp_path, capsys):
+        photos, depths = self._folder(tmp_path)
+        (photos / "corrupt.jpg").write_bytes(b"\xff\xd8\xff\xe0 truncated")
+        out = tmp_path / "out"
+        code, err = _run(capsys, "batch", photos, "-o", out, "--blur", 6, "--depth", depths)
+        assert code == 1
+        assert "corrupt.jpg" in err and "1 of 3 photos failed" in err
+        assert sorted(p.name for p in out.iterdir()) == ["img0_bokeh.png", "img1_bokeh.png"]
+
+    def test_without_tqdm_renders_and_reports_the_same(self, tmp_path, capsys, monkeypatch):
+        # tqdm is an extra: without it there is no bar, and failures are still reported
+        monkeypatch.setitem(sys.modules, "tqdm", None)  # import tqdm now raises ImportError
         photos, depths = self._folder(tmp_path)
         (photos / "corrupt.jpg").write_bytes(b"\xff\xd8\xff\xe0 truncated")
         out = tmp_path / "out"

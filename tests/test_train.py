@@ -148,3 +148,20 @@ def test_trains_without_tqdm(data, tmp_path, monkeypatch):
         import tqdm  # noqa: F401
     result = train(_args("stage1", data, tmp_path, "--steps", "2", "--val-every", "0"))
     assert len(_totals(result.log)) == 2 and result.checkpoint.is_file()
+
+
+def test_progress_without_tqdm_iterates_and_ignores_updates(monkeypatch):
+    import sys
+
+    from d2f_core.progress import NoBar, logs_above_bar, progress
+
+    monkeypatch.setitem(sys.modules, "tqdm", None)
+    bar = progress([3, 1, 2], desc="x")
+    assert isinstance(bar, NoBar) and list(bar) == [3, 1, 2]
+    bar.update(5)
+    bar.set_postfix(loss=1.0)
+    bar.set_postfix_str("a")
+    bar.close()
+    assert list(progress(total=4)) == []
+    with logs_above_bar():
+        pass
