@@ -317,18 +317,10 @@ class TestBatch:
         assert code == 0, err
         assert sorted(p.name for p in out.iterdir()) == ["img0_bokeh.jpg", "img1_bokeh.jpg"]
 
-    def test_unreadable_file_is_skipped_and_reported(self, tmp_path, capsys):
-        photos, depths = self._folder(tmp_path)
-        (photos / "corrupt.jpg").write_bytes(b"\xff\xd8\xff\xe0 truncated")
-        out = tmp_path / "out"
-        code, err = _run(capsys, "batch", photos, "-o", out, "--blur", 6, "--depth", depths)
-        assert code == 1
-        assert "corrupt.jpg" in err and "1 of 3 photos failed" in err
-        assert sorted(p.name for p in out.iterdir()) == ["img0_bokeh.png", "img1_bokeh.png"]
-
-    def test_without_tqdm_renders_and_reports_the_same(self, tmp_path, capsys, monkeypatch):
-        # tqdm is an extra: without it there is no bar, and failures are still reported
-        monkeypatch.setitem(sys.modules, "tqdm", None)  # import tqdm now raises ImportError
+    @pytest.mark.parametrize("tqdm", [True, False])
+    def test_unreadable_file_is_skipped_and_reported(self, tmp_path, capsys, monkeypatch, tqdm):
+        if not tqdm:  # tqdm is an extra: without it there is no bar, the same report
+            monkeypatch.setitem(sys.modules, "tqdm", None)  # import tqdm raises ImportError
         photos, depths = self._folder(tmp_path)
         (photos / "corrupt.jpg").write_bytes(b"\xff\xd8\xff\xe0 truncated")
         out = tmp_path / "out"
