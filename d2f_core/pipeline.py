@@ -254,42 +254,6 @@ def _size_ratio(small: tuple[int, int], big: tuple[int, int]) -> float:
     return 0.5 * (small[0] / big[0] + small[1] / big[1])
 
 
-def _image_to_tensor(image: Any) -> Tensor:
-    if isinstance(image, Tensor):
-        x = image
-        if x.ndim == 3:
-            x = x[None]
-        if x.ndim != 4 or x.shape[:2] != (1, 3):
-            raise ValueError(f"image tensor must have shape [1,3,H,W], got {tuple(image.shape)}")
-        if x.dtype == torch.uint8:
-            x = x.float() / 255.0
-        elif not x.is_floating_point():
-            raise InputTypeError(f"image tensor must be uint8 or float, got {x.dtype}")
-        x = x.detach().float()
-    elif isinstance(image, np.ndarray):
-        if image.ndim != 3 or image.shape[2] != 3:
-            raise ValueError(f"image must have shape (H, W, 3), got {image.shape}")
-        if image.dtype == np.uint8:
-            x = torch.from_numpy(np.ascontiguousarray(image)).permute(2, 0, 1)[None]
-            x = x.float().div_(255.0)
-        elif np.issubdtype(image.dtype, np.floating):
-            x = torch.from_numpy(np.ascontiguousarray(image, dtype=np.float32))
-            x = x.permute(2, 0, 1)[None]
-        else:
-            raise InputTypeError(f"image must be uint8 or float, got {image.dtype}")
-    else:
-        kind = type(image).__name__
-        raise InputTypeError(f"image must be a numpy array or torch tensor, got {kind}")
-    if min(x.shape[-2:]) < 1:
-        raise ValueError(f"image is empty: shape {tuple(x.shape)}")
-    if not bool(torch.isfinite(x).all()):
-        raise ValueError("image contains NaN or inf")
-    lo, hi = float(x.min()), float(x.max())
-    if lo < 0 or hi > 1:
-        raise ValueError(f"image float values must be in [0, 1], got [{lo:.3g}, {hi:.3g}]")
-    return x.contiguous()
-
-
 def _check_focus_blur(focus: Any, blur: Any) -> tuple[float, float]:
     try:
         f, b = float(focus), float(blur)
@@ -554,7 +518,7 @@ class D2F(nn.Module):
             A :class:`Scene` on the model's device.
         """
         device = self.device
-        image_t = _image_to_tensor(image).to(device)  # [1,3,H,W]
+        image_t = rendering.image_tensor(image).to(device)  # [1,3,H,W]
         given = None if disparity is None else rendering.disparity_tensor(disparity).to(device)
         size = (int(image_t.shape[-2]), int(image_t.shape[-1]))
         lr_size = _scaled_size(size, self.config.render_scale, self.config.max_render_side)

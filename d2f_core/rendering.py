@@ -51,6 +51,7 @@ __all__ = [
     "disparity_tensor",
     "hdr_boost",
     "highlight_mask",
+    "image_tensor",
     "layer_plan",
     "render",
     "render_bokeh",
@@ -1192,25 +1193,46 @@ def render(
     return out.clamp(0, 1) if grad else out.clamp_(0, 1)
 
 
-def _to_tensor_image(image, name: str) -> torch.Tensor:
-    arr = np.asarray(image)
-    if arr.ndim != 3 or arr.shape[2] != 3:
-        raise ValueError(f"{name} must have shape (H, W, 3), got {arr.shape}")
-    if arr.shape[0] < 1 or arr.shape[1] < 1:
-        raise ValueError(f"{name} is empty: shape {arr.shape}")
-    if arr.dtype == np.uint8:
-        arr = arr.astype(np.float32) / 255.0
-    elif np.issubdtype(arr.dtype, np.floating):
-        arr = arr.astype(np.float32)
-        if not np.isfinite(arr).all():
-            raise ValueError(f"{name} contains NaN or inf")
-        if arr.min() < 0 or arr.max() > 1:
-            raise ValueError(
-                f"{name} float values must be in [0, 1], got [{arr.min():.3g}, {arr.max():.3g}]"
-            )
+def image_tensor(image) -> torch.Tensor:
+    """Check an image (numpy ``H x W x 3`` or tensor ``[1, 3, H, W]`` / ``[3, H, W]``, uint8
+    or float in [0, 1]) and return it as a ``(1, 3, H, W)`` float32 tensor.
+
+    Raises ``ValueError`` (:class:`~d2f_core.InputTypeError` for a wrong type or dtype) for
+    another shape or dtype, an empty image, NaN or inf, or float values outside [0, 1].
+    """
+    if isinstance(image, torch.Tensor):
+        x = image
+        if x.ndim == 3:
+            x = x[None]
+        if x.ndim != 4 or x.shape[:2] != (1, 3):
+            raise ValueError(f"image tensor must have shape [1,3,H,W], got {tuple(image.shape)}")
+        if x.dtype == torch.uint8:
+            x = x.float() / 255.0
+        elif not x.is_floating_point():
+            raise InputTypeError(f"image tensor must be uint8 or float, got {x.dtype}")
+        x = x.detach().float()
+    elif isinstance(image, np.ndarray):
+        if image.ndim != 3 or image.shape[2] != 3:
+            raise ValueError(f"image must have shape (H, W, 3), got {image.shape}")
+        if image.dtype == np.uint8:
+            x = torch.from_numpy(np.ascontiguousarray(image)).permute(2, 0, 1)[None]
+            x = x.float().div_(255.0)
+        elif np.issubdtype(image.dtype, np.floating):
+            x = torch.from_numpy(np.ascontiguousarray(image, dtype=np.float32))
+            x = x.permute(2, 0, 1)[None]
+        else:
+            raise InputTypeError(f"image must be uint8 or float, got {image.dtype}")
     else:
-        raise InputTypeError(f"{name} must be uint8 or float, got {arr.dtype}")
-    return torch.from_numpy(np.ascontiguousarray(arr)).permute(2, 0, 1)[None]
+        kind = type(image).__name__
+        raise InputTypeError(f"image must be a numpy array or torch tensor, got {kind}")
+    if min(x.shape[-2:]) < 1:
+        raise ValueError(f"image is empty: shape {tuple(x.shape)}")
+    if not bool(torch.isfinite(x).all()):
+        raise ValueError("image contains NaN or inf")
+    lo, hi = float(x.min()), float(x.max())
+    if lo < 0 or hi > 1:
+        raise ValueError(f"image float values must be in [0, 1], got [{lo:.3g}, {hi:.3g}]")
+    return x.contiguous()
 
 
 # Disparity maps converted from 8- or 16-bit depth round a little past [0, 1]: that much is
@@ -1269,7 +1291,7 @@ def render_bokeh(image, disparity, focus: float, blur: float, **options) -> np.n
     Returns:
         ``H x W x 3`` float32 in [0, 1].
     """
-    img = _to_tensor_image(image, "image")
+    img = image_tensor(np.asarray(image))  # H x W x 3, whatever holds it
     if not isinstance(disparity, torch.Tensor):
         disparity = np.asarray(disparity)  # nested lists as numpy reads them
     disp = disparity_tensor(disparity)

@@ -660,6 +660,9 @@ class TestNumpyAPI:
         ref = render_bokeh(img, disp, 0.5, 12.0)
         for form in (torch.from_numpy(disp), disp[..., None], disp.tolist()):
             np.testing.assert_array_equal(render_bokeh(img, form, 0.5, 12.0), ref)
+        # the image too: an H x W x 3 tensor or nested lists read as the array
+        for form in (torch.from_numpy(img), img.tolist()):
+            np.testing.assert_array_equal(render_bokeh(form, disp, 0.5, 12.0), ref)
 
     @pytest.mark.parametrize(
         "kwargs,match",
