@@ -26,8 +26,7 @@ from dataclasses import asdict, dataclass, field
 import torch
 import torch.nn.functional as F
 
-from .errors import InputTypeError
-from .rendering import _factor_for, layer_plan, render
+from .rendering import _factor_for, check_focus_blur, layer_plan, render
 
 __all__ = [
     "BUDGETS",
@@ -250,14 +249,7 @@ def choose_settings(
     if not isinstance(disparity, torch.Tensor) or disparity.ndim != 4 or disparity.shape[1] != 1:
         shape = tuple(disparity.shape) if isinstance(disparity, torch.Tensor) else None
         raise ValueError(f"disparity must be a (B, 1, H, W) tensor, got {shape}")
-    try:
-        focus, blur = float(focus), float(blur)
-    except (TypeError, ValueError):
-        raise InputTypeError(f"focus and blur must be numbers, got {focus!r}, {blur!r}") from None
-    if not (math.isfinite(focus) and 0.0 <= focus <= 1.0):
-        raise ValueError(f"focus must be in [0, 1], got {focus}")
-    if not (math.isfinite(blur) and blur >= 0.0):
-        raise ValueError(f"blur must be a finite number >= 0, got {blur}")
+    focus, blur = check_focus_blur(focus, blur)
     if quality not in BUDGETS:
         raise ValueError(f"quality must be one of {sorted(BUDGETS)}, got {quality!r}")
     budget = BUDGETS[quality] if budget_db is None else float(budget_db)

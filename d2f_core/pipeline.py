@@ -254,18 +254,6 @@ def _size_ratio(small: tuple[int, int], big: tuple[int, int]) -> float:
     return 0.5 * (small[0] / big[0] + small[1] / big[1])
 
 
-def _check_focus_blur(focus: Any, blur: Any) -> tuple[float, float]:
-    try:
-        f, b = float(focus), float(blur)
-    except (TypeError, ValueError):
-        raise InputTypeError(f"focus and blur must be numbers, got {focus!r}, {blur!r}") from None
-    if not math.isfinite(f) or not 0 <= f <= 1:
-        raise ValueError(f"focus must be in [0, 1], got {focus!r}")
-    if not math.isfinite(b) or b < 0:
-        raise ValueError(f"blur must be a finite number >= 0 (px), got {blur!r}")
-    return f, b
-
-
 def _per_sample(value: float | Tensor, batch: int, ref: Tensor) -> Tensor:
     """Scalar or ``[B]`` -> ``[B, 1, 1, 1]`` on ``ref``'s device and dtype."""
     t = torch.as_tensor(value, dtype=ref.dtype, device=ref.device).reshape(-1)
@@ -587,7 +575,7 @@ class D2F(nn.Module):
         if not isinstance(scene, Scene):
             kind = type(scene).__name__
             raise InputTypeError(f"scene must be a Scene from prepare(), got {kind}")
-        focus, blur = _check_focus_blur(focus, blur)
+        focus, blur = rendering.check_focus_blur(focus, blur)
         if max_side is not None and (isinstance(max_side, bool) or int(max_side) < 1):
             raise ValueError(f"max_side must be a positive integer or None, got {max_side!r}")
         if "radiance" in render_options:

@@ -47,6 +47,7 @@ __all__ = [
     "PLACEMENTS",
     "QUALITY_PRESETS",
     "LayeredRenderer",
+    "check_focus_blur",
     "coc_to_defocus",
     "disparity_tensor",
     "hdr_boost",
@@ -134,6 +135,19 @@ def _check_scalar(name: str, value: float, low: float, high: float) -> float:
     if not low <= value <= high:
         raise ValueError(f"{name} must be in [{low}, {high}], got {value}")
     return value
+
+
+def check_focus_blur(focus, blur) -> tuple[float, float]:
+    """``(focus, blur)`` as floats: focus in [0, 1], blur (K, px) finite and >= 0."""
+    try:
+        f, b = float(focus), float(blur)
+    except (TypeError, ValueError):
+        raise InputTypeError(f"focus and blur must be numbers, got {focus!r}, {blur!r}") from None
+    if not math.isfinite(f) or not 0 <= f <= 1:
+        raise ValueError(f"focus must be in [0, 1], got {focus!r}")
+    if not math.isfinite(b) or b < 0:
+        raise ValueError(f"blur must be a finite number >= 0 (px), got {blur!r}")
+    return f, b
 
 
 def _check_placement(placement: str) -> None:
