@@ -345,8 +345,10 @@ class RefocusApp:
         """Decode an upload (and optional depth map), prepare it (cached), render it.
 
         Returns:
-            ``(session, focus, result, compare, legend, info)``; ``focus`` is skipped unless
-            the photo carries the focal plane its camera used.
+            ``(session, focus, result, compare, legend, info)``; ``focus`` is the focal plane
+            the photo's camera used when it carries one, the subject the network found when
+            the photo comes with no depth (:meth:`D2F.subject_focus`), and skipped otherwise
+            (a depth map given without a focal plane keeps the slider's focus).
         """
         path = _payload_path(image)
         if path is None:  # the input was cleared
@@ -387,6 +389,15 @@ class RefocusApp:
             self.model, key, lambda: self.model.prepare(photo.image, disparity=disparity)
         )
         t_prepare = time.perf_counter()
+        subject = ""
+        if disparity is None:
+            # no depth and no focal plane from the camera: focus on the subject the network found
+            focus_found, (sx, sy) = self.model.subject_focus(scene)
+            new_focus = round(float(focus_found), FOCUS_DECIMALS)
+            params = RenderParams.from_inputs(
+                new_focus, blur, blades, rotation, highlight_boost, fusion, quality
+            )
+            subject = f" | focus on the subject at ({sx:.0f}, {sy:.0f})"
         if session is not None:
             session.close()
         session = Session(
@@ -403,7 +414,11 @@ class RefocusApp:
         log.info(
             "loaded %s (%dx%d), depth: %s, %s %r", session.name, *session.size, source, prep, image
         )
-        info = outputs[3] + f" | decode {1000 * (t_decode - t0):.0f} ms | {prep} | depth: {source}"
+        info = (
+            outputs[3]
+            + f" | decode {1000 * (t_decode - t0):.0f} ms | {prep} | depth: {source}"
+            + subject
+        )
         return (session, new_focus, *outputs[:3], info)
 
     # --------------------------------------------------------------- renders

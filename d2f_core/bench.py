@@ -1,4 +1,4 @@
-"""Benchmarks: ``python -m d2f_core.bench render|app|accuracy`` (also ``d2f-bench``).
+"""Benchmarks: ``python -m d2f_core.bench render|app|accuracy|depth`` (also ``d2f-bench``).
 
 Figures are printed as measured here, with ratios against a baseline measured in the same run;
 nothing here asserts a time.
@@ -277,6 +277,12 @@ def _bench_accuracy(args: argparse.Namespace) -> int:
     return int(accuracy_main(args.rest) or 0)
 
 
+def _bench_depth(args: argparse.Namespace) -> int:
+    from .depth_bench import main as depth_main
+
+    return int(depth_main(args.rest) or 0)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="d2f-bench", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -300,10 +306,11 @@ def main(argv: list[str] | None = None) -> int:
     for name, func, text in (
         ("app", _bench_app, "app handler latency (see app/bench.py)"),
         ("accuracy", _bench_accuracy, "renderer settings against ground truth"),
+        ("depth", _bench_depth, "defocus network's depth on real photos against measured depth"),
     ):
         q = sub.add_parser(name, help=text, add_help=False)
         q.set_defaults(func=func)
-    # everything after "app" / "accuracy" (--help included) belongs to that bench
+    # everything after "app" / "accuracy" / "depth" (--help included) belongs to that bench
     args, rest = parser.parse_known_args(argv)
     if args.command == "render" and rest:
         parser.error(f"unrecognized arguments: {' '.join(rest)}")

@@ -5,7 +5,8 @@
 
 Depth comes from, in order: ``--depth``, the phone depth embedded in the photo (Google Lens
 Blur, Apple portrait JPEG/HEIC), or the D2F defocus network. The focal plane comes from
-``--focus``/``--focus-at``, else the focus stored by the phone, else the image centre.
+``--focus``/``--focus-at``, else the focus stored by the phone, else the subject found in the
+disparity map (``D2F.subject_focus``; the image centre when nothing stands out).
 Without network weights, photos with a depth map still render (the physical layered
 renderer with a sharp in-focus prior instead of the learned radiance and fusion networks).
 
@@ -372,6 +373,20 @@ def _focus_from_map(disparity: np.ndarray, x: float, y: float) -> float:
     return float(np.clip(np.median(win), 0.0, 1.0))
 
 
+def _subject_from_map(disparity: np.ndarray) -> tuple[float, tuple[float, float]]:
+    """``D2F.subject_focus`` for a bare disparity map (the centre when nothing stands out)."""
+    from .pipeline import find_subject
+
+    h, w = disparity.shape
+    step = max(1, max(h, w) // 128)
+    found = find_subject(disparity[::step, ::step])
+    if found is None:
+        x, y = (w - 1) / 2.0, (h - 1) / 2.0
+        return _focus_from_map(disparity, x, y), (x, y)
+    focus, (fx, fy) = found
+    return focus, (fx * w - 0.5, fy * h - 0.5)
+
+
 def render_with_depth_only(
     image: np.ndarray,
     disparity: np.ndarray,
@@ -474,8 +489,7 @@ def render_file(
                 raise ValueError(f"--focus-at {x:g},{y:g} is outside the {ow}x{oh} photo {src}")
             point = (x * w / ow, y * h / oh)  # into the loaded (possibly downscaled) frame
         else:
-            point = ((w - 1) / 2.0, (h - 1) / 2.0)
-            logger.info("%s: no focus given; focusing on the image centre", src)
+            point = "subject"
 
     options: dict[str, Any] = {"blades": args.aperture_blades, "rotation": args.rotation}
     if args.placement is not None:
@@ -483,7 +497,10 @@ def render_file(
     model = engine.model()
     if model is not None:
         scene = model.prepare(image, disparity=disparity)
-        if point is not None:
+        if point == "subject":
+            focus, (sx, sy) = model.subject_focus(scene)
+            logger.info("%s: no focus given; focusing on the subject at (%.0f, %.0f)", src, sx, sy)
+        elif point is not None:
             focus = model.focus_at(scene, *point)
         result = model.render(
             scene,
@@ -504,7 +521,10 @@ def render_file(
             },
         )
     elif disparity is not None:
-        if point is not None:
+        if point == "subject":
+            focus, (sx, sy) = _subject_from_map(disparity)
+            logger.info("%s: no focus given; focusing on the subject at (%.0f, %.0f)", src, sx, sy)
+        elif point is not None:
             focus = _focus_from_map(disparity, *point)
         logger.info("%s: rendering with the depth map only (no D2F weights)", src)
         rendered = render_with_depth_only(

@@ -51,8 +51,17 @@ from .networks import (
     read_torch_file,
     rgb_to_gray,
 )
+from .refine import snap_edges
 
-__all__ = ["CHECKPOINT_VERSION", "D2F", "D2FConfig", "Result", "Scene", "default_weights_path"]
+__all__ = [
+    "CHECKPOINT_VERSION",
+    "D2F",
+    "D2FConfig",
+    "Result",
+    "Scene",
+    "default_weights_path",
+    "find_subject",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -90,6 +99,11 @@ class D2FConfig:
         fusion_theta: threshold on ``D`` of the binary in-focus mask ``M_b`` (stage-2 target).
         fusion_gate: ``M_s`` is forced to 0 where ``D >= fusion_gate``.
         sharp_coc: full-res CoC (px) below which a pixel always stays sharp.
+        refine: ``"none"`` (the network's map upsampled bilinearly) or ``"snap"`` (its soft
+            edges moved onto the photo's colour edges at the render pass's size,
+            :func:`refine.snap_edges`).
+        refine_radius: the snapping window's radius as a fraction of that size's long side.
+        refine_eps: squared colour distance below which two regions count as alike.
     """
 
     defocus: str = "lite"
@@ -105,6 +119,9 @@ class D2FConfig:
     fusion_theta: float = 0.25
     fusion_gate: float = 0.3
     sharp_coc: float = 1.0
+    refine: str = "none"
+    refine_radius: float = 0.03
+    refine_eps: float = 1e-3
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -125,6 +142,10 @@ class D2FConfig:
             raise ValueError(
                 f"config.placement must be one of {rendering.PLACEMENTS}, got {self.placement!r}"
             )
+        if self.refine not in ("none", "snap"):
+            raise ValueError(f"config.refine must be 'none' or 'snap', got {self.refine!r}")
+        if not (0 <= self.refine_radius <= 0.25 and self.refine_eps > 0):
+            raise ValueError("config.refine_radius must be in [0, 0.25] and refine_eps > 0")
         if not 0 < self.render_scale <= 1:
             raise ValueError(f"config.render_scale must be in (0, 1], got {self.render_scale}")
         if self.network_size < 32 or self.max_render_side < 16:
@@ -390,14 +411,19 @@ class D2F(nn.Module):
     # ---------------------------------------------------------------- networks
 
     def predict_disparity(self, image: Tensor) -> Tensor:
-        """Defocus network at ``config.network_size``, resized back to the input size.
+        """Defocus network at ``config.network_size``, resized back to the input size; with
+        ``config.refine="snap"`` its edges are then moved onto the photo's
+        (:func:`refine.snap_edges`).
 
         Shape: (B, 3, h, w) in [0, 1] -> (B, 1, h, w) in [0, 1].
         """
         size = tuple(image.shape[-2:])
         net_size = _scaled_size(size, 1.0, self.config.network_size)
-        d = self.defocus_net(_resize(image, net_size))  # [B,1,hn,wn]
-        return _resize(d, size).clamp(0, 1)
+        d = _resize(self.defocus_net(_resize(image, net_size)), size)  # [B,1,h,w]
+        if self.config.refine == "snap":
+            radius = max(1, round(self.config.refine_radius * max(size)))
+            d = snap_edges(image, d, radius, self.config.refine_eps)
+        return d.clamp(0, 1)
 
     def fusion_mask(
         self,
@@ -719,6 +745,27 @@ class D2F(nn.Module):
         window = d[max(0, yi - r) : yi + r + 1, max(0, xi - r) : xi + r + 1]
         return float(np.clip(np.median(window.detach().cpu().numpy()), 0.0, 1.0))
 
+    def subject_focus(self, scene: Scene) -> tuple[float, tuple[float, float]]:
+        """The focal disparity of the subject the disparity map shows, and where it is
+        (:func:`find_subject`); a map in which nothing stands out (flat, or a plain ramp) gets
+        the focus at the centre, as :meth:`focus_at`.
+
+        Returns:
+            ``(focus, (x, y))``, the point in full-res pixel coordinates.
+        """
+        if not isinstance(scene, Scene):
+            kind = type(scene).__name__
+            raise InputTypeError(f"scene must be a Scene from prepare(), got {kind}")
+        height, width = scene.size
+        with torch.no_grad():
+            d = _resize(scene.disparity_lr, _scaled_size(scene.size, 1.0, 128))[0, 0]
+        found = find_subject(d.cpu().numpy())
+        if found is None:
+            cx, cy = (width - 1) / 2.0, (height - 1) / 2.0
+            return self.focus_at(scene, cx, cy), (cx, cy)
+        focus, (fx, fy) = found
+        return focus, (fx * width - 0.5, fy * height - 0.5)
+
     # ---------------------------------------------------------------- training forwards
 
     def _render_batch(
@@ -822,6 +869,49 @@ class D2F(nn.Module):
             "mask": mask,
             "mask_soft": mask_soft,
         }
+
+
+def find_subject(
+    disparity: np.ndarray, min_prominence: float = 0.02
+) -> tuple[float, tuple[float, float]] | None:
+    """Where the subject of a disparity map is, and its focal disparity.
+
+    A subject is what stands out nearer than the rest of its rows: the map minus each row's
+    30th percentile (a floor or a wall sloping away in depth stands out from nothing), box
+    smoothed over a fortieth of the frame and weighted by a broad centre prior. The
+    subject's pixels are those within half the strongest score; the focus is their
+    score-weighted median disparity and the point is the strongest of them.
+
+    Args:
+        disparity: ``H x W`` in [0, 1], 1 = nearest (any size; 128 px is plenty).
+        min_prominence: below this strongest score nothing stands out.
+
+    Returns:
+        ``(focus, (x, y))`` with ``x, y`` as fractions of the width and height (pixel
+        centres), or ``None`` when nothing stands out.
+    """
+    d = np.asarray(disparity, dtype=np.float64)
+    if d.ndim != 2 or d.size == 0:
+        raise ValueError(f"disparity must be a non-empty H x W map, got shape {d.shape}")
+    h, w = d.shape
+    prominence = d - np.percentile(d, 30, axis=1, keepdims=True)
+    k = max(1, round(max(h, w) / 40))
+    n = 2 * k + 1
+    cs = np.pad(np.pad(prominence, k, mode="edge").cumsum(0).cumsum(1), ((1, 0), (1, 0)))
+    smooth = (cs[n:, n:] - cs[:-n, n:] - cs[n:, :-n] + cs[:-n, :-n]) / (n * n)
+    yy, xx = np.mgrid[0:h, 0:w]
+    centre = np.exp(-(((yy + 0.5) / h - 0.5) ** 2 + ((xx + 0.5) / w - 0.5) ** 2) / 0.18)
+    score = np.clip(smooth, 0, None) * centre
+    top = float(score.max())
+    if not top >= min_prominence:
+        return None
+    region = score >= 0.5 * top
+    values, weights = d[region], score[region]
+    order = np.argsort(values, kind="stable")
+    cum = np.cumsum(weights[order])
+    focus = float(values[order][np.searchsorted(cum, 0.5 * cum[-1])])
+    iy, ix = np.unravel_index(int(np.argmax(score)), score.shape)
+    return float(np.clip(focus, 0.0, 1.0)), ((ix + 0.5) / w, (iy + 0.5) / h)
 
 
 def _runs(columns: list[int]) -> list[tuple[int, int]]:

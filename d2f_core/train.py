@@ -25,6 +25,7 @@ import csv
 import logging
 import math
 import os
+import sys
 import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -397,6 +398,11 @@ def build_parser() -> argparse.ArgumentParser:
         prog="d2f-train",
         description="Train D2F: stage1 = defocus + radiance networks, stage2 = fusion network.",
     )
+    parser.epilog = (
+        "Also: 'd2f-train label' (teacher pseudo-labels of real photos) and 'd2f-train depth' "
+        "(stage 0, the defocus network on real photos; 'd2f-train depth export' makes a D2F "
+        "checkpoint of it): see TRAINING.md."
+    )
     sub = parser.add_subparsers(dest="stage", required=True)
     for name, crop, help_text in (
         ("stage1", 1024, "defocus + radiance networks on the low-res bokeh"),
@@ -452,18 +458,23 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def export(checkpoint: Path, out: Path, overrides: Sequence[str]) -> Path:
-    """Reload ``checkpoint``, apply ``KEY=VALUE`` config overrides, save to ``out``."""
-    model = D2F.from_checkpoint(checkpoint)
-    config = model.config.to_dict()
+def apply_overrides(config: dict[str, Any], overrides: Sequence[str]) -> dict[str, Any]:
+    """``config`` with ``KEY=VALUE`` items applied, each value cast to the key's type."""
+    config = dict(config)
     for item in overrides:
         key, sep, value = item.partition("=")
         if not sep or key not in config:
             raise ValueError(
                 f"--set needs KEY=VALUE with KEY one of {sorted(config)}, got {item!r}"
             )
-        kind = type(config[key])
-        config[key] = kind(value)
+        config[key] = type(config[key])(value)
+    return config
+
+
+def export(checkpoint: Path, out: Path, overrides: Sequence[str]) -> Path:
+    """Reload ``checkpoint``, apply ``KEY=VALUE`` config overrides, save to ``out``."""
+    model = D2F.from_checkpoint(checkpoint)
+    config = apply_overrides(model.config.to_dict(), overrides)
     # validates the new config before anything is written
     model.config = type(model.config).from_dict(config)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -472,6 +483,15 @@ def export(checkpoint: Path, out: Path, overrides: Sequence[str]) -> Path:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["label"]:  # pseudo-labels of real photos by the teachers
+        from .teachers import run_label
+
+        return run_label(argv[1:])
+    if argv[:1] == ["depth"]:  # stage 0: depth from real photos
+        from .depth_train import main as depth_main
+
+        return depth_main(argv[1:])
     args = build_parser().parse_args(argv)
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO,

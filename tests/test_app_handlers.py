@@ -343,6 +343,20 @@ class TestLoad:
         assert compare["visible"] is False and legend["visible"] is False
         assert "320x240 px" in info and "prepare" in info and "your disparity map" in info
 
+    def test_no_depth_focuses_on_the_subject(self, logic, tiny_model, two_plane_scene):
+        out = logic.load(str(two_plane_scene.photo), None, "disparity", None, 0.5, BLUR)
+        session, focus, *_, info = out
+        expected, (x, y) = tiny_model.subject_focus(session.scene)
+        assert not is_skip(focus) and focus == round(expected, 3)
+        assert f"focus on the subject at ({x:.0f}, {y:.0f})" in info
+        assert f"focus {focus:.3f}" in info  # the image was rendered at that focus
+        # with a depth map but no focal plane from the camera, the slider keeps its value
+        given = logic.load(
+            str(two_plane_scene.photo), str(two_plane_scene.disparity), "disparity", None, 0.5,
+            BLUR,
+        )  # fmt: skip
+        assert is_skip(given[1])
+
     def test_same_pixels_hit_the_cache(self, logic, two_plane_scene):
         args = (str(two_plane_scene.disparity), "disparity", None, 0.5, BLUR)
         first = logic.load(str(two_plane_scene.photo), *args)

@@ -286,6 +286,30 @@ class TestRender:
         )  # fmt: skip
         assert code == 1 and "outside" in err
 
+    @pytest.mark.parametrize("with_model", [False, True])
+    def test_no_focus_given_focuses_on_the_subject(self, tmp_path, capsys, checkpoint,
+                                                    with_model):  # fmt: skip
+        """A near box off the centre, over a floor sloping away: with no focus given the box
+        stays sharp and the floor blurs (the centre, where the floor is, was the old focus)."""
+        h, w = 96, 128
+        rng = np.random.default_rng(3)
+        img = (rng.random((h, w, 3)) * 255).astype(np.uint8)
+        disp = np.broadcast_to(np.linspace(0.0, 0.3, h, dtype=np.float32)[:, None], (h, w)).copy()
+        disp[20:60, 10:50] = 0.9
+        src = _write_photo(tmp_path / "p.png", img)
+        save_depth(tmp_path / "d.png", disp)
+        extra = ["--weights", checkpoint] if with_model else []
+        code, err = _run(
+            capsys, "render", src, "-o", tmp_path / "o.png", "--blur", 24,
+            "--depth", tmp_path / "d.png", *extra, "-v",
+        )  # fmt: skip
+        assert code == 0, err
+        out = np.asarray(Image.open(tmp_path / "o.png"))
+        box = (slice(24, 56), slice(14, 46))
+        floor = (slice(70, 96), slice(60, 128))
+        assert _grad(out[box]) > 0.9 * _grad(img[box])
+        assert _grad(out[floor]) < 0.5 * _grad(img[floor])
+
     def test_unreadable_input(self, tmp_path, capsys):
         bad = tmp_path / "broken.jpg"
         bad.write_bytes(b"\xff\xd8\xff\xe0garbage")

@@ -1,0 +1,537 @@
+"""Stage 0: the defocus network learns depth from real photos before any bokeh loss.
+
+``d2f-train depth`` trains :class:`~d2f_core.networks.DefocusNet` with direct supervision:
+
+- **Real photos with a subject** (human-drawn masks, or the VOC teacher's foreground where a
+  photo has no mask). The target is a layout plus the subject in front of it: the layout is
+  a "bottom of the frame is near" ramp blended with the indoor depth teacher's ranked
+  disparity (``layout_teacher`` of it); every connected part of the subject stands on that
+  layout where its lowest row touches it (a person standing on a floor has the floor's
+  disparity at their feet), and is lifted to at least what surrounds it. The mask is
+  feathered by a pixel so hair and fur edges stay soft.
+- **Pasted subjects**: a subject cut out of another masked photo with its feathered alpha is
+  placed over the photo, in front of everything it covers. Its disparity is exact, and it
+  teaches that what looks like a subject is near wherever it lies in the frame.
+- **Generated layered scenes** (:mod:`d2f_core.synth`) with their exact disparity, so the
+  network stays calibrated on the scenes the bokeh stages and the held-out set use.
+
+Real targets are relative (0 = farthest, 1 = nearest in each photo), so their loss is a
+scale- and shift-invariant L1 plus multi-scale gradient matching (MiDaS), plus a plain L1 with
+weight ``absolute_weight`` that keeps outputs in [0, 1]; generated scenes have absolute
+targets and take a plain L1 plus gradient matching.
+
+A photo is held out of training when :func:`is_heldout` says so (a hash of its name: about
+one photo in ten); ``d2f-bench depth`` evaluates on exactly those.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import random
+import sys
+import time
+import zlib
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from PIL import Image
+from torch import Tensor
+
+from .networks import build_defocus_net, count_parameters
+from .teachers import Photo, iter_photos, read_label, read_mask
+
+__all__ = [
+    "DepthSample",
+    "RealDepthData",
+    "gradient_matching_loss",
+    "is_heldout",
+    "ssi_align",
+    "subject_target",
+    "train_depth",
+]
+
+logger = logging.getLogger(__name__)
+
+#: one photo in HELDOUT_MODULUS is held out (by a CRC of its key)
+HELDOUT_MODULUS = 10
+
+
+def is_heldout(photo: Photo) -> bool:
+    """True for the photos that depth training never sees (about one in ten, fixed by name)."""
+    return zlib.crc32(photo.key.encode()) % HELDOUT_MODULUS == 0
+
+
+# ------------------------------------------------------------------------------ targets
+
+
+def _feather(mask: np.ndarray, sigma: float) -> np.ndarray:
+    if sigma <= 0:
+        return mask.astype(np.float32)
+    from skimage.filters import gaussian
+
+    return np.clip(gaussian(mask.astype(np.float32), sigma=sigma), 0.0, 1.0).astype(np.float32)
+
+
+def ramp(height: int, width: int) -> np.ndarray:
+    """``H x W`` float32: 0 at the top row, 1 at the bottom row ("the bottom is near")."""
+    col = np.linspace(0.0, 1.0, height, dtype=np.float32)[:, None]
+    return np.broadcast_to(col, (height, width)).copy()
+
+
+def subject_target(
+    layout: np.ndarray, mask: np.ndarray, lift: float = 0.05, min_pixels: int = 16
+) -> np.ndarray:
+    """Disparity target: ``layout`` with every connected part of ``mask`` stood on it.
+
+    Args:
+        layout: ``H x W`` disparity of the scene without the subject (1 = nearest).
+        mask: ``H x W`` soft subject alpha in [0, 1].
+        lift: each part is at least this much nearer than the layout's 90th percentile
+            around it (a ring a tenth of the frame wide), so it stands out from what
+            surrounds it even where the layout there is flat.
+        min_pixels: parts smaller than this keep the layout.
+
+    Returns:
+        ``H x W`` float32 in [0, 1], ``alpha * subject + (1 - alpha) * layout``.
+    """
+    from skimage.measure import label
+    from skimage.morphology import dilation, disk
+
+    h, w = layout.shape
+    hard = mask >= 0.5
+    parts = label(hard, connectivity=2)
+    subject = layout.copy()
+    ring_radius = max(2, int(0.1 * max(h, w)))
+    for idx in range(1, int(parts.max()) + 1):
+        part = parts == idx
+        n = int(part.sum())
+        if n < min_pixels:
+            continue
+        rows = np.nonzero(part.any(axis=1))[0]
+        bottom = rows[-1]
+        contact = float(np.median(layout[bottom][part[bottom]]))
+        # the ring around the part, at quarter resolution for speed
+        small = part[::4, ::4]
+        grown = dilation(small, disk(max(1, ring_radius // 4)))
+        ring = grown & ~small
+        around = layout[::4, ::4][ring]
+        floor = float(np.percentile(around, 90)) + lift if around.size else contact
+        value = min(1.0, max(contact, floor))
+        grow = dilation(part, disk(2))  # cover the soft rim of the part
+        subject[grow] = value
+    return (mask * subject + (1.0 - mask) * layout).astype(np.float32)
+
+
+def _normalise(t: np.ndarray) -> np.ndarray:
+    lo, hi = float(t.min()), float(t.max())
+    return ((t - lo) / max(hi - lo, 1e-6)).astype(np.float32)
+
+
+# ------------------------------------------------------------------------------ data
+
+
+@dataclass
+class DepthSample:
+    image: np.ndarray  # H x W x 3 float32 [0, 1]
+    target: np.ndarray  # H x W float32 [0, 1]
+    relative: bool  # True: scale/shift-free target (real photos)
+
+
+def _load_rgb(path: Path) -> np.ndarray:
+    with Image.open(path) as im:
+        return np.asarray(im.convert("RGB"), dtype=np.float32) / 255.0
+
+
+def _resize_np(x: np.ndarray, size: tuple[int, int], nearest: bool = False) -> np.ndarray:
+    h, w = size
+    t = torch.from_numpy(np.ascontiguousarray(x, dtype=np.float32))
+    t = t.permute(2, 0, 1)[None] if t.ndim == 3 else t[None, None]
+    mode = "nearest" if nearest else "bilinear"
+    shrink = h < t.shape[-2] or w < t.shape[-1]
+    kw = {} if nearest else {"align_corners": False, "antialias": shrink}
+    out = F.interpolate(t, size=(h, w), mode=mode, **kw)[0]
+    return out.permute(1, 2, 0).numpy() if x.ndim == 3 else out[0].numpy()
+
+
+class RealDepthData:
+    """Samples for stage 0 (see the module docstring); ``sample(rng)`` draws one.
+
+    Args:
+        root: the datasets folder (``../shared/datasets``).
+        labels: the teachers' ``.npz`` folder written by ``d2f-train label``.
+        size: ``(H, W)`` of every sample.
+        paste: probability of pasting another photo's subject.
+        synth: probability of a generated layered scene instead of a photo.
+        layout_teacher: weight of the depth teacher in the background layout (the rest is
+            the ramp).
+    """
+
+    def __init__(
+        self,
+        root: str | Path,
+        labels: str | Path,
+        size: tuple[int, int] = (256, 256),
+        paste: float = 0.4,
+        synth: float = 0.15,
+        layout_teacher: float = 0.4,
+        fg_min_area: float = 0.01,
+        fg_max_area: float = 0.8,
+    ) -> None:
+        self.labels = Path(labels)
+        photos = [p for p in iter_photos(root) if not is_heldout(p)]
+        self.photos = [p for p in photos if (self.labels / f"{p.key}.npz").is_file()]
+        if not self.photos:
+            raise ValueError(f"no labelled training photos under {root} with labels {labels}")
+        self.masked = [p for p in self.photos if p.mask is not None]
+        self.size = size
+        self.paste = paste
+        self.synth = synth
+        self.layout_teacher = layout_teacher
+        self.fg_min_area, self.fg_max_area = fg_min_area, fg_max_area
+        self._textures = None
+
+    # -- pieces
+    def _photo(
+        self, photo: Photo, rng: random.Random
+    ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+        """Image, subject alpha (or None) and layout, at ``self.size`` after a random crop."""
+        img = _load_rgb(photo.path)
+        h0, w0 = img.shape[:2]
+        th, tw = self.size
+        scale = max(th / h0, tw / w0) * rng.uniform(1.0, 1.3)
+        rh, rw = max(th, round(h0 * scale)), max(tw, round(w0 * scale))
+        img = _resize_np(img, (rh, rw))
+        mask = read_mask(photo, (h0, w0))
+        fg, teacher = read_label(self.labels / f"{photo.key}.npz", (rh, rw))
+        if mask is not None:
+            alpha = _feather(_resize_np(mask, (rh, rw)) >= 0.5, 1.0)
+        else:
+            area = float((fg >= 0.5).mean())
+            alpha = (
+                _feather(np.clip((fg - 0.3) / 0.4, 0, 1), 1.0)
+                if self.fg_min_area <= area <= self.fg_max_area
+                else None
+            )
+        layout = (1 - self.layout_teacher) * ramp(rh, rw) + self.layout_teacher * teacher
+        y = rng.randint(0, rh - th)
+        x = rng.randint(0, rw - tw)
+        sl = (slice(y, y + th), slice(x, x + tw))
+        return img[sl], (None if alpha is None else alpha[sl]), layout[sl]
+
+    def _cutout(self, rng: random.Random) -> tuple[np.ndarray, np.ndarray] | None:
+        """A subject cut out of a random masked photo: (rgb h x w x 3, alpha h x w)."""
+        photo = rng.choice(self.masked)
+        img = _load_rgb(photo.path)
+        mask = read_mask(photo, img.shape[:2])
+        if mask is None or mask.sum() < 64:
+            return None
+        ys, xs = np.nonzero(mask)
+        y0, y1, x0, x1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
+        th, tw = self.size
+        box = max(y1 - y0, x1 - x0)
+        scale = rng.uniform(0.25, 0.8) * min(th, tw) / box
+        ch, cw = max(4, round((y1 - y0) * scale)), max(4, round((x1 - x0) * scale))
+        rgb = _resize_np(img[y0:y1, x0:x1], (ch, cw))
+        alpha = _feather(_resize_np(mask[y0:y1, x0:x1], (ch, cw)) >= 0.5, 0.8)
+        if rng.random() < 0.5:
+            rgb, alpha = rgb[:, ::-1], alpha[:, ::-1]
+        return rgb, alpha
+
+    def _synth(self, rng: random.Random) -> DepthSample:
+        from .synth import linear_to_srgb, make_scene, render_pinhole
+
+        scene = make_scene(self.size, seed=rng.randrange(1 << 30), margin=0)
+        radiance, disp = render_pinhole(scene)
+        image = linear_to_srgb(np.clip(radiance, 0.0, 1.0)).astype(np.float32)
+        return DepthSample(image, disp.astype(np.float32), relative=False)
+
+    def sample(self, rng: random.Random) -> DepthSample:
+        if rng.random() < self.synth:
+            return self._synth(rng)
+        photo = rng.choice(self.photos)
+        img, alpha, layout = self._photo(photo, rng)
+        target = subject_target(layout, alpha) if alpha is not None else layout
+        target = _normalise(target)
+        if rng.random() < self.paste:
+            cut = self._cutout(rng)
+            if cut is not None:
+                rgb, a = cut
+                th, tw = self.size
+                ch, cw = a.shape
+                y = rng.randint(-ch // 4, th - 3 * ch // 4)
+                x = rng.randint(-cw // 4, tw - 3 * cw // 4)
+                ya, yb, xa, xb = max(0, y), min(th, y + ch), max(0, x), min(tw, x + cw)
+                if yb > ya and xb > xa:
+                    a_c = a[ya - y : yb - y, xa - x : xb - x]
+                    rgb_c = rgb[ya - y : yb - y, xa - x : xb - x]
+                    covered = target[ya:yb, xa:xb][a_c >= 0.5]
+                    if covered.size:
+                        rows = np.nonzero((a_c >= 0.5).any(axis=1))[0]
+                        contact = float(
+                            np.median(target[ya + rows[-1], xa:xb][a_c[rows[-1]] >= 0.5])
+                        )
+                        value = min(1.0, max(contact, float(covered.max()) + 0.05))
+                        img = img.copy()
+                        img[ya:yb, xa:xb] = (
+                            a_c[..., None] * rgb_c + (1 - a_c[..., None]) * img[ya:yb, xa:xb]
+                        )
+                        target = target.copy()
+                        target[ya:yb, xa:xb] = a_c * value + (1 - a_c) * target[ya:yb, xa:xb]
+                        target = _normalise(target)
+        if rng.random() < 0.5:
+            img, target = img[:, ::-1], target[:, ::-1]
+        # mild photometric jitter
+        gain = rng.uniform(0.8, 1.2)
+        gamma = rng.uniform(0.8, 1.25)
+        img = np.clip(img * gain, 0, 1) ** gamma
+        return DepthSample(img.astype(np.float32), target.astype(np.float32), relative=True)
+
+    def batch(self, rng: random.Random, n: int) -> tuple[Tensor, Tensor, Tensor]:
+        samples = [self.sample(rng) for _ in range(n)]
+        images = torch.stack(
+            [torch.from_numpy(np.ascontiguousarray(s.image)).permute(2, 0, 1) for s in samples]
+        )
+        targets = torch.stack([torch.from_numpy(np.ascontiguousarray(s.target)) for s in samples])
+        relative = torch.tensor([s.relative for s in samples])
+        return images, targets[:, None], relative
+
+
+class _Batches(torch.utils.data.IterableDataset):
+    """Endless batches of :class:`RealDepthData` from a seeded stream (one per worker)."""
+
+    def __init__(self, data: RealDepthData, batch_size: int, seed: int) -> None:
+        self.data, self.batch_size, self.seed = data, batch_size, seed
+
+    def __iter__(self):
+        info = torch.utils.data.get_worker_info()
+        rng = random.Random(self.seed + (0 if info is None else 7919 * info.id))
+        torch.set_num_threads(1)
+        while True:
+            yield self.data.batch(rng, self.batch_size)
+
+
+# ------------------------------------------------------------------------------ losses
+
+
+def ssi_align(pred: Tensor, target: Tensor) -> Tensor:
+    """``pred`` scaled and shifted per sample to fit ``target`` in least squares.
+
+    Shape: (B, 1, H, W) and (B, 1, H, W) -> (B, 1, H, W).
+    """
+    p = pred.flatten(1)
+    t = target.flatten(1)
+    pm, tm = p.mean(1, keepdim=True), t.mean(1, keepdim=True)
+    pc = p - pm
+    scale = (pc * (t - tm)).sum(1, keepdim=True) / pc.pow(2).sum(1, keepdim=True).clamp_min(1e-6)
+    return (scale * pc + tm).view_as(pred)
+
+
+def gradient_matching_loss(pred: Tensor, target: Tensor, scales: int = 4) -> Tensor:
+    """MiDaS gradient matching: mean |grad(pred - target)| over ``scales`` halvings."""
+    diff = pred - target
+    total = pred.new_zeros(())
+    for s in range(scales):
+        if s:
+            diff = F.avg_pool2d(diff, 2)
+        gx = (diff[..., :, 1:] - diff[..., :, :-1]).abs().mean()
+        gy = (diff[..., 1:, :] - diff[..., :-1, :]).abs().mean()
+        total = total + gx + gy
+    return total / scales
+
+
+def depth_loss(
+    pred: Tensor,
+    target: Tensor,
+    relative: Tensor,
+    absolute_weight: float = 0.25,
+    grad_weight: float = 1.0,
+) -> tuple[Tensor, dict[str, float]]:
+    """Stage-0 loss of a batch (see the module docstring)."""
+    rel = relative.to(pred.device).view(-1, 1, 1, 1).to(pred.dtype)
+    aligned = ssi_align(pred, target)
+    fit = rel * aligned + (1 - rel) * pred
+    l1 = (fit - target).abs().mean()
+    absolute = (rel * (pred - target).abs()).mean()
+    grad = gradient_matching_loss(fit, target)
+    loss = l1 + absolute_weight * absolute + grad_weight * grad
+    return loss, {"l1": l1.item(), "abs": absolute.item(), "grad": grad.item()}
+
+
+# ------------------------------------------------------------------------------ training
+
+
+def train_depth(args: argparse.Namespace) -> Path:
+    """Run (or resume) stage 0; returns the path of the last checkpoint."""
+    torch.set_num_threads(args.threads)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    data = RealDepthData(
+        args.data,
+        args.labels,
+        size=(args.crop, args.crop),
+        paste=args.paste,
+        synth=args.synth,
+        layout_teacher=args.layout_teacher,
+    )
+    net = build_defocus_net(args.variant)
+    if args.init is not None:
+        from .pipeline import D2F
+
+        net.load_state_dict(D2F.from_checkpoint(args.init).defocus_net.state_dict())
+        logger.info("defocus network initialised from %s", args.init)
+    opt = torch.optim.AdamW(net.parameters(), lr=args.lr, weight_decay=1e-4)
+    step = 0
+    last = out / "depth_last.pt"
+    if last.is_file() and not args.restart:
+        state = torch.load(last, map_location="cpu", weights_only=False)
+        net.load_state_dict(state["state_dict"])
+        opt.load_state_dict(state["optimizer"])
+        step = int(state["step"])
+        logger.info("resumed from %s at step %d", last, step)
+    torch.manual_seed(args.seed + step)
+    logger.info(
+        "stage 0: %s, %d params, %d photos (%d masked), crop %d, batch %d",
+        args.variant,
+        count_parameters(net),
+        len(data.photos),
+        len(data.masked),
+        args.crop,
+        args.batch_size,
+    )
+    net.train()
+    loader = iter(
+        torch.utils.data.DataLoader(
+            _Batches(data, args.batch_size, args.seed * 1_000_003 + step),
+            batch_size=None,
+            num_workers=args.workers,
+            prefetch_factor=4 if args.workers else None,
+        )
+    )
+    t0 = time.perf_counter()
+    log = open(out / "depth_log.jsonl", "a")  # noqa: SIM115
+    while step < args.steps:
+        lr = args.lr * 0.5 * (1 + math.cos(math.pi * step / args.steps))
+        warm = min(1.0, (step + 1) / 200)
+        for g in opt.param_groups:
+            g["lr"] = lr * warm
+        images, targets, relative = next(loader)
+        pred = net(images)
+        loss, parts = depth_loss(pred, targets, relative, args.absolute_weight)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)
+        opt.step()
+        step += 1
+        if step % args.log_every == 0:
+            rec = {
+                "step": step,
+                "loss": loss.item(),
+                **parts,
+                "lr": lr,
+                "elapsed_s": round(time.perf_counter() - t0, 1),
+            }
+            log.write(json.dumps(rec) + "\n")
+            log.flush()
+            logger.info("step %d loss %.4f %s", step, float(loss), parts)
+        if step % args.save_every == 0 or step == args.steps:
+            state = {
+                "state_dict": net.state_dict(),
+                "optimizer": opt.state_dict(),
+                "step": step,
+                "variant": args.variant,
+            }
+            tmp = last.with_suffix(".tmp")
+            torch.save(state, tmp)
+            tmp.replace(last)
+            if step % args.keep_every == 0:
+                torch.save(
+                    {"state_dict": net.state_dict(), "step": step, "variant": args.variant},
+                    out / f"depth_{step:06d}.pt",
+                )
+    log.close()
+    return last
+
+
+def export_checkpoint(
+    depth: str | Path, base: str | Path, out: str | Path, overrides: Sequence[str] = ()
+) -> Path:
+    """A D2F checkpoint: ``base`` with its defocus network replaced by the stage-0 weights
+    in ``depth`` (a ``depth_*.pt`` file) and ``KEY=VALUE`` config overrides applied."""
+    from .pipeline import D2F
+    from .train import apply_overrides
+
+    model = D2F.from_checkpoint(base)
+    config = apply_overrides(model.config.to_dict(), overrides)
+    state = torch.load(depth, map_location="cpu", weights_only=True)
+    variant = state.get("variant", config["defocus"])
+    config["defocus"] = variant
+    fresh = D2F(config)
+    fresh.radiance_net.load_state_dict(model.radiance_net.state_dict())
+    fresh.fusion_net.load_state_dict(model.fusion_net.state_dict())
+    fresh.defocus_net.load_state_dict(state["state_dict"])
+    fresh.save(out)
+    return Path(out)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="d2f-train depth",
+        description="stage 0: train the defocus network on real photos with depth targets",
+    )
+    p.add_argument("--data", type=Path, required=True, help="datasets folder")
+    p.add_argument("--labels", type=Path, required=True, help="teacher labels (d2f-train label)")
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--variant", default="lite")
+    p.add_argument("--steps", type=int, default=6000)
+    p.add_argument("--batch-size", type=int, default=8)
+    p.add_argument("--crop", type=int, default=256)
+    p.add_argument("--lr", type=float, default=1e-3)
+    p.add_argument("--paste", type=float, default=0.4)
+    p.add_argument("--synth", type=float, default=0.15)
+    p.add_argument("--layout-teacher", type=float, default=0.4)
+    p.add_argument("--absolute-weight", type=float, default=0.25)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--log-every", type=int, default=20)
+    p.add_argument("--save-every", type=int, default=100)
+    p.add_argument("--keep-every", type=int, default=1000)
+    p.add_argument("--workers", type=int, default=1, help="data-loading processes")
+    p.add_argument("--init", type=Path, default=None, help="D2F checkpoint to start from")
+    p.add_argument("--restart", action="store_true", help="ignore an existing depth_last.pt")
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["export"]:
+        e = argparse.ArgumentParser(
+            prog="d2f-train depth export",
+            description="a D2F checkpoint from a base checkpoint and stage-0 weights",
+        )
+        e.add_argument("depth", type=Path)
+        e.add_argument("base", type=Path)
+        e.add_argument("out", type=Path)
+        e.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+        a = e.parse_args(argv[1:])
+        try:
+            print(export_checkpoint(a.depth, a.base, a.out, a.set))
+        except (ValueError, FileNotFoundError, KeyError) as exc:
+            print(f"d2f-train depth export: error: {exc}", file=sys.stderr)
+            return 2
+        return 0
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    path = train_depth(args)
+    print(f"stage 0 checkpoint: {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,358 @@
+"""Depth from real photos: metrics of ``d2f-bench depth``, guided refinement, subject focus,
+stage-0 targets, data and training (on a small generated datasets folder)."""
+
+from __future__ import annotations
+
+import argparse
+import random
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from d2f_core import depth_bench, depth_train, teachers
+from d2f_core.pipeline import D2F, find_subject
+from d2f_core.refine import box_mean, snap_edges
+
+# ------------------------------------------------------------------------------ metrics
+
+
+class TestMetrics:
+    def test_rankdata_averages_ties(self):
+        np.testing.assert_array_equal(
+            depth_bench.rankdata(np.array([10, 20, 20, 5, 20])), [2, 4, 4, 1, 4]
+        )
+
+    def test_spearman_known_answers(self):
+        x = np.arange(100, dtype=float)
+        assert depth_bench.spearman(x, x**3) == pytest.approx(1.0)
+        assert depth_bench.spearman(-x, x) == pytest.approx(-1.0)
+        assert depth_bench.spearman(np.ones(100), x) == 0.0  # a constant map ranks nothing
+        # ties: [1, 2, 2, 3] against [1, 2, 3, 4] -> ranks [1, 2.5, 2.5, 4]
+        r = depth_bench.spearman(np.array([1, 2, 2, 3]), np.array([1, 2, 3, 4]))
+        assert r == pytest.approx(np.corrcoef([1, 2.5, 2.5, 4], [1, 2, 3, 4])[0, 1])
+
+    def test_spearman_respects_valid_and_shapes(self):
+        truth = np.arange(16.0).reshape(4, 4)
+        pred = truth.copy()
+        pred[0, 0] = 100.0  # an outlier outside the valid pixels changes nothing
+        valid = np.ones((4, 4), bool)
+        valid[0, 0] = False
+        assert depth_bench.spearman(pred, truth, valid) == pytest.approx(1.0)
+        assert depth_bench.spearman(pred, truth) < 1.0
+        with pytest.raises(ValueError, match="shape"):
+            depth_bench.spearman(pred, truth[:2])
+
+    def test_upside_down_scores_badly(self):
+        h, w = 48, 64
+        truth = np.broadcast_to(
+            np.linspace(0, 1, h)[:, None], (h, w)
+        ) + 0.01 * np.random.default_rng(0).random((h, w))
+        ramp = depth_bench.ramp_predictor(np.zeros((h, w, 3)))
+        assert depth_bench.spearman(ramp, truth) > 0.95
+        assert depth_bench.spearman(ramp[::-1], truth) < -0.95
+        assert depth_bench.ssi_rmse(ramp, truth) < depth_bench.ssi_rmse(ramp[::-1], truth)
+
+    def test_ssi_rmse_is_scale_and_shift_free(self):
+        rng = np.random.default_rng(1)
+        truth = rng.random((20, 30))
+        # exact up to the 1 % tails, which the normalisation clips
+        assert depth_bench.ssi_rmse(3.0 * truth - 7.0, truth) < 0.003
+        two_level = (truth > 0.5).astype(float)
+        assert depth_bench.ssi_rmse(3.0 * two_level - 7.0, two_level) < 1e-9
+        assert depth_bench.ssi_rmse(rng.random((20, 30)), truth) > 0.2
+
+    def test_subject_auc(self):
+        mask = np.zeros((4, 4), bool)
+        mask[:2] = True
+        pred = np.where(mask, 1.0, 0.0)
+        assert depth_bench.subject_auc(pred, mask) == 1.0
+        assert depth_bench.subject_auc(1 - pred, mask) == 0.0
+        assert depth_bench.subject_auc(np.ones((4, 4)), mask) == 0.5  # all ties
+        with pytest.raises(ValueError, match="both"):
+            depth_bench.subject_auc(pred, np.zeros((4, 4), bool))
+
+    def test_evaluate_summary_and_sheet(self, tmp_path):
+        h, w = 40, 60
+        near = np.broadcast_to(np.linspace(0, 1, h)[:, None], (h, w)).copy()
+        photos = [
+            depth_bench.MeasuredPhoto("a", np.full((h, w, 3), 0.5, np.float32), near,
+                                      np.ones((h, w), bool)),
+        ]  # fmt: skip
+        preds = {
+            "ramp": depth_bench.ramp_predictor,
+            "flipped": lambda im: -depth_bench.ramp_predictor(im),
+        }
+        mask = np.zeros((h, w), bool)
+        mask[30:] = True
+        result = depth_bench.evaluate(preds, photos, [("m", photos[0].image, mask)])
+        s = depth_bench.summary(result, list(preds))
+        assert s["ramp"]["mean_spearman"] == pytest.approx(1.0)
+        assert s["flipped"]["mean_spearman"] == pytest.approx(-1.0)
+        assert s["flipped"]["wins_vs_ramp"] == 0
+        assert s["ramp"]["mean_subject_auc"] == 1.0 and s["flipped"]["mean_subject_auc"] == 0.0
+        table = depth_bench.format_table(result, list(preds))
+        assert "| a |" in table and "+1.000" in table and "-1.000" in table
+        path = depth_bench.contact_sheet(result, photos, list(preds), tmp_path / "s.png", cell=50)
+        with Image.open(path) as im:
+            assert im.size == (4 * 50, 18 + 50)
+
+
+# ------------------------------------------------------------------------------ refinement
+
+
+class TestSnapEdges:
+    def test_box_mean_matches_brute_force(self):
+        x = torch.rand(1, 2, 9, 11, dtype=torch.float64)
+        got = box_mean(x, 2)
+        for y, xx in [(0, 0), (4, 5), (8, 10), (1, 9)]:
+            win = x[0, 1, max(0, y - 2) : y + 3, max(0, xx - 2) : xx + 3]
+            assert float(got[0, 1, y, xx]) == pytest.approx(float(win.mean()))
+        assert torch.equal(box_mean(x, 0), x)
+
+    @staticmethod
+    def _square(n=128):
+        """A near square (1) on a far background (0), a photo with the square's colour edge,
+        and the square as a network sees it: at a quarter of the size, blurred."""
+        torch.manual_seed(0)
+        truth = torch.zeros(1, 1, n, n)
+        truth[..., 40:90, 30:100] = 1.0
+        t = truth[0, 0]
+        image = torch.stack([0.2 + 0.6 * t, 0.5 - 0.2 * t, 0.3 + 0 * t])[None]
+        image = image + 0.05 * torch.rand(1, 3, n, n)
+        small = box_mean(torch.nn.functional.interpolate(truth, size=(32, 32), mode="area"), 2)
+        soft = torch.nn.functional.interpolate(small, size=(n, n), mode="bilinear")
+        return truth, image, soft
+
+    def test_snaps_a_blurred_edge_to_the_photo(self):
+        truth, image, soft = self._square()
+        err_soft = float((soft - truth).abs().mean())  # 0.072
+        err_snap = float((snap_edges(image, soft, 12) - truth).abs().mean())  # 0.013
+        assert err_snap < 0.3 * err_soft
+
+    def test_keeps_what_it_cannot_tell_apart(self):
+        truth, image, soft = self._square()
+        grey = torch.full_like(image, 0.5)  # no colour edge: nothing to snap to
+        assert torch.allclose(snap_edges(grey, soft, 12), soft, atol=1e-5)
+        flat = torch.full_like(soft, 0.4)  # one depth in every window: nothing changes
+        assert torch.allclose(snap_edges(image, flat, 12), flat, atol=1e-6)
+        with pytest.raises(ValueError, match="map's size"):
+            snap_edges(image[..., :64], soft, 4)
+
+    def test_pipeline_refine_snap(self, tiny_checkpoint, tmp_path):
+        model = D2F.from_checkpoint(tiny_checkpoint)
+        image = np.random.default_rng(0).random((90, 120, 3)).astype(np.float32)
+        plain = model.prepare(image).disparity_lr
+        model.config.refine = "snap"
+        scene = model.prepare(image)
+        radius = max(1, round(model.config.refine_radius * max(scene.image_lr.shape[-2:])))
+        expected = snap_edges(scene.image_lr, plain, radius, model.config.refine_eps)
+        torch.testing.assert_close(scene.disparity_lr, expected.clamp(0, 1))
+        # a checkpoint saved with refine="snap" loads with it
+        model.save(tmp_path / "g.pt")
+        assert D2F.from_checkpoint(tmp_path / "g.pt").config.refine == "snap"
+        # a given map is never refined
+        given = model.prepare(image, disparity=np.full((90, 120), 0.25, np.float32))
+        np.testing.assert_allclose(given.disparity_full(), 0.25, atol=1e-6)
+
+    def test_bad_refine_config(self):
+        with pytest.raises(ValueError, match="refine"):
+            D2F.from_config({"refine": "bilateral"})
+
+
+# ------------------------------------------------------------------------------ subject focus
+
+
+class TestSubjectFocus:
+    def _layout(self, h=96, w=128):
+        return np.broadcast_to(np.linspace(0.0, 0.6, h)[:, None], (h, w)).copy()
+
+    def test_finds_a_raised_box(self):
+        d = self._layout()
+        d[20:60, 80:110] = 0.85  # a subject off centre, nearer than its rows
+        focus, (fx, fy) = find_subject(d)
+        assert focus == pytest.approx(0.85, abs=1e-6)
+        assert 80 <= fx * 128 < 110 and 20 <= fy * 96 < 60
+
+    def test_nothing_stands_out(self):
+        assert find_subject(self._layout()) is None  # a floor is no subject
+        assert find_subject(np.full((50, 50), 0.4)) is None
+        with pytest.raises(ValueError, match="H x W"):
+            find_subject(np.zeros((3, 4, 5)))
+
+    def test_model_focuses_on_the_subject(self, tiny_model):
+        h, w = 120, 160
+        disp = self._layout(h, w)
+        disp[30:70, 20:60] = 0.9
+        scene = tiny_model.prepare(np.full((h, w, 3), 0.5, np.float32), disparity=disp)
+        focus, (x, y) = tiny_model.subject_focus(scene)
+        assert focus == pytest.approx(0.9, abs=0.02)
+        assert 20 <= x < 60 and 30 <= y < 70
+        flat = tiny_model.prepare(np.full((h, w, 3), 0.5, np.float32), disparity=self._layout(h, w))
+        focus, (x, y) = tiny_model.subject_focus(flat)
+        assert (x, y) == ((w - 1) / 2, (h - 1) / 2)  # nothing stands out: the centre
+        assert focus == pytest.approx(tiny_model.focus_at(flat, x, y))
+
+
+# ------------------------------------------------------------------------------ stage 0
+
+
+def test_subject_target_stands_on_the_layout():
+    h, w = 64, 64
+    layout = depth_train.ramp(h, w)
+    mask = np.zeros((h, w), np.float32)
+    mask[10:40, 20:40] = 1.0  # bottom row 39: ramp 39/63
+    t = depth_train.subject_target(layout, mask, lift=0.0)
+    inside = t[10:40, 20:40]
+    assert np.allclose(inside, inside[0, 0])
+    # at least the contact disparity, and nearer than the layout above the contact row
+    assert inside[0, 0] >= 39 / 63 - 1e-6
+    assert (inside[0, 0] > layout[:39, 20:40]).all()
+    # outside the (grown) part the layout is untouched
+    np.testing.assert_array_equal(t[:, :15], layout[:, :15])
+    # a flat layout: the lift makes the part stand out
+    flat = np.full((h, w), 0.3, np.float32)
+    assert depth_train.subject_target(flat, mask, lift=0.05)[20, 30] == pytest.approx(0.35)
+
+
+def test_ssi_align_and_gradient_loss():
+    target = torch.rand(2, 1, 16, 16)
+    pred = 0.5 * target + 0.2
+    assert torch.allclose(depth_train.ssi_align(pred, target), target, atol=1e-5)
+    assert float(depth_train.gradient_matching_loss(target, target)) == 0.0
+    assert float(depth_train.gradient_matching_loss(target.flip(-1), target)) > 0.05
+    loss, parts = depth_train.depth_loss(pred, target, torch.tensor([True, True]), 0.0)
+    assert float(loss) < 1e-4  # relative targets: scale and shift are free
+    loss, parts = depth_train.depth_loss(pred, target, torch.tensor([False, False]), 0.0)
+    assert parts["l1"] > 0.05  # absolute targets: they are not
+
+
+def _tiny_datasets(root: Path, labels: Path, n: int = 6) -> None:
+    """A datasets folder like ../shared/datasets: ECSSD-style photos with binary masks,
+    plain photos, and teacher labels written by hand."""
+    rng = np.random.default_rng(0)
+    (root / "salient/ecssd/images").mkdir(parents=True)
+    (root / "salient/ecssd/masks").mkdir(parents=True)
+    (root / "photos/bsds500").mkdir(parents=True)
+    labels.mkdir(parents=True)
+    for i in range(n):
+        img = (rng.random((60, 80, 3)) * 255).astype(np.uint8)
+        mask = np.zeros((60, 80), np.uint8)
+        mask[20:50, 25:55] = 255
+        Image.fromarray(img).save(root / f"salient/ecssd/images/{i:04d}.jpg")
+        Image.fromarray(mask).save(root / f"salient/ecssd/masks/{i:04d}.png")
+        Image.fromarray(img).save(root / f"photos/bsds500/{i}.jpg")
+    for photo in teachers.iter_photos(root):
+        fg = np.zeros((257, 257), np.uint8)
+        fg[80:200, 80:200] = 230
+        depth = np.tile(np.linspace(200, 20, 224, dtype=np.uint8)[:, None], (1, 224))
+        np.savez(labels / f"{photo.key}.npz", fg=fg, depth=depth)
+
+
+def test_iter_photos_masks_and_labels(tmp_path):
+    root, labels = tmp_path / "datasets", tmp_path / "labels"
+    _tiny_datasets(root, labels)
+    photos = list(teachers.iter_photos(root))
+    assert len(photos) == 12 and sum(p.mask is not None for p in photos) == 6
+    masked = next(p for p in photos if p.mask is not None)
+    m = teachers.read_mask(masked, (30, 40))
+    assert m.shape == (30, 40) and m[17, 20] == 1.0 and m[2, 2] == 0.0
+    fg, disp = teachers.read_label(labels / f"{masked.key}.npz", (30, 40))
+    assert fg.shape == disp.shape == (30, 40)
+    assert fg[15, 20] > 0.8 and fg[1, 1] < 0.05
+    assert disp[-1].mean() > disp[0].mean() + 0.5  # depth 20 at the bottom: nearest
+
+
+def test_coco_masks_count_things_only(tmp_path):
+    path = tmp_path / "m.png"
+    arr = np.zeros((8, 8), np.uint8)
+    arr[:4] = 1  # person (a thing)
+    arr[4:6] = 150  # a "stuff" class
+    Image.fromarray(arr).save(path)
+    photo = teachers.Photo(tmp_path / "x.jpg", "salient/coco128", path, "coco")
+    m = teachers.read_mask(photo, (8, 8))
+    assert m[:4].all() and not m[4:].any()
+
+
+def test_heldout_split_is_fixed_and_about_a_tenth():
+    photos = [teachers.Photo(Path(f"{i}.jpg"), "photos/bsds500", None, None) for i in range(2000)]
+    held = [p for p in photos if depth_train.is_heldout(p)]
+    assert 140 < len(held) < 260
+    assert held == [p for p in photos if depth_train.is_heldout(p)]
+
+
+def test_samples_and_short_training_roundtrip(tmp_path, tiny_checkpoint, one_thread):
+    root, labels = tmp_path / "datasets", tmp_path / "labels"
+    _tiny_datasets(root, labels)
+    data = depth_train.RealDepthData(root, labels, size=(48, 64), paste=1.0, synth=0.0)
+    rng = random.Random(0)
+    for _ in range(4):
+        s = data.sample(rng)
+        assert s.image.shape == (48, 64, 3) and s.target.shape == (48, 64) and s.relative
+        assert 0 <= s.image.min() and s.image.max() <= 1
+        assert s.target.min() == pytest.approx(0) and s.target.max() == pytest.approx(1)
+    synth = depth_train.RealDepthData(root, labels, size=(48, 64), synth=1.0).sample(rng)
+    assert not synth.relative and synth.target.shape == (48, 64)
+
+    args = depth_train.build_parser().parse_args(
+        ["--data", str(root), "--labels", str(labels), "--out", str(tmp_path / "run"),
+         "--steps", "3", "--batch-size", "2", "--crop", "64", "--save-every", "2",
+         "--keep-every", "2", "--workers", "0", "--threads", "1", "--log-every", "1"]
+    )  # fmt: skip
+    assert isinstance(args, argparse.Namespace)
+    last = depth_train.train_depth(args)
+    state = torch.load(last, map_location="cpu", weights_only=True)
+    assert state["step"] == 3 and (tmp_path / "run" / "depth_000002.pt").is_file()
+    # resuming at the last step trains nothing more
+    assert torch.load(depth_train.train_depth(args), weights_only=True)["step"] == 3
+    out = depth_train.export_checkpoint(
+        last, tiny_checkpoint, tmp_path / "d2f.pt", ["refine=snap", "network_size=96"]
+    )
+    model = D2F.from_checkpoint(out)
+    assert model.config.refine == "snap" and model.config.network_size == 96
+    for key, value in state["state_dict"].items():
+        assert torch.equal(model.defocus_net.state_dict()[key], value)
+    base = D2F.from_checkpoint(tiny_checkpoint)
+    for key, value in base.fusion_net.state_dict().items():
+        assert torch.equal(model.fusion_net.state_dict()[key], value)
+    with pytest.raises(ValueError, match="KEY=VALUE"):
+        depth_train.export_checkpoint(last, tiny_checkpoint, tmp_path / "x.pt", ["nope=1"])
+
+
+# ------------------------------------------------------------------------------ teachers
+
+DATASETS = Path(__file__).resolve().parents[2] / "shared" / "datasets"
+
+
+@pytest.mark.shared_data
+def test_teachers_label_real_photos(tmp_path):
+    """The two teachers run on three real masked photos (linked, not copied, into a tmp
+    folder): the VOC foreground covers the human-drawn subject better than chance, and a
+    second call labels nothing new."""
+    pytest.importorskip("onnxruntime", reason="onnxruntime is not installed (.[teach])")
+    pytest.importorskip("ai_edge_litert", reason="ai-edge-litert is not installed (.[teach])")
+    src = DATASETS / "salient" / "ecssd"
+    if not (DATASETS / "teachers").is_dir() or not src.is_dir():
+        pytest.skip(f"training datasets not available: {DATASETS}")
+    root = tmp_path / "datasets"
+    (root / "salient/ecssd/images").mkdir(parents=True)
+    (root / "salient/ecssd/masks").mkdir(parents=True)
+    names = sorted(p.stem for p in (src / "images").iterdir())[:3]
+    for name in names:
+        (root / f"salient/ecssd/images/{name}.jpg").symlink_to(src / f"images/{name}.jpg")
+        (root / f"salient/ecssd/masks/{name}.png").symlink_to(src / f"masks/{name}.png")
+    labels = tmp_path / "labels"
+    n = teachers.label_photos(root, labels, DATASETS / "teachers", threads=1)
+    assert n == 3 and teachers.label_photos(root, labels, DATASETS / "teachers", threads=1) == 0
+    aucs = []
+    for photo in teachers.iter_photos(root):
+        with np.load(labels / f"{photo.key}.npz") as z:
+            assert z["fg"].shape == (257, 257) and z["fg"].dtype == np.uint8
+            assert z["depth"].shape == (224, 224) and z["depth"].dtype == np.uint8
+        fg, disp = teachers.read_label(labels / f"{photo.key}.npz", (64, 64))
+        mask = teachers.read_mask(photo, (64, 64)) > 0.5
+        aucs.append(depth_bench.subject_auc(fg, mask))
+        assert 0 <= disp.min() and disp.max() <= 1
+    assert np.mean(aucs) > 0.6
