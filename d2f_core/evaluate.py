@@ -38,6 +38,7 @@ from .pipeline import D2F, D2FConfig, _coc_to_defocus
 __all__ = [
     "FUSION_METHODS",
     "alpha_blend",
+    "click_focus",
     "disparity_errors",
     "gaussian_background_baseline",
     "gaussian_baseline",
@@ -217,6 +218,18 @@ def gaussian_background_baseline(
     return (sharp * image + (1 - sharp) * blurred).astype(np.float32)
 
 
+def click_focus(
+    predicted: np.ndarray, true: np.ndarray, focus: float, tolerance: float = 0.02
+) -> float:
+    """The predicted disparity where the true map is in focus (median over the pixels within
+    ``tolerance`` of ``focus``): what clicking the sharp part of the target would pick.
+    ``focus`` itself when no pixel is that close (a focal plane between the objects)."""
+    near = np.abs(true - focus) < tolerance
+    if not near.any():
+        return float(focus)
+    return float(np.clip(np.median(predicted[near]), 0.0, 1.0))
+
+
 def _score(pred: np.ndarray, target: np.ndarray) -> tuple[float, float]:
     return metrics.psnr(pred, target), metrics.ssim(pred, target)
 
@@ -269,6 +282,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="identity: the input; gaussian: blur everything; gaussian-bg: blur all but the "
         "in-focus pixels of the true disparity",
     )
+    p.add_argument(
+        "--focus-by",
+        choices=("given", "click"),
+        default="given",
+        help="given: render at the pair's focal disparity; click: at the model's own disparity "
+        "where the pair is in focus (the median over the pixels whose true disparity is within "
+        "0.02 of the focus), as a user clicking the sharp subject would",
+    )
     p.add_argument("--sigma", type=float, default=3.0, help="gaussian baseline sigma (px)")
     p.add_argument("--theta", type=float, default=0.25, help="binary-mask threshold on D")
     p.add_argument("--limit", type=int, default=None, help="evaluate the first N pairs")
@@ -317,7 +338,10 @@ def _run(args: argparse.Namespace) -> int:
         else:
             focus, blur = _focus_blur(item, model.config)
             disparity = item["disparity"][0].numpy() if args.use_gt_disparity else None
-            result = model.render(model.prepare(image, disparity=disparity), focus, blur)
+            scene = model.prepare(image, disparity=disparity)
+            if args.focus_by == "click" and item["has_disparity"]:
+                focus = click_focus(scene.disparity_full(), item["disparity"][0].numpy(), focus)
+            result = model.render(scene, focus, blur)
             pred = result.bokeh
             if item["has_disparity"] and not args.use_gt_disparity:
                 gt = torch.from_numpy(item["disparity"][0].numpy())[None, None]

@@ -356,3 +356,87 @@ def test_teachers_label_real_photos(tmp_path):
         aucs.append(depth_bench.subject_auc(fg, mask))
         assert 0 <= disp.min() and disp.max() <= 1
     assert np.mean(aucs) > 0.6
+
+
+SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+@pytest.mark.shared_data
+def test_measured_photos_load_upright_with_their_depth():
+    """The 12 measured-depth photos load with the right orientation and sign: the plain
+    ramp ("the bottom is near") ranks every one of them positively (its mean, measured,
+    is 0.607), and the same ramp upside down ranks every one negatively."""
+    if not SHARED_DATA.is_dir():
+        pytest.skip(f"shared data not available: {SHARED_DATA}")
+    pytest.importorskip("pillow_heif", reason="pillow-heif is needed for pug.heic")
+    photos = depth_bench.measured_photos(SHARED_DATA)
+    assert len(photos) == 12 and len({p.name for p in photos}) == 12
+    rhos = []
+    for ph in photos:
+        assert ph.valid.mean() > 0.5, ph.name
+        assert (
+            abs(ph.image.shape[0] / ph.image.shape[1] - ph.nearness.shape[0] / ph.nearness.shape[1])
+            < 0.02
+        )
+        ramp = depth_bench._resize(depth_bench.ramp_predictor(ph.image), ph.nearness.shape)
+        rho = depth_bench.spearman(ramp, ph.nearness, ph.valid)
+        assert rho > 0.3, ph.name
+        assert depth_bench.spearman(ramp[::-1], ph.nearness, ph.valid) == pytest.approx(
+            -rho, abs=1e-3
+        )
+        rhos.append(rho)
+    assert np.mean(rhos) == pytest.approx(0.607, abs=0.01)
+
+
+def test_bench_depth_reports_missing_data(tmp_path, capsys):
+    code = depth_bench.main(["--data", str(tmp_path / "none"), "--no-masks"])
+    err = capsys.readouterr().err
+    assert code == 1 and err.startswith("d2f-bench depth: error:") and "none" in err
+    assert "Traceback" not in err
+
+
+# ------------------------------------------------------------------------------ photo scenes
+
+
+def test_photo_scene_subject_stands_in_front():
+    from d2f_core.synth import render_pinhole, render_thin_lens
+    from d2f_core.synth.photo import make_photo_scene
+
+    rng = np.random.default_rng(0)
+    background = rng.random((80, 120, 3)).astype(np.float32)
+    alpha = np.zeros((40, 30), np.float32)
+    alpha[5:35, 5:25] = 1.0
+    cut = (np.full((40, 30, 3), 0.9, np.float32), alpha)
+    scene = make_photo_scene((64, 96), seed=1, background=background, subjects=[cut],
+                             occluder=cut, margin=8)  # fmt: skip
+    kinds = [lay.kind for lay in scene.layers]
+    assert kinds[0] == "background" and "subject" in kinds and kinds[-1] == "occluder"
+    orders = [lay.order for lay in scene.layers]
+    assert orders == sorted(orders)  # back to front
+    _, disp = render_pinhole(scene)
+    subject = next(lay for lay in scene.layers if lay.kind == "subject")
+    assert scene.subject == subject.disparity
+    # the background plane slopes: its top is farther than its bottom
+    bg = scene.layers[0]
+    assert bg.slope[0] >= 0 and 0 <= bg.disparity - bg.slope[0] * 31.5
+    assert disp.max() <= 1 and (disp == subject.disparity).any()
+    out = render_thin_lens(scene, scene.subject, 10.0, samples=16)
+    assert np.isfinite(out).all() and out.shape == (64, 96, 3)
+    with pytest.raises(ValueError, match="at least one"):
+        make_photo_scene((64, 96), seed=1, background=background, subjects=[])
+
+
+def test_photo_scenes_from_a_datasets_folder(tmp_path):
+    from d2f_core.synth.dataset import make_pair
+    from d2f_core.synth.photo import PhotoScenes
+
+    root, labels = tmp_path / "datasets", tmp_path / "labels"
+    _tiny_datasets(root, labels, n=30)
+    held = PhotoScenes(root, split="heldout")
+    train = PhotoScenes(root, split="train")
+    assert not {p.path for p in held.subjects} & {p.path for p in train.subjects}
+    pair = make_pair((48, 64), seed=3, samples=8, scene_fn=train)
+    again = make_pair((48, 64), seed=3, samples=8, scene_fn=train)
+    np.testing.assert_array_equal(pair.bokeh, again.bokeh)  # a seed gives one scene
+    assert pair.image.shape == (48, 64, 3) and pair.disparity.shape == (48, 64)
+    assert pair.params["layers"][0]["kind"] == "background"

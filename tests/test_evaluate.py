@@ -14,6 +14,7 @@ from d2f_core.data import EBBDataset
 from d2f_core.evaluate import (
     FUSION_METHODS,
     alpha_blend,
+    click_focus,
     disparity_errors,
     gaussian_background_baseline,
     gaussian_baseline,
@@ -149,7 +150,26 @@ def test_gaussian_background_baseline_keeps_focus_sharp():
     assert out[:, 25:].std() < 0.5 * image[:, 25:].std()
 
 
+def test_click_focus():
+    true = np.zeros((4, 4))
+    true[:2] = 0.8  # the sharp subject at 0.8
+    predicted = np.where(true > 0, 0.6, 0.1)
+    predicted[0, 0] = 0.9
+    assert click_focus(predicted, true, 0.8) == 0.6  # median over the subject's pixels
+    assert click_focus(predicted, true, 0.4) == 0.4  # nothing in focus: the given focus
+
+
 class TestCLI:
+    def test_focus_by_click(self, setup, tmp_path, capsys):
+        """With the true disparity, clicking the in-focus pixels picks the given focus
+        back (the pairs' focus lies on a plane), so both protocols agree exactly."""
+        data, weights, _ = setup
+        argv = [str(data), "--weights", str(weights), "--split", "all", "--use-gt-disparity"]
+        assert main([*argv, "--out", str(tmp_path / "a")]) == 0
+        assert main([*argv, "--out", str(tmp_path / "b"), "--focus-by", "click"]) == 0
+        a, b = _rows(tmp_path / "a" / "eval_all.csv"), _rows(tmp_path / "b" / "eval_all.csv")
+        assert [r["psnr"] for r in a] == [r["psnr"] for r in b]
+
     def test_eval_csv(self, setup, tmp_path, capsys):
         data, weights, _ = setup
         assert main([str(data), "--weights", str(weights), "--out", str(tmp_path)]) == 0

@@ -7,17 +7,20 @@ import json
 import logging
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from .lens import linear_to_srgb, render_pinhole, render_thin_lens
+from .lens import Scene, linear_to_srgb, render_pinhole, render_thin_lens
 from .scene import _describe_layers, builtin_textures, load_textures, make_scene
 
 logger = logging.getLogger(__name__)
+
+#: ``scene_fn(size, seed, margin) -> Scene``: a scene maker other than :func:`make_scene`
+SceneFn = Callable[[tuple[int, int], int, int], Scene]
 
 
 @dataclass
@@ -57,6 +60,7 @@ def make_pair(
     encoding: str = "srgb",
     textures: Sequence[np.ndarray] | None = None,
     device: torch.device | str | None = None,
+    scene_fn: SceneFn | None = None,
 ) -> SynthPair:
     """One pinhole / thin-lens training pair with its disparity.
 
@@ -64,6 +68,9 @@ def make_pair(
     main subject at ``K = blur_fraction * max(size)`` (like EBB!: one lens, subject sharp);
     the rest use a random focal plane (uniform, or a random layer's disparity) and a random
     ``K`` in ``[0.02, 0.12] * max(size)``.
+
+    ``scene_fn(size, seed, margin)``, when given, makes the scene instead of
+    :func:`make_scene` (for example :class:`~d2f_core.synth.photo.PhotoScenes`).
 
     Returns:
         :class:`SynthPair`; ``params["blur"]`` is K in px at ``size``.
@@ -82,7 +89,11 @@ def make_pair(
         blur = round(float(frac * long_side), 3)
     if blur < 0:
         raise ValueError(f"blur must be >= 0, got {blur!r}")
-    scene = make_scene(size, seed=seed, margin=math.ceil(blur / 2) + 2, textures=textures)
+    margin = math.ceil(blur / 2) + 2
+    if scene_fn is None:
+        scene = make_scene(size, seed=seed, margin=margin, textures=textures)
+    else:
+        scene = scene_fn(size, seed, margin)
     if focus is None:
         if mode == "subject":
             focus = scene.subject
@@ -134,6 +145,7 @@ def generate_dataset(
     encoding: str = "srgb",
     textures: Sequence[np.ndarray] | None = None,
     device: torch.device | str | None = None,
+    scene_fn: SceneFn | None = None,
 ) -> list[str]:
     """Write ``n`` pairs in EBB! layout and return their ids.
 
@@ -168,6 +180,7 @@ def generate_dataset(
             encoding=encoding,
             textures=textures,
             device=device,
+            scene_fn=scene_fn,
         )
         _save_rgb(root / "original" / f"{pid}.{fmt}", pair.image, fmt)
         _save_rgb(root / "bokeh" / f"{pid}.{fmt}", pair.bokeh, fmt)
@@ -223,6 +236,20 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         help="extra folder of texture photos (added to the scikit-image ones)",
     )
+    parser.add_argument(
+        "--photos",
+        type=Path,
+        default=None,
+        metavar="DATASETS",
+        help="make the scenes of real photos from this datasets folder (cut-out subjects on "
+        "photo backgrounds, d2f_core.synth.photo) instead of generated shapes",
+    )
+    parser.add_argument(
+        "--photo-split",
+        choices=("heldout", "train"),
+        default="heldout",
+        help="with --photos: the photos depth training never sees, or the others",
+    )
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads")
     parser.add_argument("-v", "--verbose", action="store_true")
     args = parser.parse_args(argv)
@@ -236,6 +263,11 @@ def main(argv: list[str] | None = None) -> int:
         textures = None
         if args.textures is not None:
             textures = list(builtin_textures()) + load_textures(args.textures)
+        scene_fn = None
+        if args.photos is not None:
+            from .photo import PhotoScenes
+
+            scene_fn = PhotoScenes(args.photos, split=args.photo_split)
         generate_dataset(
             args.out,
             args.count,
@@ -248,6 +280,7 @@ def main(argv: list[str] | None = None) -> int:
             blur_fraction=args.blur_fraction,
             encoding=args.encoding,
             textures=textures,
+            scene_fn=scene_fn,
         )
     except (ValueError, TypeError, OSError) as err:
         logging.getLogger(__name__).error("d2f-synth: %s", err)
