@@ -467,7 +467,13 @@ def apply_overrides(config: dict[str, Any], overrides: Sequence[str]) -> dict[st
             raise ValueError(
                 f"--set needs KEY=VALUE with KEY one of {sorted(config)}, got {item!r}"
             )
-        config[key] = type(config[key])(value)
+        kind = type(config[key])
+        if kind is bool:
+            if value.lower() not in ("true", "false", "1", "0"):
+                raise ValueError(f"--set {key}= needs true or false, got {value!r}")
+            config[key] = value.lower() in ("true", "1")
+        else:
+            config[key] = kind(value)
     return config
 
 

@@ -440,3 +440,27 @@ def test_photo_scenes_from_a_datasets_folder(tmp_path):
     np.testing.assert_array_equal(pair.bokeh, again.bokeh)  # a seed gives one scene
     assert pair.image.shape == (48, 64, 3) and pair.disparity.shape == (48, 64)
     assert pair.params["layers"][0]["kind"] == "background"
+
+
+def test_flip_average_makes_the_map_mirror_with_the_photo(tiny_checkpoint):
+    """Averaged with its mirror image, the network's map of a mirrored photo is the mirrored
+    map (a random network alone is not symmetric, so the plain maps differ)."""
+    from d2f_core.train import apply_overrides
+
+    model = D2F.from_checkpoint(tiny_checkpoint)
+    image = np.random.default_rng(2).random((64, 96, 3)).astype(np.float32)
+    mirrored = np.ascontiguousarray(image[:, ::-1])
+
+    def maps():
+        return model.prepare(image).disparity_full(), model.prepare(mirrored).disparity_full()
+
+    a, b = maps()
+    assert np.abs(a[:, ::-1] - b).max() > 1e-3
+    model.config = type(model.config).from_dict(
+        apply_overrides(model.config.to_dict(), ["flip_average=true"])
+    )
+    assert model.config.flip_average is True
+    a, b = maps()
+    np.testing.assert_allclose(a[:, ::-1], b, atol=1e-5)
+    with pytest.raises(ValueError, match="true or false"):
+        apply_overrides(model.config.to_dict(), ["flip_average=maybe"])
