@@ -11,7 +11,9 @@ Two test sets, both read from outside the package and skipped with a reason when
   scores about ``-rho``.
 - **Held-out masks** (``../shared/datasets``): the masked photos that depth training never
   sees (:func:`d2f_core.depth_train.is_heldout`). Per photo the subject AUC: the chance that
-  a random subject pixel is predicted nearer than a random background pixel (ties half).
+  a random subject pixel is predicted nearer than a random background pixel (ties half),
+  over the whole frame and within 8 px of the silhouette (:func:`edge_band`), where a map
+  that ends in a soft blob scores about 0.5.
 
 Beside every network it scores a plain ramp ("the bottom of the image is near") in the same
 run, and ``--sheet`` draws a contact sheet: photo | measured | each predictor.
@@ -33,6 +35,7 @@ import torch.nn.functional as F
 
 __all__ = [
     "MeasuredPhoto",
+    "edge_band",
     "evaluate",
     "heldout_masks",
     "main",
@@ -121,6 +124,15 @@ def subject_auc(pred: np.ndarray, mask: np.ndarray) -> float:
     ranks = rankdata(pred)
     u = ranks[m].sum() - n1 * (n1 + 1) / 2.0
     return float(u / (n1 * n0))
+
+
+def edge_band(mask: np.ndarray, width: int = 8) -> np.ndarray:
+    """Pixels within ``width`` px of the mask's silhouette, on either side."""
+    from skimage.morphology import dilation, disk, erosion
+
+    m = np.asarray(mask, bool)
+    fp = disk(width)
+    return dilation(m, fp) & ~erosion(m, fp)
 
 
 # ------------------------------------------------------------------------------ data
@@ -292,10 +304,13 @@ def evaluate(
             result["maps"][(ph.name, name)] = pred
         result["photos"][ph.name] = row
     for key, image, mask in masks:
-        result["masks"][key] = {
-            name: subject_auc(_resize(fn(image), mask.shape), mask)
-            for name, fn in predictors.items()
-        }
+        band = edge_band(mask)
+        row = {}
+        for name, fn in predictors.items():
+            pred = _resize(fn(image), mask.shape)
+            row[name] = subject_auc(pred, mask)
+            row[name + "@edge"] = subject_auc(pred[band], mask[band])
+        result["masks"][key] = row
     return result
 
 
@@ -309,12 +324,14 @@ def summary(result: dict, predictors: Sequence[str], baseline: str = "ramp") -> 
             row[name]["spearman"] > row[baseline]["spearman"] for row in result["photos"].values()
         )
         aucs = [row[name] for row in result["masks"].values()]
+        edge = [row[name + "@edge"] for row in result["masks"].values()]
         out[name] = {
             "mean_spearman": float(np.mean(rhos)) if rhos else float("nan"),
             "mean_ssi_rmse": float(np.mean(rmses)) if rmses else float("nan"),
             "wins_vs_" + baseline: int(wins),
             "photos": len(rhos),
             "mean_subject_auc": float(np.mean(aucs)) if aucs else float("nan"),
+            "mean_edge_auc": float(np.mean(edge)) if edge else float("nan"),
             "subject_auc_over_0.5": int(sum(a > 0.5 for a in aucs)),
             "masks": len(aucs),
         }
@@ -391,6 +408,11 @@ def format_table(result: dict, predictors: Sequence[str]) -> str:
                 f"{s[p]['masks']} > 0.5)"
                 for p in predictors
             )
+            + " |"
+        )
+        lines.append(
+            "| held-out subject AUC within 8 px of the silhouette | "
+            + " | ".join(f"{s[p]['mean_edge_auc']:.3f}" for p in predictors)
             + " |"
         )
     return "\n".join(lines)

@@ -74,6 +74,14 @@ class TestMetrics:
         with pytest.raises(ValueError, match="both"):
             depth_bench.subject_auc(pred, np.zeros((4, 4), bool))
 
+    def test_edge_band(self):
+        mask = np.zeros((40, 40), bool)
+        mask[10:30, 10:30] = True
+        band = depth_bench.edge_band(mask, width=3)
+        assert band[10, 20] and band[8, 20] and band[12, 20]  # both sides of the edge
+        assert not band[20, 20] and not band[2, 20]  # deep inside and far outside
+        assert not depth_bench.edge_band(np.zeros((5, 5), bool)).any()
+
     def test_evaluate_summary_and_sheet(self, tmp_path):
         h, w = 40, 60
         near = np.broadcast_to(np.linspace(0, 1, h)[:, None], (h, w)).copy()
@@ -93,6 +101,7 @@ class TestMetrics:
         assert s["flipped"]["mean_spearman"] == pytest.approx(-1.0)
         assert s["flipped"]["wins_vs_ramp"] == 0
         assert s["ramp"]["mean_subject_auc"] == 1.0 and s["flipped"]["mean_subject_auc"] == 0.0
+        assert s["ramp"]["mean_edge_auc"] == 1.0 and s["flipped"]["mean_edge_auc"] == 0.0
         table = depth_bench.format_table(result, list(preds))
         assert "| a |" in table and "+1.000" in table and "-1.000" in table
         path = depth_bench.contact_sheet(result, photos, list(preds), tmp_path / "s.png", cell=50)
