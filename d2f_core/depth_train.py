@@ -195,7 +195,6 @@ class RealDepthData:
         self.synth = synth
         self.layout_teacher = layout_teacher
         self.fg_min_area, self.fg_max_area = fg_min_area, fg_max_area
-        self._textures = None
 
     # -- pieces
     def _photo(
@@ -244,6 +243,37 @@ class RealDepthData:
             rgb, alpha = rgb[:, ::-1], alpha[:, ::-1]
         return rgb, alpha
 
+    def _paste(
+        self,
+        img: np.ndarray,
+        target: np.ndarray,
+        rgb: np.ndarray,
+        a: np.ndarray,
+        rng: random.Random,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Composite a cut-out over ``img`` at a random place (up to a quarter of it may
+        leave the frame), nearer than everything it covers and at least at the target's
+        disparity where its lowest row stands; returns the new image and target."""
+        th, tw = self.size
+        ch, cw = a.shape
+        y = rng.randint(-ch // 4, th - 3 * ch // 4)
+        x = rng.randint(-cw // 4, tw - 3 * cw // 4)
+        ya, yb, xa, xb = max(0, y), min(th, y + ch), max(0, x), min(tw, x + cw)
+        if yb <= ya or xb <= xa:
+            return img, target
+        a_c = a[ya - y : yb - y, xa - x : xb - x]
+        rgb_c = rgb[ya - y : yb - y, xa - x : xb - x]
+        inside = a_c >= 0.5
+        if not inside.any():
+            return img, target
+        rows = np.nonzero(inside.any(axis=1))[0]
+        contact = float(np.median(target[ya + rows[-1], xa:xb][inside[rows[-1]]]))
+        value = min(1.0, max(contact, float(target[ya:yb, xa:xb][inside].max()) + 0.05))
+        img, target = img.copy(), target.copy()
+        img[ya:yb, xa:xb] = a_c[..., None] * rgb_c + (1 - a_c[..., None]) * img[ya:yb, xa:xb]
+        target[ya:yb, xa:xb] = a_c * value + (1 - a_c) * target[ya:yb, xa:xb]
+        return img, _normalise(target)
+
     def _synth(self, rng: random.Random) -> DepthSample:
         from .synth import linear_to_srgb, make_scene, render_pinhole
 
@@ -262,29 +292,7 @@ class RealDepthData:
         if rng.random() < self.paste:
             cut = self._cutout(rng)
             if cut is not None:
-                rgb, a = cut
-                th, tw = self.size
-                ch, cw = a.shape
-                y = rng.randint(-ch // 4, th - 3 * ch // 4)
-                x = rng.randint(-cw // 4, tw - 3 * cw // 4)
-                ya, yb, xa, xb = max(0, y), min(th, y + ch), max(0, x), min(tw, x + cw)
-                if yb > ya and xb > xa:
-                    a_c = a[ya - y : yb - y, xa - x : xb - x]
-                    rgb_c = rgb[ya - y : yb - y, xa - x : xb - x]
-                    covered = target[ya:yb, xa:xb][a_c >= 0.5]
-                    if covered.size:
-                        rows = np.nonzero((a_c >= 0.5).any(axis=1))[0]
-                        contact = float(
-                            np.median(target[ya + rows[-1], xa:xb][a_c[rows[-1]] >= 0.5])
-                        )
-                        value = min(1.0, max(contact, float(covered.max()) + 0.05))
-                        img = img.copy()
-                        img[ya:yb, xa:xb] = (
-                            a_c[..., None] * rgb_c + (1 - a_c[..., None]) * img[ya:yb, xa:xb]
-                        )
-                        target = target.copy()
-                        target[ya:yb, xa:xb] = a_c * value + (1 - a_c) * target[ya:yb, xa:xb]
-                        target = _normalise(target)
+                img, target = self._paste(img, target, *cut, rng)
         if rng.random() < 0.5:
             img, target = img[:, ::-1], target[:, ::-1]
         # mild photometric jitter
@@ -439,7 +447,7 @@ def train_depth(args: argparse.Namespace) -> Path:
             }
             log.write(json.dumps(rec) + "\n")
             log.flush()
-            logger.info("step %d loss %.4f %s", step, float(loss), parts)
+            logger.info("step %d loss %.4f %s", step, loss.item(), parts)
         if step % args.save_every == 0 or step == args.steps:
             state = {
                 "state_dict": net.state_dict(),
