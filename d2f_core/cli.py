@@ -652,7 +652,7 @@ def _cmd_batch(args: argparse.Namespace) -> int:
             depth_file = _find_depth_file(args.depth, src.stem) if args.depth else None
             try:
                 render_file(src, dst, args, engine, depth_file)
-            except (ValueError, OSError, RenderError, RuntimeError) as exc:
+            except Exception as exc:  # one bad file must never stop the batch
                 failed.append(src)
                 msg = _message(exc)
                 logger.error("skipped %s", msg if str(src) in msg else f"{src}: {msg}")
@@ -664,10 +664,15 @@ def _cmd_batch(args: argparse.Namespace) -> int:
     return 0
 
 
+_EXPECTED_ERRORS = (RenderError, ValueError, OSError, RuntimeError)
+
+
 def _message(exc: BaseException) -> str:
     text = str(exc) or type(exc).__name__
     if isinstance(exc, OSError) and exc.strerror and exc.filename:
         text = f"{exc.filename}: {exc.strerror}"
+    if not isinstance(exc, _EXPECTED_ERRORS):  # a defect of d2f, not of the input
+        text = f"unexpected {type(exc).__name__}: {text} (please report it)"
     return text
 
 
@@ -687,8 +692,9 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_usage(sys.stderr)
         print(f"{PROG}: error: {exc}", file=sys.stderr)
         return 2
-    except (RenderError, ValueError, OSError, RuntimeError) as exc:
+    except Exception as exc:  # expected ones name the problem; any other, one line too
         print(f"{PROG}: error: {_message(exc)}", file=sys.stderr)
+        logger.debug("traceback", exc_info=True)
         return 1
     except KeyboardInterrupt:
         print(f"{PROG}: interrupted", file=sys.stderr)

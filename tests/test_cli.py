@@ -298,9 +298,11 @@ class TestRender:
         disp[20:60, 10:50] = 0.9
         src = _write_photo(tmp_path / "p.png", img)
         save_depth(tmp_path / "d.png", disp)
+        # K = 60 px puts the floor beyond the fusion gate, so the tiny model's random fusion
+        # network cannot keep it sharp
         extra = ["--weights", checkpoint] if with_model else []
         code, err = _run(
-            capsys, "render", src, "-o", tmp_path / "o.png", "--blur", 24,
+            capsys, "render", src, "-o", tmp_path / "o.png", "--blur", 60,
             "--depth", tmp_path / "d.png", *extra, "-v",
         )  # fmt: skip
         assert code == 0, err
@@ -352,6 +354,32 @@ class TestBatch:
         assert code == 1
         assert "corrupt.jpg" in err and "1 of 3 photos failed" in err
         assert sorted(p.name for p in out.iterdir()) == ["img0_bokeh.png", "img1_bokeh.png"]
+
+    def test_an_unexpected_error_skips_one_file_only(self, tmp_path, capsys, monkeypatch):
+        """A defect raising something other than ValueError (an IndexError from a reader)
+        on one photo is reported for that photo, and the batch renders the others."""
+        import d2f_core.cli as cli
+
+        photos, depths = self._folder(tmp_path)
+        real = cli.render_file
+
+        def flaky(src, *args, **kwargs):
+            if src.name == "img0.png":
+                raise IndexError("list index out of range")
+            return real(src, *args, **kwargs)
+
+        monkeypatch.setattr(cli, "render_file", flaky)
+        out = tmp_path / "out"
+        code, err = _run(capsys, "batch", photos, "-o", out, "--blur", 6, "--depth", depths)
+        assert code == 1
+        assert "img0.png: unexpected IndexError: list index out of range" in err
+        assert "1 of 2 photos failed" in err
+        assert sorted(p.name for p in out.iterdir()) == ["img1_bokeh.png"]
+        # the same defect in 'd2f render' is one line, without a traceback
+        code, err = _run(capsys, "render", photos / "img0.png", "-o", out / "x.png", "--blur", 6,
+                         "--depth", depths / "img0_depth.png")  # fmt: skip
+        assert code == 1 and err.strip().count("\n") == 0
+        assert err.startswith("d2f: error: unexpected IndexError")
 
     def test_output_folder_equal_to_input_refused(self, tmp_path, capsys):
         photos, depths = self._folder(tmp_path)
