@@ -1,4 +1,4 @@
-"""App latency benchmark: ``python -m d2f_core.bench app`` (or ``python -m app.bench``).
+"""App latency benchmark: ``python -m app.bench``.
 
 Times the app's handlers (:class:`app.handlers.RefocusApp`) on a 12 MP photo, in process
 and without HTTP, next to the core calls they wrap:
@@ -175,8 +175,10 @@ def format_report(result: dict[str, Any]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m app.bench`` / ``python -m d2f_core.bench app``."""
-    parser = argparse.ArgumentParser(prog="d2f-bench app", description=__doc__.splitlines()[0])
+    """``python -m app.bench``."""
+    parser = argparse.ArgumentParser(
+        prog="python -m app.bench", description=__doc__.splitlines()[0]
+    )
     parser.add_argument("--size", default="3000x4000", help="HxW of the photo (default 12 MP)")
     parser.add_argument("--repeat", type=int, default=5)
     parser.add_argument("--blur", type=float, default=None, help="K in px (default 2%% of side)")

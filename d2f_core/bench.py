@@ -1,4 +1,5 @@
-"""Benchmarks: ``python -m d2f_core.bench render|app|accuracy|depth`` (also ``d2f-bench``).
+"""Benchmarks: ``python -m d2f_core.bench render|accuracy|depth`` (also ``d2f-bench``); the
+app's latency bench lives with the app (``python -m app.bench``), so the core never imports it.
 
 Figures are printed as measured here, with ratios against a baseline measured in the same run;
 nothing here asserts a time.
@@ -262,15 +263,6 @@ def plot_render(rows: list[dict], path: str) -> None:
     plt.close(fig)
 
 
-def _bench_app(args: argparse.Namespace) -> int:
-    try:
-        from app.bench import main as app_bench
-    except ImportError as exc:  # the app is an optional part of the install
-        print(f"d2f-bench: error: the app is not installed ({exc})", file=sys.stderr)
-        return 1
-    return int(app_bench(args.rest) or 0)
-
-
 def _bench_accuracy(args: argparse.Namespace) -> int:
     from .bench_accuracy import main as accuracy_main
 
@@ -304,13 +296,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--chart", help="also draw ms against PSNR to this PNG (needs matplotlib)")
     p.set_defaults(func=_bench_render)
     for name, func, text in (
-        ("app", _bench_app, "app handler latency (see app/bench.py)"),
         ("accuracy", _bench_accuracy, "renderer settings against ground truth"),
         ("depth", _bench_depth, "defocus network's depth on real photos against measured depth"),
     ):
         q = sub.add_parser(name, help=text, add_help=False)
         q.set_defaults(func=func)
-    # everything after "app" / "accuracy" / "depth" (--help included) belongs to that bench
+    # everything after "accuracy" / "depth" (--help included) belongs to that bench
     args, rest = parser.parse_known_args(argv)
     if args.command == "render" and rest:
         parser.error(f"unrecognized arguments: {' '.join(rest)}")
