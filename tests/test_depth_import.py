@@ -197,6 +197,18 @@ class TestLoadDepth:
         np.save(tmp_path / "v.npy", np.ones((2, 3, 4, 5)))
         with pytest.raises(ValueError, match="2-D"):
             load_depth(tmp_path / "v.npy")
+        # an H x W x 3 array gets the rule of an RGB PNG: a colour map is refused ...
+        z = np.linspace(1.0, 2.0, 24).reshape(4, 6)
+        np.save(tmp_path / "jet.npy", np.dstack([z, z[::-1], 0 * z]))
+        with pytest.raises(ValueError, match="colour"):
+            load_depth(tmp_path / "jet.npy")
+        # ... and agreeing channels are one map
+        np.save(tmp_path / "grey3.npy", np.dstack([z, z, z]))
+        np.testing.assert_allclose(read_depth_array(tmp_path / "grey3.npy"), z)
+        # a complex map is refused, not cut to its real part
+        np.save(tmp_path / "c.npy", (z + 1j * z).astype(np.complex64))
+        with pytest.raises(ValueError, match="complex"):
+            load_depth(tmp_path / "c.npy")
         (tmp_path / "t.png").write_text("text")
         with pytest.raises(ValueError, match="t.png"):
             load_depth(tmp_path / "t.png")

@@ -164,6 +164,10 @@ class TestModes:
         out = load_image(_encode(Image.fromarray(f), "TIFF"))
         assert out[0, 0, 0] == 0.0
         np.testing.assert_allclose(out[..., 1].ravel()[1:], f.ravel()[1:], atol=1e-6)
+        _, info = load_image_with_info(_encode(Image.fromarray(f), "TIFF"))
+        assert "1 NaN or infinite pixels set to 0" in info.conversions
+        with pytest.raises(ValueError, match="no finite value"):
+            load_image(_encode(Image.fromarray(np.full((3, 4), np.nan, np.float32)), "TIFF"))
         big = f * 1000
         big[0, 0] = 0
         out = load_image(_encode(Image.fromarray(big), "TIFF"))

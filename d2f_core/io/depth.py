@@ -109,16 +109,28 @@ def _grey_from_pil(im: Image.Image, name: str) -> np.ndarray:
     if mode == "P":
         return np.asarray(im.convert("L")).astype(np.float64)
     if mode in ("RGB", "RGBA"):
-        a = np.asarray(im)[..., :3].astype(np.float64)
-        # JPEG chroma noise on a grey map stays far below this; a colour map does not.
-        spread = float(np.percentile(np.abs(a - a[..., :1]).max(axis=2), 99))
-        if spread > 16:
-            raise ValueError(
-                f"{name}: depth map has colour (channels differ by {spread:.0f} levels); "
-                "expected a single-channel map (a colour-mapped visualisation cannot be read)"
-            )
-        return a.mean(axis=2)
+        return _grey_channels(np.asarray(im)[..., :3].astype(np.float64), name, levels=255.0)
     raise ValueError(f"{name}: unsupported depth image mode {mode!r}")
+
+
+def _grey_channels(a: np.ndarray, name: str, levels: float | None = None) -> np.ndarray:
+    """The mean of an H x W x 3 map whose channels agree; a colour map is refused.
+
+    ``levels`` is the full scale of the values (255 for 8-bit images); for other arrays the
+    scale is the map's own range. JPEG chroma noise on a grey map stays far below the limit,
+    16 / 255 of the scale; the hues of a colour-mapped visualisation do not.
+    """
+    spread = float(np.percentile(np.abs(a - a[..., :1]).max(axis=2), 99))
+    scale = levels if levels is not None else max(float(a.max() - a.min()), 1e-12)
+    if spread > 16.0 / 255.0 * scale:
+        shown = (
+            f"{spread:.0f} levels" if levels is not None else f"{spread / scale:.0%} of its range"
+        )
+        raise ValueError(
+            f"{name}: depth map has colour (channels differ by {shown}); "
+            "expected a single-channel map (a colour-mapped visualisation cannot be read)"
+        )
+    return a.mean(axis=2)
 
 
 def read_depth_array(src: str | os.PathLike | bytes) -> np.ndarray:
@@ -163,9 +175,12 @@ def read_depth_array(src: str | os.PathLike | bytes) -> np.ndarray:
     arr = np.asarray(arr)
     if arr.dtype == np.bool_ or not np.issubdtype(arr.dtype, np.number):
         raise ValueError(f"{name}: depth map has non-numeric dtype {arr.dtype}")
+    if np.issubdtype(arr.dtype, np.complexfloating):
+        raise ValueError(f"{name}: depth map has complex dtype {arr.dtype}; expected real values")
     arr = np.squeeze(arr)
     if arr.ndim == 3 and arr.shape[2] in (3, 4):
-        arr = arr[..., 0]
+        # the rule of a colour PNG: channels that agree are one map, a colour map is refused
+        arr = _grey_channels(arr[..., :3].astype(np.float64), name)
     if arr.ndim != 2:
         raise ValueError(f"{name}: expected a 2-D depth map, got shape {arr.shape}")
     return arr.astype(np.float64)

@@ -402,7 +402,12 @@ def _to_float_rgb(im: Image.Image, conv: list[str]) -> tuple[np.ndarray, bytes |
         return np.repeat(g[..., None], 3, axis=2), icc
     if mode == "F":
         g = np.asarray(im).astype(np.float32)
-        g = np.where(np.isfinite(g), g, 0.0)
+        finite = np.isfinite(g)
+        if g.size and not finite.any():
+            raise ValueError("float image holds no finite value (every pixel is NaN or infinite)")
+        if not finite.all():
+            conv.append(f"{int(g.size - finite.sum())} NaN or infinite pixels set to 0")
+            g = np.where(finite, g, 0.0)
         hi = float(g.max()) if g.size else 0.0
         if hi > 1.0:
             g = g / hi
