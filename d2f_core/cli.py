@@ -80,6 +80,15 @@ def _non_negative_float(text: str) -> float:
     return value
 
 
+def _blur_px(text: str) -> float:
+    from .rendering import MAX_BLUR
+
+    value = _non_negative_float(text)
+    if value > MAX_BLUR:
+        raise argparse.ArgumentTypeError(f"expected at most {MAX_BLUR:g} px, got {text!r}")
+    return value
+
+
 def _finite_float(text: str) -> float:
     try:
         value = float(text)
@@ -156,7 +165,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     focus.add_argument(
         "--blur",
-        type=_non_negative_float,
+        type=_blur_px,
         required=True,
         metavar="K",
         help="blur amount: CoC diameter in px at full resolution for |d - focus| = 1",

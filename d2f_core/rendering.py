@@ -137,16 +137,20 @@ def _check_scalar(name: str, value: float, low: float, high: float) -> float:
     return value
 
 
+#: the largest blur ``K`` (CoC diameter in px at ``|d - focus| = 1``) any entry point takes
+MAX_BLUR = 10000.0
+
+
 def check_focus_blur(focus, blur) -> tuple[float, float]:
-    """``(focus, blur)`` as floats: focus in [0, 1], blur (K, px) finite and >= 0."""
+    """``(focus, blur)`` as floats: focus in [0, 1], blur (K, px) in [0, :data:`MAX_BLUR`]."""
     try:
         f, b = float(focus), float(blur)
     except (TypeError, ValueError):
         raise InputTypeError(f"focus and blur must be numbers, got {focus!r}, {blur!r}") from None
     if not math.isfinite(f) or not 0 <= f <= 1:
         raise ValueError(f"focus must be in [0, 1], got {focus!r}")
-    if not math.isfinite(b) or b < 0:
-        raise ValueError(f"blur must be a finite number >= 0 (px), got {blur!r}")
+    if not math.isfinite(b) or not 0 <= b <= MAX_BLUR:
+        raise ValueError(f"blur must be a number in [0, {MAX_BLUR:g}] px, got {blur!r}")
     return f, b
 
 
@@ -1102,7 +1106,7 @@ def render(
             raise ValueError(
                 f"radiance shape {tuple(radiance.shape)} does not match image {tuple(image.shape)}"
             )
-    blur = _check_scalar("blur", blur, 0.0, 10000.0)
+    blur = _check_scalar("blur", blur, 0.0, MAX_BLUR)
     if method not in ("fft", "direct"):
         raise ValueError(f"method must be 'fft' or 'direct', got {method!r}")
     if quality not in QUALITY_PRESETS:

@@ -73,6 +73,7 @@ class TestUsage:
             ["render", "in.jpg", "--blur", "10"],  # no -o
             ["render", "in.jpg", "-o", "o.jpg"],  # no --blur
             ["render", "in.jpg", "-o", "o.jpg", "--blur", "-1"],
+            ["render", "in.jpg", "-o", "o.jpg", "--blur", "1e9"],
             ["render", "in.jpg", "-o", "o.jpg", "--blur", "5", "--focus", "1.5"],
             ["render", "in.jpg", "-o", "o.jpg", "--blur", "5", "--focus", "0", "--focus-at", "1,2"],
             ["render", "in.jpg", "-o", "o.jpg", "--blur", "5", "--focus-at", "12"],

@@ -437,3 +437,21 @@ class TestAdaptive:
         scene = model.prepare(_image(), disparity=_ramp())
         with pytest.raises(ValueError, match="budget"):
             model.render(scene, 0.5, 30.0, budget=budget)
+
+
+def test_one_blur_limit_named_in_the_units_typed(tiny_model):
+    """D2F.render and render_bokeh take the same largest blur, and a blur past it is reported
+    as it was given (D2F.render passes blur / 2 to its half-resolution pass)."""
+    from d2f_core import render_bokeh
+    from d2f_core.rendering import MAX_BLUR
+
+    image = np.zeros((32, 32, 3), np.float32)
+    scene = tiny_model.prepare(image)
+    tiny_model.render(scene, 0.5, MAX_BLUR, budget=None)  # the limit itself renders
+    render_bokeh(image, np.zeros((32, 32), np.float32), 0.5, MAX_BLUR)
+    for call in (
+        lambda: tiny_model.render(scene, 0.5, 1e9),
+        lambda: render_bokeh(image, np.zeros((32, 32), np.float32), 0.5, 1e9),
+    ):
+        with pytest.raises(ValueError, match=r"blur must .*10000.*got 1000000000\.0"):
+            call()
