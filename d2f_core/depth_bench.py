@@ -31,7 +31,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import torch.nn.functional as F
+
+from .depth_train import resize_array
 
 __all__ = [
     "MeasuredPhoto",
@@ -143,20 +144,10 @@ def _eval_size(h: int, w: int, side: int = EVAL_SIDE) -> tuple[int, int]:
     return max(1, round(h * s)), max(1, round(w * s))
 
 
-def _resize(x: np.ndarray, size: tuple[int, int], nearest: bool = False) -> np.ndarray:
-    t = torch.from_numpy(np.ascontiguousarray(x, dtype=np.float32))[None, None]
-    if nearest:
-        return F.interpolate(t, size=size, mode="nearest")[0, 0].numpy()
-    shrink = size[0] < t.shape[-2] or size[1] < t.shape[-1]
-    return F.interpolate(t, size=size, mode="bilinear", align_corners=False, antialias=shrink)[
-        0, 0
-    ].numpy()
-
-
 def _photo(name: str, image: np.ndarray, near: np.ndarray, valid: np.ndarray) -> MeasuredPhoto:
     size = _eval_size(*near.shape)
-    good = _resize(valid.astype(np.float32), size, nearest=True) > 0.5
-    near = _resize(np.where(valid, near, 0.0), size, nearest=True)
+    good = resize_array(valid.astype(np.float32), size, nearest=True) > 0.5
+    near = resize_array(np.where(valid, near, 0.0), size, nearest=True)
     return MeasuredPhoto(name, np.clip(image, 0, 1).astype(np.float32), near, good)
 
 
@@ -168,7 +159,7 @@ def measured_photos(root: str | Path = DEFAULT_DATA) -> list[MeasuredPhoto]:
     """
     from PIL import Image
 
-    from .io import load_photo
+    from .io import load_image, load_photo
 
     root = Path(root)
     if not root.is_dir():
@@ -177,10 +168,6 @@ def measured_photos(root: str | Path = DEFAULT_DATA) -> list[MeasuredPhoto]:
     def grey(path: Path) -> np.ndarray:
         with Image.open(path) as im:
             return np.asarray(im.convert("L"), dtype=np.float32)
-
-    def rgb(path: Path) -> np.ndarray:
-        with Image.open(path) as im:
-            return np.asarray(im.convert("RGB"), dtype=np.float32) / 255.0
 
     out = []
     photo = load_photo(root / "google_lensblur_depthy" / "lensblur_sample.jpg")
@@ -193,7 +180,7 @@ def measured_photos(root: str | Path = DEFAULT_DATA) -> list[MeasuredPhoto]:
         out.append(
             _photo(
                 f"depthy-{scene}",
-                rgb(split / f"{scene}-alternative.jpg"),
+                load_image(split / f"{scene}-alternative.jpg"),
                 255.0 - depth,
                 np.ones_like(depth, bool),
             )
@@ -211,10 +198,12 @@ def measured_photos(root: str | Path = DEFAULT_DATA) -> list[MeasuredPhoto]:
     photo = load_photo(root / "apple_heic_depth_pillow_heif" / "pug.heic")
     out.append(_photo("pug", photo.image, photo.disparity, np.ones_like(photo.disparity, bool)))
     aloe = grey(root / "middlebury_aloe_opencv" / "aloeGT.png")
-    out.append(_photo("aloe", rgb(root / "middlebury_aloe_opencv" / "aloeL.jpg"), aloe, aloe > 0))
+    out.append(
+        _photo("aloe", load_image(root / "middlebury_aloe_opencv" / "aloeL.jpg"), aloe, aloe > 0)
+    )
     with Image.open(root / "rgbd_kinect2_esanet" / "sample_depth.png") as im:
         depth = np.asarray(im, dtype=np.float32)
-    room = rgb(root / "rgbd_kinect2_esanet" / "sample_rgb.png")
+    room = load_image(root / "rgbd_kinect2_esanet" / "sample_rgb.png")
     registered = room.max(axis=2) > 2 / 255  # black border: no colour registered
     valid = (depth > 0) & registered
     out.append(_photo("kinect-room", room, 1.0 / np.maximum(depth, 1.0), valid))
@@ -234,9 +223,8 @@ def heldout_masks(
 ) -> list[tuple[str, np.ndarray, np.ndarray]]:
     """``(name, image, subject mask)`` of the held-out masked photos, masks at
     :data:`EVAL_SIDE`; photos whose subject covers under 1 % or over 90 % are left out."""
-    from PIL import Image
-
     from .depth_train import is_heldout
+    from .io import load_image
     from .teachers import iter_photos, read_mask
 
     root = Path(root)
@@ -246,11 +234,10 @@ def heldout_masks(
     for photo in iter_photos(root):
         if photo.mask is None or not is_heldout(photo):
             continue
-        with Image.open(photo.path) as im:
-            image = np.asarray(im.convert("RGB"), dtype=np.float32) / 255.0
+        image = load_image(photo.path)
         size = _eval_size(*image.shape[:2])
         mask = read_mask(photo, image.shape[:2])
-        mask = _resize(mask, size, nearest=True) > 0.5
+        mask = resize_array(mask, size, nearest=True) > 0.5
         if not 0.01 <= mask.mean() <= 0.9:
             continue
         out.append((photo.key, image, mask))
@@ -296,7 +283,7 @@ def evaluate(
     for ph in photos:
         row = {}
         for name, fn in predictors.items():
-            pred = _resize(fn(ph.image), ph.nearness.shape)
+            pred = resize_array(fn(ph.image), ph.nearness.shape)
             row[name] = {
                 "spearman": spearman(pred, ph.nearness, ph.valid),
                 "ssi_rmse": ssi_rmse(pred, ph.nearness, ph.valid),
@@ -307,7 +294,7 @@ def evaluate(
         band = edge_band(mask)
         row = {}
         for name, fn in predictors.items():
-            pred = _resize(fn(image), mask.shape)
+            pred = resize_array(fn(image), mask.shape)
             row[name] = subject_auc(pred, mask)
             row[name + "@edge"] = subject_auc(pred[band], mask[band])
         result["masks"][key] = row

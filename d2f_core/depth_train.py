@@ -41,17 +41,19 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
-from PIL import Image
 from torch import Tensor
 
+from .io import load_image
 from .networks import build_defocus_net, count_parameters
-from .teachers import Photo, iter_photos, read_label, read_mask
+from .synth.photo import feather
+from .teachers import Photo, iter_photos, read_label, read_mask, subject_cutout
 
 __all__ = [
     "DepthSample",
     "RealDepthData",
     "gradient_matching_loss",
     "is_heldout",
+    "resize_array",
     "ssi_align",
     "subject_target",
     "train_depth",
@@ -69,14 +71,6 @@ def is_heldout(photo: Photo) -> bool:
 
 
 # ------------------------------------------------------------------------------ targets
-
-
-def _feather(mask: np.ndarray, sigma: float) -> np.ndarray:
-    if sigma <= 0:
-        return mask.astype(np.float32)
-    from skimage.filters import gaussian
-
-    return np.clip(gaussian(mask.astype(np.float32), sigma=sigma), 0.0, 1.0).astype(np.float32)
 
 
 def ramp(height: int, width: int) -> np.ndarray:
@@ -144,12 +138,9 @@ class DepthSample:
     relative: bool  # True: scale/shift-free target (real photos)
 
 
-def _load_rgb(path: Path) -> np.ndarray:
-    with Image.open(path) as im:
-        return np.asarray(im.convert("RGB"), dtype=np.float32) / 255.0
-
-
-def _resize_np(x: np.ndarray, size: tuple[int, int], nearest: bool = False) -> np.ndarray:
+def resize_array(x: np.ndarray, size: tuple[int, int], nearest: bool = False) -> np.ndarray:
+    """An ``H x W`` or ``H x W x C`` float array at ``size`` = ``(h, w)``: bilinear,
+    antialiased when shrinking, or nearest."""
     h, w = size
     t = torch.from_numpy(np.ascontiguousarray(x, dtype=np.float32))
     t = t.permute(2, 0, 1)[None] if t.ndim == 3 else t[None, None]
@@ -201,20 +192,20 @@ class RealDepthData:
         self, photo: Photo, rng: random.Random
     ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
         """Image, subject alpha (or None) and layout, at ``self.size`` after a random crop."""
-        img = _load_rgb(photo.path)
+        img = load_image(photo.path)
         h0, w0 = img.shape[:2]
         th, tw = self.size
         scale = max(th / h0, tw / w0) * rng.uniform(1.0, 1.3)
         rh, rw = max(th, round(h0 * scale)), max(tw, round(w0 * scale))
-        img = _resize_np(img, (rh, rw))
+        img = resize_array(img, (rh, rw))
         mask = read_mask(photo, (h0, w0))
         fg, teacher = read_label(self.labels / f"{photo.key}.npz", (rh, rw))
         if mask is not None:
-            alpha = _feather(_resize_np(mask, (rh, rw)) >= 0.5, 1.0)
+            alpha = feather(resize_array(mask, (rh, rw)) >= 0.5, 1.0)
         else:
             area = float((fg >= 0.5).mean())
             alpha = (
-                _feather(np.clip((fg - 0.3) / 0.4, 0, 1), 1.0)
+                feather(np.clip((fg - 0.3) / 0.4, 0, 1), 1.0)
                 if self.fg_min_area <= area <= self.fg_max_area
                 else None
             )
@@ -226,19 +217,15 @@ class RealDepthData:
 
     def _cutout(self, rng: random.Random) -> tuple[np.ndarray, np.ndarray] | None:
         """A subject cut out of a random masked photo: (rgb h x w x 3, alpha h x w)."""
-        photo = rng.choice(self.masked)
-        img = _load_rgb(photo.path)
-        mask = read_mask(photo, img.shape[:2])
-        if mask is None or mask.sum() < 64:
+        cut = subject_cutout(rng.choice(self.masked))
+        if cut is None or cut[1].sum() < 64:
             return None
-        ys, xs = np.nonzero(mask)
-        y0, y1, x0, x1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
+        crop, mask, _ = cut
         th, tw = self.size
-        box = max(y1 - y0, x1 - x0)
-        scale = rng.uniform(0.25, 0.8) * min(th, tw) / box
-        ch, cw = max(4, round((y1 - y0) * scale)), max(4, round((x1 - x0) * scale))
-        rgb = _resize_np(img[y0:y1, x0:x1], (ch, cw))
-        alpha = _feather(_resize_np(mask[y0:y1, x0:x1], (ch, cw)) >= 0.5, 0.8)
+        scale = rng.uniform(0.25, 0.8) * min(th, tw) / max(mask.shape)
+        ch, cw = max(4, round(mask.shape[0] * scale)), max(4, round(mask.shape[1] * scale))
+        rgb = resize_array(crop, (ch, cw))
+        alpha = feather(resize_array(mask, (ch, cw)) >= 0.5, 0.8)
         if rng.random() < 0.5:
             rgb, alpha = rgb[:, ::-1], alpha[:, ::-1]
         return rgb, alpha

@@ -26,7 +26,15 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-__all__ = ["Photo", "iter_photos", "label_photos", "read_label", "run_label"]
+__all__ = [
+    "Photo",
+    "iter_photos",
+    "label_photos",
+    "read_label",
+    "read_mask",
+    "run_label",
+    "subject_cutout",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -107,6 +115,24 @@ def read_mask(photo: Photo, size: tuple[int, int]) -> np.ndarray | None:
             > 127
         )
     return sub.astype(np.float32)
+
+
+def subject_cutout(photo: Photo) -> tuple[np.ndarray, np.ndarray, float] | None:
+    """The photo's subject cut out to its bounding box: ``(rgb, mask, coverage)``, the photo
+    as float32 ``h x w x 3`` in [0, 1], its mask ``h x w`` in {0, 1}, and the share of the
+    whole photo the subject covers; ``None`` for a photo without a mask or with an empty one.
+    """
+    from .io import load_image
+
+    if photo.mask is None:
+        return None
+    rgb = load_image(photo.path)
+    mask = read_mask(photo, rgb.shape[:2])
+    if not mask.any():
+        return None
+    ys, xs = np.nonzero(mask)
+    box = (slice(ys.min(), ys.max() + 1), slice(xs.min(), xs.max() + 1))
+    return rgb[box], mask[box], float(mask.mean())
 
 
 class _Teachers:

@@ -387,7 +387,7 @@ def test_measured_photos_load_upright_with_their_depth():
             abs(ph.image.shape[0] / ph.image.shape[1] - ph.nearness.shape[0] / ph.nearness.shape[1])
             < 0.02
         )
-        ramp = depth_bench._resize(depth_bench.ramp_predictor(ph.image), ph.nearness.shape)
+        ramp = depth_bench.resize_array(depth_bench.ramp_predictor(ph.image), ph.nearness.shape)
         rho = depth_bench.spearman(ramp, ph.nearness, ph.valid)
         assert rho > 0.3, ph.name
         assert depth_bench.spearman(ramp[::-1], ph.nearness, ph.valid) == pytest.approx(

@@ -123,14 +123,14 @@ def test_generated_scenes_rank_subject_first(model):
 def test_heldout_masked_photos_rank_subject_nearer(model):
     """Held-out masked photos (ECSSD, DAVIS, COCO; never seen in training): the subject's
     pixels are predicted nearer than the background's."""
-    from d2f_core.depth_bench import _resize, heldout_masks, subject_auc
+    from d2f_core.depth_bench import heldout_masks, resize_array, subject_auc
 
     if not DATASETS.is_dir():
         pytest.skip(f"training datasets not available: {DATASETS}")
     masks = heldout_masks(DATASETS, limit=8)
     assert len(masks) == 8
     aucs = [
-        subject_auc(_resize(model.prepare(image).disparity_full(), m.shape), m)
+        subject_auc(resize_array(model.prepare(image).disparity_full(), m.shape), m)
         for _, image, m in masks
     ]
     assert np.mean(aucs) > HELDOUT_AUC_MEAN

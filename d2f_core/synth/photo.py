@@ -22,7 +22,7 @@ import numpy as np
 from .lens import Layer, Scene, srgb_to_linear
 from .scene import _resize
 
-__all__ = ["Cutout", "PhotoScenes", "make_photo_scene"]
+__all__ = ["Cutout", "PhotoScenes", "feather", "make_photo_scene"]
 
 #: photo folders of landscapes, streets, interiors and buildings (backgrounds)
 SCENE_SOURCES = ("photos/sun_hays80", "photos/urban100", "photos/bsds500")
@@ -30,7 +30,11 @@ SCENE_SOURCES = ("photos/sun_hays80", "photos/urban100", "photos/bsds500")
 Cutout = tuple[np.ndarray, np.ndarray]
 
 
-def _feather(alpha: np.ndarray, sigma: float) -> np.ndarray:
+def feather(alpha: np.ndarray, sigma: float) -> np.ndarray:
+    """``alpha`` softened by a Gaussian of ``sigma`` px, float32 in [0, 1] (as is for
+    ``sigma <= 0``): a hard mask's edge becomes a soft rim, as hair and fur have."""
+    if sigma <= 0:
+        return alpha.astype(np.float32)
     from skimage.filters import gaussian
 
     return np.clip(gaussian(alpha.astype(np.float32), sigma=sigma), 0, 1).astype(np.float32)
@@ -45,7 +49,7 @@ def _cut_layer(
     h, w = max(4, round(h0 * scale)), max(4, round(w0 * scale))
     rgb_s = np.clip(_resize(rgb.astype(np.float32), h, w), 0, 1)
     a = np.clip(_resize(alpha[..., None].astype(np.float32), h, w)[..., 0], 0, 1)
-    a = _feather(a >= 0.5, 0.7) if a.max() > 0 else a
+    a = feather(a >= 0.5, 0.7) if a.max() > 0 else a
     lin = srgb_to_linear(rgb_s).transpose(2, 0, 1) * a[None]
     top, left = round(bottom - h), round(cx - w / 2)
     return Layer(lin.astype(np.float32), a, top, left, float(disparity), kind=kind)
@@ -155,34 +159,21 @@ class PhotoScenes:
             raise ValueError(f"no masked photos in the {split} split of {root}")
         self.occluder_share = occluder_share
 
-    def _cutout(self, photo) -> Cutout | None:
-        from PIL import Image
-
-        from ..teachers import read_mask
-
-        with Image.open(photo.path) as im:
-            rgb = np.asarray(im.convert("RGB"), dtype=np.float32) / 255.0
-        mask = read_mask(photo, rgb.shape[:2])
-        if mask is None or not 0.02 <= mask.mean() <= 0.8:
-            return None
-        ys, xs = np.nonzero(mask)
-        box = (slice(ys.min(), ys.max() + 1), slice(xs.min(), xs.max() + 1))
-        return rgb[box], mask[box]
-
     def _pick_cutout(self, rng: np.random.Generator) -> Cutout:
+        from ..teachers import subject_cutout
+
         for _ in range(20):
-            cut = self._cutout(self.subjects[int(rng.integers(len(self.subjects)))])
-            if cut is not None:
-                return cut
+            cut = subject_cutout(self.subjects[int(rng.integers(len(self.subjects)))])
+            if cut is not None and 0.02 <= cut[2] <= 0.8:
+                return cut[0], cut[1]
         raise ValueError("no usable subject mask (2-80 % of its photo) found in 20 draws")
 
     def __call__(self, size: tuple[int, int], seed: int, margin: int) -> Scene:
-        from PIL import Image
+        from ..io import load_image
 
         rng = np.random.default_rng([int(seed), 0xC0FFEE])
         bg_photo = self.backgrounds[int(rng.integers(len(self.backgrounds)))]
-        with Image.open(bg_photo.path) as im:
-            background = np.asarray(im.convert("RGB"), dtype=np.float32) / 255.0
+        background = load_image(bg_photo.path)
         subjects = [self._pick_cutout(rng) for _ in range(1 + int(rng.random() < 0.4))]
         occluder = self._pick_cutout(rng) if rng.random() < self.occluder_share else None
         return make_photo_scene(
