@@ -384,16 +384,12 @@ def _focus_from_map(disparity: np.ndarray, x: float, y: float) -> float:
 
 def _subject_from_map(disparity: np.ndarray) -> tuple[float, tuple[float, float]]:
     """``D2F.subject_focus`` for a bare disparity map (the centre when nothing stands out)."""
-    from .pipeline import find_subject
+    from .pipeline import locate_subject
 
-    h, w = disparity.shape
-    step = max(1, max(h, w) // 128)
-    found = find_subject(disparity[::step, ::step])
-    if found is None:
-        x, y = (w - 1) / 2.0, (h - 1) / 2.0
-        return _focus_from_map(disparity, x, y), (x, y)
-    focus, (fx, fy) = found
-    return focus, (fx * w - 0.5, fy * h - 0.5)
+    step = max(1, max(disparity.shape) // 128)
+    return locate_subject(
+        disparity[::step, ::step], disparity.shape, lambda x, y: _focus_from_map(disparity, x, y)
+    )
 
 
 def render_with_depth_only(

@@ -32,6 +32,7 @@ import logging
 import math
 import os
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
@@ -61,6 +62,7 @@ __all__ = [
     "Scene",
     "default_weights_path",
     "find_subject",
+    "locate_subject",
 ]
 
 logger = logging.getLogger(__name__)
@@ -767,15 +769,9 @@ class D2F(nn.Module):
         if not isinstance(scene, Scene):
             kind = type(scene).__name__
             raise InputTypeError(f"scene must be a Scene from prepare(), got {kind}")
-        height, width = scene.size
         with torch.no_grad():
             d = _resize(scene.disparity_lr, _scaled_size(scene.size, 1.0, 128))[0, 0]
-        found = find_subject(d.cpu().numpy())
-        if found is None:
-            cx, cy = (width - 1) / 2.0, (height - 1) / 2.0
-            return self.focus_at(scene, cx, cy), (cx, cy)
-        focus, (fx, fy) = found
-        return focus, (fx * width - 0.5, fy * height - 0.5)
+        return locate_subject(d.cpu().numpy(), scene.size, lambda x, y: self.focus_at(scene, x, y))
 
     # ---------------------------------------------------------------- training forwards
 
@@ -923,6 +919,25 @@ def find_subject(
     focus = float(values[order][np.searchsorted(cum, 0.5 * cum[-1])])
     iy, ix = np.unravel_index(int(np.argmax(score)), score.shape)
     return float(np.clip(focus, 0.0, 1.0)), ((ix + 0.5) / w, (iy + 0.5) / h)
+
+
+def locate_subject(
+    disparity: np.ndarray, size: tuple[int, int], focus_at: Callable[[float, float], float]
+) -> tuple[float, tuple[float, float]]:
+    """:func:`find_subject` on a small ``disparity`` map of a photo of ``size`` = ``(H, W)``,
+    the point in that photo's pixels; where nothing stands out, the centre and
+    ``focus_at(x, y)`` there.
+
+    Returns:
+        ``(focus, (x, y))``.
+    """
+    height, width = size
+    found = find_subject(disparity)
+    if found is None:
+        cx, cy = (width - 1) / 2.0, (height - 1) / 2.0
+        return focus_at(cx, cy), (cx, cy)
+    focus, (fx, fy) = found
+    return focus, (fx * width - 0.5, fy * height - 0.5)
 
 
 def _runs(columns: list[int]) -> list[tuple[int, int]]:
