@@ -189,12 +189,12 @@ class RealDepthData:
 
     # -- pieces
     def _photo(
-        self, photo: Photo, rng: random.Random
+        self, photo: Photo, rng: random.Random, size: tuple[int, int]
     ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
-        """Image, subject alpha (or None) and layout, at ``self.size`` after a random crop."""
+        """Image, subject alpha (or None) and layout, at ``size`` after a random crop."""
         img = load_image(photo.path)
         h0, w0 = img.shape[:2]
-        th, tw = self.size
+        th, tw = size
         scale = max(th / h0, tw / w0) * rng.uniform(1.0, 1.3)
         rh, rw = max(th, round(h0 * scale)), max(tw, round(w0 * scale))
         img = resize_array(img, (rh, rw))
@@ -215,13 +215,15 @@ class RealDepthData:
         sl = (slice(y, y + th), slice(x, x + tw))
         return img[sl], (None if alpha is None else alpha[sl]), layout[sl]
 
-    def _cutout(self, rng: random.Random) -> tuple[np.ndarray, np.ndarray] | None:
+    def _cutout(
+        self, rng: random.Random, size: tuple[int, int]
+    ) -> tuple[np.ndarray, np.ndarray] | None:
         """A subject cut out of a random masked photo: (rgb h x w x 3, alpha h x w)."""
         cut = subject_cutout(rng.choice(self.masked))
         if cut is None or cut[1].sum() < 64:
             return None
         crop, mask, _ = cut
-        th, tw = self.size
+        th, tw = size
         scale = rng.uniform(0.25, 0.8) * min(th, tw) / max(mask.shape)
         ch, cw = max(4, round(mask.shape[0] * scale)), max(4, round(mask.shape[1] * scale))
         rgb = resize_array(crop, (ch, cw))
@@ -241,7 +243,7 @@ class RealDepthData:
         """Composite a cut-out over ``img`` at a random place (up to a quarter of it may
         leave the frame), nearer than everything it covers and at least at the target's
         disparity where its lowest row stands; returns the new image and target."""
-        th, tw = self.size
+        th, tw = target.shape
         ch, cw = a.shape
         y = rng.randint(-ch // 4, th - 3 * ch // 4)
         x = rng.randint(-cw // 4, tw - 3 * cw // 4)
@@ -261,23 +263,25 @@ class RealDepthData:
         target[ya:yb, xa:xb] = a_c * value + (1 - a_c) * target[ya:yb, xa:xb]
         return img, _normalise(target)
 
-    def _synth(self, rng: random.Random) -> DepthSample:
+    def _synth(self, rng: random.Random, size: tuple[int, int]) -> DepthSample:
         from .synth import linear_to_srgb, make_scene, render_pinhole
 
-        scene = make_scene(self.size, seed=rng.randrange(1 << 30), margin=0)
+        scene = make_scene(size, seed=rng.randrange(1 << 30), margin=0)
         radiance, disp = render_pinhole(scene)
         image = linear_to_srgb(np.clip(radiance, 0.0, 1.0)).astype(np.float32)
         return DepthSample(image, disp.astype(np.float32), relative=False)
 
-    def sample(self, rng: random.Random) -> DepthSample:
+    def sample(self, rng: random.Random, size: tuple[int, int] | None = None) -> DepthSample:
+        """One sample of ``size`` (``(H, W)``; default :attr:`size`)."""
+        size = self.size if size is None else size
         if rng.random() < self.synth:
-            return self._synth(rng)
+            return self._synth(rng, size)
         photo = rng.choice(self.photos)
-        img, alpha, layout = self._photo(photo, rng)
+        img, alpha, layout = self._photo(photo, rng, size)
         target = subject_target(layout, alpha) if alpha is not None else layout
         target = _normalise(target)
         if rng.random() < self.paste:
-            cut = self._cutout(rng)
+            cut = self._cutout(rng, size)
             if cut is not None:
                 img, target = self._paste(img, target, *cut, rng)
         if rng.random() < 0.5:
@@ -288,8 +292,10 @@ class RealDepthData:
         img = np.clip(img * gain, 0, 1) ** gamma
         return DepthSample(img.astype(np.float32), target.astype(np.float32), relative=True)
 
-    def batch(self, rng: random.Random, n: int) -> tuple[Tensor, Tensor, Tensor]:
-        samples = [self.sample(rng) for _ in range(n)]
+    def batch(
+        self, rng: random.Random, n: int, size: tuple[int, int] | None = None
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        samples = [self.sample(rng, size) for _ in range(n)]
         images = torch.stack(
             [torch.from_numpy(np.ascontiguousarray(s.image)).permute(2, 0, 1) for s in samples]
         )
@@ -298,18 +304,46 @@ class RealDepthData:
         return images, targets[:, None], relative
 
 
-class _Batches(torch.utils.data.IterableDataset):
-    """Endless batches of :class:`RealDepthData` from a seeded stream (one per worker)."""
+def batch_shapes(sides: Sequence[int]) -> list[tuple[int, int]]:
+    """Sample shapes for multi-scale training: for every long side in ``sides``, a square,
+    a 4:3 landscape and a 3:4 portrait frame, both sides rounded to multiples of 32."""
+    shapes = []
+    for side in sides:
+        short = max(32, round(side * 0.75 / 32) * 32)
+        side = max(32, round(side / 32) * 32)
+        shapes += [(side, side), (short, side), (side, short)]
+    return shapes
 
-    def __init__(self, data: RealDepthData, batch_size: int, seed: int) -> None:
+
+class _Batches(torch.utils.data.IterableDataset):
+    """Endless batches of :class:`RealDepthData` from a seeded stream (one per worker).
+
+    With ``shapes``, every batch takes one shape drawn from them and as many samples as
+    fit ``batch_size`` samples of :attr:`RealDepthData.size` in pixels (at least 2), so a
+    step costs about the same at every scale.
+    """
+
+    def __init__(
+        self,
+        data: RealDepthData,
+        batch_size: int,
+        seed: int,
+        shapes: Sequence[tuple[int, int]] = (),
+    ) -> None:
         self.data, self.batch_size, self.seed = data, batch_size, seed
+        self.shapes = list(shapes)
 
     def __iter__(self):
         info = torch.utils.data.get_worker_info()
         rng = random.Random(self.seed + (0 if info is None else 7919 * info.id))
         torch.set_num_threads(1)
+        budget = self.batch_size * self.data.size[0] * self.data.size[1]
         while True:
-            yield self.data.batch(rng, self.batch_size)
+            if not self.shapes:
+                yield self.data.batch(rng, self.batch_size)
+                continue
+            h, w = rng.choice(self.shapes)
+            yield self.data.batch(rng, max(2, round(budget / (h * w))), (h, w))
 
 
 # ------------------------------------------------------------------------------ losses
@@ -379,7 +413,7 @@ def train_depth(args: argparse.Namespace) -> Path:
     if args.init is not None:
         from .pipeline import D2F
 
-        net.load_state_dict(D2F.from_checkpoint(args.init).defocus_net.state_dict())
+        net.load_lite(D2F.from_checkpoint(args.init).defocus_net.state_dict())
         logger.info("defocus network initialised from %s", args.init)
     opt = torch.optim.AdamW(net.parameters(), lr=args.lr, weight_decay=1e-4)
     step = 0
@@ -403,7 +437,12 @@ def train_depth(args: argparse.Namespace) -> Path:
     net.train()
     loader = iter(
         torch.utils.data.DataLoader(
-            _Batches(data, args.batch_size, args.seed * 1_000_003 + step),
+            _Batches(
+                data,
+                args.batch_size,
+                args.seed * 1_000_003 + step,
+                batch_shapes(args.sides) if args.sides else (),
+            ),
             batch_size=None,
             num_workers=args.workers,
             prefetch_factor=4 if args.workers else None,
@@ -487,6 +526,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--steps", type=int, default=6000)
     p.add_argument("--batch-size", type=int, default=8)
     p.add_argument("--crop", type=int, default=256)
+    p.add_argument(
+        "--sides",
+        type=lambda v: [int(x) for x in v.split(",")],
+        default=None,
+        metavar="A,B,...",
+        help="multi-scale: long sides of the batches (square, 4:3 and 3:4 frames; "
+        "each batch holds --batch-size crops of --crop in pixels)",
+    )
     p.add_argument("--lr", type=float, default=1e-3)
     p.add_argument("--paste", type=float, default=0.4)
     p.add_argument("--synth", type=float, default=0.15)

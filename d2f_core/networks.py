@@ -257,12 +257,66 @@ class _FeatureFusionBlock(nn.Module):
         return F.interpolate(x, scale_factor=2.0, mode="bilinear", align_corners=True)
 
 
+class GlobalContext(nn.Module):
+    """Whole-image context for the deepest feature map (a pyramid pooling module).
+
+    The map is average-pooled to 1x1, 2x2 and 4x4 cells; each pooled map, with the cells'
+    vertical and horizontal positions in the frame (0 at the top / left, 1 at the bottom /
+    right), goes through a 1x1 convolution and is upsampled back; the sum is added to the
+    input. A 3x3 kernel at stride 32 sees a few hundred pixels, so without this the network
+    cannot relate a region to the layout of the whole frame (a far arch at the end of a
+    tunnel looks like a near subject up close). The output convolution starts at zero, so a
+    network grown from one without this module computes the same map until it is trained.
+
+    Shape: (B, C, h, w) -> (B, C, h, w).
+    """
+
+    grids = (1, 2, 4)
+
+    def __init__(self, channels: int, hidden: int = 64) -> None:
+        super().__init__()
+        self.branches = nn.ModuleList(
+            nn.Sequential(nn.Conv2d(channels + 2, hidden, 1), nn.ReLU(inplace=True))
+            for _ in self.grids
+        )
+        self.out = nn.Conv2d(hidden * len(self.grids), channels, 1)
+        nn.init.zeros_(self.out.weight)
+        nn.init.zeros_(self.out.bias)
+
+    @staticmethod
+    def _positions(x: Tensor) -> Tensor:
+        b, _, h, w = x.shape
+        ys = (torch.arange(h, dtype=x.dtype, device=x.device) + 0.5) / h
+        xs = (torch.arange(w, dtype=x.dtype, device=x.device) + 0.5) / w
+        yy = ys.view(1, 1, h, 1).expand(b, 1, h, w)
+        xx = xs.view(1, 1, 1, w).expand(b, 1, h, w)
+        return torch.cat([yy, xx], dim=1)
+
+    def forward(self, x: Tensor, valid: tuple[int, int] | None = None) -> Tensor:
+        """``valid``: the ``(h, w)`` of the map that is image, not padding (pooling and
+        positions use only that part)."""
+        h, w = x.shape[-2:]
+        vh, vw = valid if valid is not None else (h, w)
+        core = x[..., :vh, :vw]
+        outs = []
+        for grid, branch in zip(self.grids, self.branches, strict=True):
+            pooled = F.adaptive_avg_pool2d(core, (min(grid, vh), min(grid, vw)))
+            y = branch(torch.cat([pooled, self._positions(pooled)], dim=1))
+            outs.append(F.interpolate(y, size=(vh, vw), mode="bilinear", align_corners=False))
+        delta = self.out(torch.cat(outs, dim=1))
+        if (vh, vw) != (h, w):
+            delta = F.pad(delta, (0, w - vw, 0, h - vh), mode="replicate")
+        return x + delta
+
+
 class DefocusNet(nn.Module):
     """Monocular disparity network ``f_d`` (encoder + 4 refine blocks + head, sigmoid).
 
     Args:
-        variant: ``"resnext50"`` (paper: ResNeXt50 32x4d encoder, 256 decoder features) or
-            ``"lite"`` (MobileNetV2-like encoder, separable decoder; about 1.5 M parameters).
+        variant: ``"resnext50"`` (paper: ResNeXt50 32x4d encoder, 256 decoder features),
+            ``"lite"`` (MobileNetV2-like encoder, separable decoder; about 1.1 M parameters)
+            or ``"lite-ctx"`` (``"lite"`` with :class:`GlobalContext` on its deepest map;
+            a ``"lite"`` state dict loads into it with :meth:`load_lite`).
 
     The input is an RGB image in [0, 1]; ImageNet normalisation happens inside. Any input
     size works: the image is padded to a multiple of 32 and the output cropped back.
@@ -275,11 +329,11 @@ class DefocusNet(nn.Module):
         if variant == "resnext50":
             self.encoder: nn.Module = ResNeXt50Encoder()
             features, separable = 256, False
-        elif variant == "lite":
+        elif variant in ("lite", "lite-ctx"):
             self.encoder = LiteEncoder()
             features, separable = 64, True
         else:
-            raise ValueError(f"variant must be 'resnext50' or 'lite', got {variant!r}")
+            raise ValueError(f"variant must be 'resnext50', 'lite' or 'lite-ctx', got {variant!r}")
         self.variant = variant
         channels = self.encoder.channels
         self.register_buffer(
@@ -287,6 +341,7 @@ class DefocusNet(nn.Module):
         )
         self.register_buffer("std", torch.tensor(_IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
         self.project = nn.ModuleList(_conv3x3(c, features, separable, bias=False) for c in channels)
+        self.context = GlobalContext(features) if variant == "lite-ctx" else None
         self.refine = nn.ModuleList(
             _FeatureFusionBlock(features, separable, has_skip=i < 3) for i in range(4)
         )
@@ -318,12 +373,26 @@ class DefocusNet(nn.Module):
             x = F.pad(x, (0, pw, 0, ph), mode="replicate")
         feats = self.encoder(x)
         f1, f2, f3, f4 = (proj(f) for proj, f in zip(self.project, feats, strict=True))
+        if self.context is not None:
+            f4 = self.context(f4, (-(-h // 32), -(-w // 32)))
         y = self.refine[3](f4)  # [B,F,H/16,W/16]
         y = self.refine[2](y, f3)  # [B,F,H/8,W/8]
         y = self.refine[1](y, f2)  # [B,F,H/4,W/4]
         y = self.refine[0](y, f1)  # [B,F,H/2,W/2]
         logits = self.head(y)[..., :h, :w]  # [B,1,H,W]
         return torch.sigmoid(logits)
+
+    def load_lite(self, state: Mapping[str, Tensor]) -> None:
+        """Load a ``"lite"`` state dict into a ``"lite-ctx"`` network (the context module
+        keeps its zero output, so the network computes what the ``"lite"`` one did)."""
+        if self.context is None:
+            self.load_state_dict(state)
+            return
+        missing, unexpected = self.load_state_dict(state, strict=False)
+        if unexpected or any(not k.startswith("context.") for k in missing):
+            raise ValueError(
+                f"not a 'lite' defocus state dict: missing {missing}, unexpected {unexpected}"
+            )
 
     def load_imagenet(self, path: str | Path) -> None:
         """Load ImageNet weights into the ResNeXt50 encoder from a LOCAL state-dict file.
@@ -479,6 +548,7 @@ class FusionNet(nn.Module):
 
 DEFOCUS_NETS: dict[str, Callable[[], nn.Module]] = {
     "lite": lambda: DefocusNet("lite"),
+    "lite-ctx": lambda: DefocusNet("lite-ctx"),
     "resnext50": lambda: DefocusNet("resnext50"),
 }
 RADIANCE_NETS: dict[str, Callable[[], nn.Module]] = {"paper": RadianceNet}

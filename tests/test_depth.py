@@ -304,11 +304,21 @@ def test_samples_and_short_training_roundtrip(tmp_path, tiny_checkpoint, one_thr
         assert s.target.min() == pytest.approx(0) and s.target.max() == pytest.approx(1)
     synth = depth_train.RealDepthData(root, labels, size=(48, 64), synth=1.0).sample(rng)
     assert not synth.relative and synth.target.shape == (48, 64)
+    # multi-scale batches: one shape per batch, about the same pixels per batch
+    shapes = depth_train.batch_shapes([64, 96])
+    assert shapes == [(64, 64), (64, 64), (64, 64), (96, 96), (64, 96), (96, 64)]
+    batches = iter(depth_train._Batches(data, 4, 0, shapes))
+    for _ in range(6):
+        images, targets, _ = next(batches)
+        n, _, h, w = images.shape
+        assert (h, w) in shapes and targets.shape == (n, 1, h, w)
+        assert n == max(2, round(4 * 48 * 64 / (h * w)))
 
     args = depth_train.build_parser().parse_args(
         ["--data", str(root), "--labels", str(labels), "--out", str(tmp_path / "run"),
          "--steps", "3", "--batch-size", "2", "--crop", "64", "--save-every", "2",
-         "--keep-every", "2", "--workers", "0", "--threads", "1", "--log-every", "1"]
+         "--keep-every", "2", "--workers", "0", "--threads", "1", "--log-every", "1",
+         "--variant", "lite-ctx", "--sides", "64,96", "--init", str(tiny_checkpoint)]
     )  # fmt: skip
     assert isinstance(args, argparse.Namespace)
     last = depth_train.train_depth(args)

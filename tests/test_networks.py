@@ -60,6 +60,41 @@ class TestDefocusNet:
         first = next(net.encoder.parameters())
         assert first.grad is not None and float(first.grad.abs().sum()) > 0
 
+    @pytest.mark.parametrize("size", [(64, 64), (50, 70), (33, 97)])
+    def test_context_variant_grows_from_lite(self, size):
+        torch.manual_seed(0)
+        lite = DefocusNet("lite").eval()
+        ctx = DefocusNet("lite-ctx").eval()
+        ctx.load_lite(lite.state_dict())
+        x = torch.rand(2, 3, *size)
+        with torch.no_grad():
+            assert torch.equal(ctx(x), lite(x))  # zero-initialised context output
+            # once trained, the context changes the map everywhere, padding or not
+            torch.nn.init.normal_(ctx.context.out.weight, std=0.5)
+            changed = ctx(x)
+            plain = lite(x)
+        assert changed.shape == (2, 1, *size)
+        assert float((changed - plain).abs().mean()) > 1e-3
+        assert count_parameters(ctx) - count_parameters(lite) < 50_000
+        with pytest.raises(ValueError, match="not a 'lite'"):
+            ctx.load_lite({"nope": torch.zeros(1)})
+
+    def test_context_sees_the_whole_frame(self):
+        """A change in one corner of the deepest map reaches the far corner, and the
+        padding beyond the image neither enters the pooling nor changes the image part."""
+        from d2f_core.networks import GlobalContext
+
+        torch.manual_seed(0)
+        ctx = GlobalContext(8, hidden=4).eval()
+        torch.nn.init.normal_(ctx.out.weight, std=0.5)
+        x = torch.rand(1, 8, 6, 9)
+        y = x.clone()
+        y[..., 0, 0] += 5.0
+        with torch.no_grad():
+            assert float((ctx(x) - ctx(y))[..., -1, -1].abs().max()) > 1e-3
+            padded = torch.cat([x, torch.full((1, 8, 2, 9), 100.0)], dim=2)
+            assert torch.allclose(ctx(padded, (6, 9))[..., :6, :], ctx(x), atol=1e-6)
+
     def test_normalisation_buffers_not_saved(self):
         assert "mean" not in DefocusNet("lite").state_dict()
 
@@ -174,7 +209,7 @@ class TestFusionNet:
 
 
 def test_registries_and_builders():
-    assert set(DEFOCUS_NETS) == {"lite", "resnext50"}
+    assert set(DEFOCUS_NETS) == {"lite", "lite-ctx", "resnext50"}
     assert set(FUSION_NETS) == {"paper", "lite"}
     assert set(RADIANCE_NETS) == {"paper"}
     assert isinstance(build_defocus_net("lite"), DefocusNet)
