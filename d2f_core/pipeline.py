@@ -52,7 +52,7 @@ from .networks import (
     read_torch_file,
     rgb_to_gray,
 )
-from .refine import snap_edges
+from .refine import harden_edges, snap_edges
 
 __all__ = [
     "CHECKPOINT_VERSION",
@@ -108,6 +108,13 @@ class D2FConfig:
         refine_eps: squared colour distance below which two regions count as alike.
         flip_average: average the network's map with its map of the mirrored photo (one
             batch of two: about twice the network's time, a steadier map).
+        edge_step: in :meth:`D2F.prepare`, every pixel of a depth edge (a window spanning at
+            least this much disparity) is put on one side of it, given or predicted map
+            alike (:func:`refine.harden_edges`): the pixels of a soft silhouette otherwise
+            get a blur neither side has and draw a rim of the subject's colour over the
+            background. 0 keeps the map as it is.
+        edge_radius: that window's radius as a fraction of the render pass's long side (at
+            least 3 px).
     """
 
     defocus: str = "lite"
@@ -127,6 +134,8 @@ class D2FConfig:
     refine_radius: float = 0.03
     refine_eps: float = 1e-3
     flip_average: bool = False
+    edge_step: float = 0.1
+    edge_radius: float = 0.004
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -151,6 +160,8 @@ class D2FConfig:
             raise ValueError(f"config.refine must be 'none' or 'snap', got {self.refine!r}")
         if not (0 <= self.refine_radius <= 0.25 and self.refine_eps > 0):
             raise ValueError("config.refine_radius must be in [0, 0.25] and refine_eps > 0")
+        if not (0 <= self.edge_step <= 1 and 0 <= self.edge_radius <= 0.05):
+            raise ValueError("config.edge_step must be in [0, 1] and edge_radius in [0, 0.05]")
         if not 0 < self.render_scale <= 1:
             raise ValueError(f"config.render_scale must be in (0, 1], got {self.render_scale}")
         if self.network_size < 32 or self.max_render_side < 16:
@@ -554,6 +565,9 @@ class D2F(nn.Module):
             disparity_lr = self.predict_disparity(image_lr)  # [1,1,h,w]
         else:
             disparity_lr = _resize(given, lr_size).clamp_(0, 1)
+        if self.config.edge_step > 0:
+            radius = max(3, round(self.config.edge_radius * max(lr_size)))
+            disparity_lr = harden_edges(image_lr, disparity_lr, radius, self.config.edge_step)
         radiance_lr = self.radiance_net(image_lr)  # [1,1,h,w]
         return Scene(
             image=image_t,

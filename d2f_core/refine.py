@@ -14,7 +14,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-__all__ = ["box_mean", "snap_edges"]
+__all__ = ["box_mean", "harden_edges", "snap_edges"]
 
 
 def _box_sum_1d(x: Tensor, radius: int, dim: int) -> Tensor:
@@ -48,18 +48,13 @@ def _local_max(x: Tensor, radius: int) -> Tensor:
     return F.max_pool2d(F.pad(x, (radius, radius, 0, 0), mode="replicate"), (1, k), 1)
 
 
-def snap_edges(image: Tensor, disparity: Tensor, radius: int, eps: float = 1e-3) -> Tensor:
-    """Move the soft edges of ``disparity`` onto the photo's colour edges.
-
-    In the window around every pixel the map is taken as two regions, near (its local
-    maximum) and far (its local minimum). Each region's colour is the window's colour mean
-    weighted by how near (far) each pixel's disparity is; a pixel's share of the near region
-    is the projection of its colour onto the line between the two colours. Where the two
-    colours are alike (less than ``eps`` apart, squared) the map is kept as it is, and where
-    the window holds one depth nothing changes.
-
-    Shape: image (B, 3, H, W) in [0, 1], disparity (B, 1, H, W) -> (B, 1, H, W).
-    """
+def _two_regions(
+    image: Tensor, disparity: Tensor, radius: int, eps: float
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Each window as a near and a far region: ``(lo, span, alpha, conf)``, where ``lo`` and
+    ``lo + span`` are the window's smallest and largest disparity, ``alpha`` a pixel's share
+    of the near region read off its colour and ``conf`` how far apart the two regions'
+    colours are (0 alike, 1 distinct)."""
     if image.shape[-2:] != disparity.shape[-2:] or image.shape[1] != 3:
         raise ValueError(
             f"image {tuple(image.shape)} must be (B, 3, H, W) at the map's size "
@@ -77,5 +72,49 @@ def snap_edges(image: Tensor, disparity: Tensor, radius: int, eps: float = 1e-3)
     alpha = ((image - c_far) * axis).sum(1, keepdim=True) / dist2.clamp_min(1e-6)
     alpha = box_mean(alpha.clamp(0, 1), 1)
     conf = dist2 / (dist2 + eps)
-    snapped = lo + alpha * span
-    return torch.lerp(disparity, snapped, conf)
+    return lo, span, alpha, conf
+
+
+def snap_edges(image: Tensor, disparity: Tensor, radius: int, eps: float = 1e-3) -> Tensor:
+    """Move the soft edges of ``disparity`` onto the photo's colour edges.
+
+    In the window around every pixel the map is taken as two regions, near (its local
+    maximum) and far (its local minimum). Each region's colour is the window's colour mean
+    weighted by how near (far) each pixel's disparity is; a pixel's share of the near region
+    is the projection of its colour onto the line between the two colours. Where the two
+    colours are alike (less than ``eps`` apart, squared) the map is kept as it is, and where
+    the window holds one depth nothing changes.
+
+    Shape: image (B, 3, H, W) in [0, 1], disparity (B, 1, H, W) -> (B, 1, H, W).
+    """
+    lo, span, alpha, conf = _two_regions(image, disparity, radius, eps)
+    return torch.lerp(disparity, lo + alpha * span, conf)
+
+
+def harden_edges(
+    image: Tensor, disparity: Tensor, radius: int, step: float = 0.1, eps: float = 1e-3
+) -> Tensor:
+    """Put every pixel on a depth edge's ramp on one side of the edge.
+
+    A map's silhouettes are ramps a few pixels wide (a phone's depth is stored at a quarter
+    of the photo's size or less, and a network's map is upsampled), and the pixels on a ramp
+    have the colour of one side but a disparity between the two. A renderer draws them with
+    a blur that neither side has: a line of the subject's colour blurred over the background
+    beside it, the bright rim round a sharp subject.
+
+    A pixel is on an edge's ramp where the window of ``radius`` around it spans at least
+    ``step`` of disparity, the window of twice that radius spans less than 1.5 times as much
+    (an edge ends; a slope goes on growing with the window, and slopes are kept), and its
+    own disparity is strictly between the window's extremes (more than 5 % of the span from
+    both). Such a pixel takes the extreme of the side its colour belongs to (as in
+    :func:`snap_edges`), or of the side its disparity is nearer where the two sides'
+    colours are alike.
+
+    Shape: image (B, 3, H, W) in [0, 1], disparity (B, 1, H, W) -> (B, 1, H, W).
+    """
+    lo, span, alpha, conf = _two_regions(image, disparity, radius, eps)
+    wide = _local_max(disparity, 2 * radius) + _local_max(-disparity, 2 * radius)
+    own = (disparity - lo) / span.clamp_min(1e-6)
+    ramp = (span >= step) & (wide < 1.5 * span) & (own > 0.05) & (own < 0.95)
+    near = torch.lerp(own, alpha, conf) >= 0.5
+    return torch.where(ramp, torch.where(near, lo + span, lo), disparity)

@@ -185,10 +185,11 @@ class TestRender:
             assert (tmp_path / "maps" / f"o_{name}.png").is_file()
 
     def test_quality_sets_the_error_budget(self, tmp_path, capsys, checkpoint):
-        img, disp = _scene()
+        img, _ = _scene()
         src = _write_photo(tmp_path / "photo.png", img)
         depth = tmp_path / "d.npy"
-        np.save(depth, disp)
+        # a slope: CoCs of every size (a two-plane map has two, and every budget draws both)
+        np.save(depth, np.tile(np.linspace(1, 0, img.shape[1], dtype=np.float32), (48, 1)))
         picked = {}
         for quality in ("high", "fast"):
             code, err = _run(
@@ -197,9 +198,10 @@ class TestRender:
                 "-v",
             )  # fmt: skip
             assert code == 0, err
-            picked[quality] = int(err.split(" layers, ")[0].rsplit(" ", 1)[-1])
-        # CoCs over 128 px at the low-res pass: only the 30 dB budget affords fewer layers
-        assert picked["high"] == 15 and picked["fast"] < 15
+            layers, preset = err.split(" preset")[0].rsplit(" ", 3)[-3::2]
+            picked[quality] = (int(layers), preset)
+        # CoCs over 128 px at the low-res pass: only the 30 dB budget affords the coarse grids
+        assert picked["high"] == (15, "balanced") and picked["fast"] == (15, "fast")
         # every CoC under a pixel: the picker returns the input
         out = tmp_path / "same.png"
         code, err = _run(capsys, "render", src, "-o", out, "--blur", 0.5, "--focus", 0.5,

@@ -14,7 +14,7 @@ from PIL import Image
 
 from d2f_core import depth_bench, depth_train, teachers
 from d2f_core.pipeline import D2F, find_subject
-from d2f_core.refine import box_mean, snap_edges
+from d2f_core.refine import box_mean, harden_edges, snap_edges
 
 # ------------------------------------------------------------------------------ metrics
 
@@ -152,6 +152,7 @@ class TestSnapEdges:
 
     def test_pipeline_refine_snap(self, tiny_checkpoint, tmp_path):
         model = D2F.from_checkpoint(tiny_checkpoint)
+        model.config.edge_step = 0.0  # snapping alone (TestHardenEdges covers the rest)
         image = np.random.default_rng(0).random((90, 120, 3)).astype(np.float32)
         plain = model.prepare(image).disparity_lr
         model.config.refine = "snap"
@@ -169,6 +170,73 @@ class TestSnapEdges:
     def test_bad_refine_config(self):
         with pytest.raises(ValueError, match="refine"):
             D2F.from_config({"refine": "bilateral"})
+
+
+class TestHardenEdges:
+    @staticmethod
+    def _disc(n=96, offset=0):
+        """A bright disc on a dark wall, and its map as a phone stores it: at a quarter of
+        the size, upsampled (a ramp about 4 px wide), its centre ``offset`` px right of the
+        photo's."""
+        yy, xx = np.mgrid[:n, :n]
+        inside = np.hypot(yy - n / 2, xx - n / 2) < 24
+        image = np.where(inside[..., None], [0.9, 0.8, 0.7], [0.2, 0.25, 0.3])
+        moved = np.roll(inside, offset, axis=1).astype(np.float32)
+        small = torch.from_numpy(0.1 + 0.8 * moved[::4, ::4])[None, None]
+        soft = torch.nn.functional.interpolate(small, size=(n, n), mode="bilinear")
+        img = torch.from_numpy(image.astype(np.float32)).permute(2, 0, 1)[None]
+        return img, soft, inside
+
+    def test_every_ramp_pixel_goes_to_one_side(self):
+        image, soft, inside = self._disc()
+        on_ramp = (soft > 0.12) & (soft < 0.88)
+        assert int(on_ramp.sum()) > 300  # the ramp is there to be hardened
+        hard = harden_edges(image, soft, 3)
+        values = hard[on_ramp]  # within a window of the plateau on its side (0.1 or 0.9)
+        assert bool(((values - 0.1).abs() < 0.15).logical_or((values - 0.9).abs() < 0.15).all())
+        assert float(((soft - 0.5).abs() < 0.25).float().sum()) > 150  # before: 0.25-0.75
+        # and each goes to the side of its colour: the disc's pixels near, the wall's far
+        near = (hard[0, 0] > 0.5).numpy()
+        before = ((soft[0, 0] > 0.5).numpy() != inside).mean()  # 0.023 of the frame
+        assert (near != inside).mean() < 0.2 * before  # 0.0034
+        assert torch.equal(hard[~on_ramp], soft[~on_ramp])  # the rest is kept
+
+    def test_follows_the_colour_edge_not_the_map(self):
+        image, soft, inside = self._disc(offset=2)  # the map's disc 2 px off the photo's
+        near = (harden_edges(image, soft, 3)[0, 0] > 0.5).numpy()
+        before = ((soft[0, 0] > 0.5).numpy() != inside).mean()  # 0.040 of the frame
+        assert (near != inside).mean() < 0.4 * before  # 0.013
+
+    def test_keeps_slopes_and_small_steps(self):
+        image = torch.rand(1, 3, 64, 64)
+        slope = torch.linspace(0, 1, 64).view(1, 1, 1, 64).expand(1, 1, 64, 64).contiguous()
+        assert torch.equal(harden_edges(image, slope, 3), slope)  # 0.1 over 6 px: a slope
+        _, soft, _ = self._disc()
+        small = 0.5 + 0.05 * (soft - 0.5)  # a 0.04 step: under the 0.1 an edge needs
+        assert torch.equal(harden_edges(image[..., :96, :96].repeat(1, 1, 2, 2)[..., :96, :96],
+                                        small, 3), small)  # fmt: skip
+
+    def test_pipeline_hardens_given_and_predicted_maps(self, tiny_checkpoint):
+        model = D2F.from_checkpoint(tiny_checkpoint)
+        image, soft, _ = self._disc()
+        photo = image[0].permute(1, 2, 0).numpy()
+        scene = model.prepare(photo, disparity=soft[0, 0].numpy())
+        radius = max(3, round(model.config.edge_radius * max(scene.image_lr.shape[-2:])))
+        expected = harden_edges(scene.image_lr, _resized(soft, scene.image_lr), radius)
+        torch.testing.assert_close(scene.disparity_lr, expected)
+        model.config.edge_step = 0.0
+        torch.testing.assert_close(
+            model.prepare(photo, disparity=soft[0, 0].numpy()).disparity_lr,
+            _resized(soft, scene.image_lr),
+        )
+        with pytest.raises(ValueError, match="edge_step"):
+            D2F.from_config({"edge_step": 2.0})
+
+
+def _resized(d, like):
+    from d2f_core.pipeline import _resize
+
+    return _resize(d, tuple(like.shape[-2:])).clamp(0, 1)
 
 
 # ------------------------------------------------------------------------------ subject focus

@@ -135,3 +135,40 @@ def test_heldout_masked_photos_rank_subject_nearer(model):
     ]
     assert np.mean(aucs) > HELDOUT_AUC_MEAN
     assert min(aucs) > HELDOUT_AUC_MIN
+
+
+VASE = Path(__file__).resolve().parents[2] / "shared" / "data" / "apple_portrait_jpeg_depth"
+
+
+@pytest.mark.shared_data
+def test_no_rim_round_the_vase(model):
+    """The iPhone portrait of a vase with its own depth, focused on the vase at K = 100 (at
+    1008x756): the dark wall 3-15 px right of the silhouette stays as dark as in the photo
+    (it was 0.053 brighter on average when the map's soft silhouette was rendered as it is)."""
+    from scipy.ndimage import distance_transform_edt
+
+    from d2f_core.depth_train import resize_array
+    from d2f_core.io import load_photo
+
+    if not VASE.is_dir():
+        pytest.skip(f"shared data not available: {VASE}")
+    photo = load_photo(VASE / "image-with-depth.jpg")
+    image = np.clip(resize_array(photo.image, (1008, 756)), 0, 1)
+    disparity = np.clip(resize_array(photo.disparity, (1008, 756)), 0, 1)
+    vase = disparity > 0.5
+    vase[800:] = False  # the table it stands on
+    ring = (distance_transform_edt(~vase) > 3) & (distance_transform_edt(~vase) <= 15)
+    ring[:, :378] = False  # the right side, against the dark wall
+    ring[700:] = False
+    shipped, rims = model.config.edge_step, {}
+    assert shipped == 0.1
+    try:
+        for step in (0.0, shipped):
+            model.config.edge_step = step
+            scene = model.prepare(image, disparity=disparity)
+            bokeh = model.render(scene, focus=0.86, blur=100.0).bokeh
+            rims[step] = float((bokeh.mean(-1) - image.mean(-1))[ring].mean())
+    finally:
+        model.config.edge_step = shipped
+    assert rims[shipped] < 0.025  # 0.014 measured
+    assert rims[0.0] > 2.5 * rims[shipped]  # 0.053 measured
