@@ -482,7 +482,13 @@ class D2F(nn.Module):
         return torch.maximum(m_s, prior), m_s
 
     def _fuse_tiled(
-        self, scene: Scene, bokeh_up: Tensor, focus: float, blur: float, lr_ratio: float
+        self,
+        scene: Scene,
+        bokeh_up: Tensor,
+        focus: float,
+        blur: float,
+        lr_ratio: float,
+        behind: tuple[Tensor, Tensor] | None = None,
     ) -> tuple[Tensor, Tensor]:
         """``B_hr = lerp(B_up, I_hr, M)`` computed tile by tile (inference), in place.
 
@@ -491,6 +497,14 @@ class D2F(nn.Module):
         everywhere: ``M = 1``), or mixed, where ``M`` is computed per pixel, running ``f_p``
         only if some pixel can pass its gate. The result equals the dense
         :meth:`fusion_mask` blend; the cost follows the in-focus part of the frame.
+
+        ``behind`` (full size, from ``rendering.render(..., behind=True)``): the share of
+        each pixel that the layers at and behind the focal plane make, and their colour.
+        Where a blurred foreground covers an in-focus pixel, only that part is sharpened,
+        ``B_hr = B_up + M * share * (I_hr - colour)``, so the foreground's blur stays over
+        it (a plain lerp pasted the sharp background over the blur of a near object, which
+        then ended in a hard edge); where nothing is in front this is the lerp. The mask
+        returned is then ``M * share``, the weight of the sharp photo in the result.
 
         Returns:
             ``(bokeh, mask)``: ``(1, 3, H, W)`` (``bokeh_up``, modified) and ``(1, 1, H, W)``.
@@ -514,8 +528,14 @@ class D2F(nn.Module):
             y0, y1 = row * t, min(height, (row + 1) * t)
             for c in torch.nonzero(all_sharp[row]).flatten().tolist():
                 x0, x1 = c * t, min(width, (c + 1) * t)
-                mask[..., y0:y1, x0:x1] = 1.0
-                bokeh_up[..., y0:y1, x0:x1] = image[..., y0:y1, x0:x1]
+                if behind is None:
+                    mask[..., y0:y1, x0:x1] = 1.0
+                    bokeh_up[..., y0:y1, x0:x1] = image[..., y0:y1, x0:x1]
+                    continue
+                share = behind[0][..., y0:y1, x0:x1]
+                mask[..., y0:y1, x0:x1] = share
+                photo = image[..., y0:y1, x0:x1] - behind[1][..., y0:y1, x0:x1]
+                bokeh_up[..., y0:y1, x0:x1].addcmul_(share, photo)
             for c0, c1 in _runs(torch.nonzero(needs_pixels[row]).flatten().tolist()):
                 x0, x1 = c0 * t, min(width, (c1 + 1) * t)
                 use_net = bool(needs_net[row, c0 : c1 + 1].any())
@@ -535,9 +555,14 @@ class D2F(nn.Module):
                     m_s = m_s * (defocus < cfg.fusion_gate).to(m_s.dtype)
                     m = torch.maximum(m, m_s)
                 m = m[..., y0 - ya : y1 - ya, x0 - xa : x1 - xa]
-                mask[..., y0:y1, x0:x1] = m
                 region = bokeh_up[..., y0:y1, x0:x1]
-                region.copy_(torch.lerp(region, image[..., y0:y1, x0:x1], m))
+                if behind is None:
+                    mask[..., y0:y1, x0:x1] = m
+                    region.copy_(torch.lerp(region, image[..., y0:y1, x0:x1], m))
+                    continue
+                m = m * behind[0][..., y0:y1, x0:x1]
+                mask[..., y0:y1, x0:x1] = m
+                region.addcmul_(m, image[..., y0:y1, x0:x1] - behind[1][..., y0:y1, x0:x1])
         return bokeh_up, mask
 
     # ---------------------------------------------------------------- inference
@@ -700,13 +725,32 @@ class D2F(nn.Module):
                 settings.fusion = blur * near < max(gate_coc, 2.0 * self.config.sharp_coc)
             timings["pick"] = _ms(t0)
         t0 = time.perf_counter()
+        fuse = (
+            fusion
+            and max_side is None
+            and not (settings is not None and settings.identity)
+            and (settings is None or settings.fusion)
+        )
+        behind_lr = None
         if settings is not None and settings.identity:
             bokeh_lr = image_lr  # every CoC is under a pixel of the output
         else:
             options = render_options | (settings.render_options() if settings else {})
             bokeh_lr = rendering.render(
-                image_lr, disparity_lr, focus, blur_lr, radiance=radiance_lr, **options
+                image_lr,
+                disparity_lr,
+                focus,
+                blur_lr,
+                radiance=radiance_lr,
+                behind=fuse,
+                **options,
             )  # [1,3,h,w]
+            if fuse:
+                # what the layers behind the blurred foreground make of each pixel: fusion
+                # sharpens only that part
+                bokeh_lr, share_lr, colour_lr = bokeh_lr
+                if bool((share_lr < 1.0 - 1e-4).any()):
+                    behind_lr = (share_lr, colour_lr)
         timings["render_lr"] = _ms(t0)
         defocus_lr = _coc_to_defocus(blur_lr * (disparity_lr - focus).abs())
 
@@ -723,9 +767,12 @@ class D2F(nn.Module):
             if bokeh is bokeh_lr:
                 bokeh = bokeh.clone()  # fusion writes into it; bokeh_lr is returned too
             timings["upsample"] = _ms(t0)
-            if fusion and (settings is None or settings.fusion):
+            if fuse:
                 t0 = time.perf_counter()
-                bokeh, mask = self._fuse_tiled(scene, bokeh, focus, blur, lr_ratio)
+                behind = None
+                if behind_lr is not None:
+                    behind = tuple(_resize(t, scene.size).clamp_(0, 1) for t in behind_lr)
+                bokeh, mask = self._fuse_tiled(scene, bokeh, focus, blur, lr_ratio, behind)
                 timings["fusion"] = _ms(t0)
             else:
                 mask = torch.zeros((1, 1, *scene.size), device=bokeh.device)

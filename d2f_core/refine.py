@@ -91,8 +91,24 @@ def snap_edges(image: Tensor, disparity: Tensor, radius: int, eps: float = 1e-3)
     return torch.lerp(disparity, lo + alpha * span, conf)
 
 
+#: :func:`harden_edges` leaves a map alone when more than this share of its pixels could be
+#: on a ramp: such a map is noise or texture, not silhouettes.
+MAX_EDGE_SHARE = 0.25
+
+
+def _window_offsets(radius: int, row: int) -> Tensor:
+    """Flat offsets of a ``(2r+1)^2`` window in an array ``row`` elements wide."""
+    r = torch.arange(-radius, radius + 1)
+    return (r[:, None] * row + r[None, :]).flatten()
+
+
 def harden_edges(
-    image: Tensor, disparity: Tensor, radius: int, step: float = 0.1, eps: float = 1e-3
+    image: Tensor,
+    disparity: Tensor,
+    radius: int,
+    step: float = 0.1,
+    eps: float = 1e-3,
+    chunk: int = 1 << 15,
 ) -> Tensor:
     """Put every pixel on a depth edge's ramp on one side of the edge.
 
@@ -106,15 +122,83 @@ def harden_edges(
     ``step`` of disparity, the window of twice that radius spans less than 1.5 times as much
     (an edge ends; a slope goes on growing with the window, and slopes are kept), and its
     own disparity is strictly between the window's extremes (more than 5 % of the span from
-    both). Such a pixel takes the extreme of the side its colour belongs to (as in
-    :func:`snap_edges`), or of the side its disparity is nearer where the two sides'
-    colours are alike.
+    both). Such a pixel takes the window's largest or smallest disparity: the side whose
+    colour it is nearer, where the window holds two regions of distinct colour (each
+    region's colour is the window's mean weighted by how near, or how far, each pixel's
+    disparity is, as in :func:`snap_edges`), else the side its disparity is nearer.
+
+    Only pixels that may be on a ramp are examined, ``chunk`` at a time: the cost follows
+    the length of the edges, not the size of the frame. A map of which more than
+    :data:`MAX_EDGE_SHARE` of the pixels may be on a ramp is noise, and is returned as it is.
 
     Shape: image (B, 3, H, W) in [0, 1], disparity (B, 1, H, W) -> (B, 1, H, W).
     """
-    lo, span, alpha, conf = _two_regions(image, disparity, radius, eps)
-    wide = _local_max(disparity, 2 * radius) + _local_max(-disparity, 2 * radius)
-    own = (disparity - lo) / span.clamp_min(1e-6)
-    ramp = (span >= step) & (wide < 1.5 * span) & (own > 0.05) & (own < 0.95)
-    near = torch.lerp(own, alpha, conf) >= 0.5
-    return torch.where(ramp, torch.where(near, lo + span, lo), disparity)
+    if image.shape[-2:] != disparity.shape[-2:] or image.shape[1] != 3:
+        raise ValueError(
+            f"image {tuple(image.shape)} must be (B, 3, H, W) at the map's size "
+            f"{tuple(disparity.shape)}"
+        )
+    if disparity.shape[0] != 1:
+        return torch.cat(
+            [
+                harden_edges(image[i : i + 1], disparity[i : i + 1], radius, step, eps, chunk)
+                for i in range(disparity.shape[0])
+            ]
+        )
+    h, w = disparity.shape[-2:]
+    # Candidates, a superset of the ramp pixels: the extremes of the 4-px blocks around a
+    # pixel (reaching past its window) span at least ``step`` and its own disparity lies
+    # strictly between them. Plateaus, gentle slopes and hard steps are never examined.
+    block = 4
+    reach = -(-radius // block)  # blocks: past the window of any pixel of the middle one
+    hi = _local_max(F.max_pool2d(disparity, block, block, ceil_mode=True), reach)
+    lo = -_local_max(F.max_pool2d(-disparity, block, block, ceil_mode=True), reach)
+    hi, lo = (
+        t.repeat_interleave(block, 2).repeat_interleave(block, 3)[..., :h, :w] for t in (hi, lo)
+    )
+    margin = 0.05 * step
+    cand = ((hi - lo) >= step) & (disparity - lo > margin) & (hi - disparity > margin)
+    flat = torch.nonzero(cand.flatten()).flatten()
+    if flat.numel() == 0 or flat.numel() > MAX_EDGE_SHARE * h * w:
+        # nothing on a ramp, or a map that is mostly ramps (noise has no silhouettes)
+        return disparity
+    pad = 2 * radius
+    wp = w + 2 * pad
+    # replicate padding keeps the windows' extremes of a window cut at the border; the
+    # colour means count only pixels inside the frame
+    d_pad = F.pad(disparity, (pad, pad, pad, pad), mode="replicate").flatten()
+    rgb_pad = F.pad(image, (pad, pad, pad, pad)).reshape(3, -1)
+    inside = F.pad(torch.ones_like(disparity), (pad, pad, pad, pad)).flatten()
+    small, wide = _window_offsets(radius, wp), _window_offsets(2 * radius, wp)
+    out = disparity.flatten().clone()
+    for part in flat.split(chunk):
+        centre = (part // w + pad) * wp + (part % w + pad)
+        win = torch.take(d_pad, centre[:, None] + small)  # [N, (2r+1)^2]
+        lo_n, hi_n = win.amin(1), win.amax(1)
+        span = hi_n - lo_n
+        own = (torch.take(d_pad, centre) - lo_n) / span.clamp_min(1e-6)
+        keep = (span >= step) & (own > 0.05) & (own < 0.95)
+        part, centre, win, lo_n, span, own = (t[keep] for t in (part, centre, win, lo_n, span, own))
+        if part.numel() == 0:
+            continue
+        around = torch.take(d_pad, centre[:, None] + wide)
+        keep = around.amax(1) - around.amin(1) < 1.5 * span  # an edge, not a slope
+        part, centre, win, lo_n, span, own = (t[keep] for t in (part, centre, win, lo_n, span, own))
+        if part.numel() == 0:
+            continue
+        idx = centre[:, None] + small
+        valid = torch.take(inside, idx)  # [M, K]
+        weight = (win - lo_n[:, None]) / span[:, None] * valid  # nearness within the window
+        colours = torch.stack([torch.take(c, idx) for c in rgb_pad])  # [3, M, K]
+        count = valid.sum(1)
+        near_w = weight.sum(1)
+        c_near = (colours * weight).sum(2) / near_w.clamp_min(1e-4)
+        c_far = (colours * (valid - weight)).sum(2) / (count - near_w).clamp_min(1e-4)
+        axis = c_near - c_far  # [3, M]
+        dist2 = (axis * axis).sum(0)
+        own_rgb = torch.stack([torch.take(c, centre) for c in rgb_pad])
+        alpha = ((own_rgb - c_far) * axis).sum(0) / dist2.clamp_min(1e-6)
+        conf = dist2 / (dist2 + eps)
+        near = torch.lerp(own, alpha.clamp(0, 1), conf) >= 0.5
+        out[part] = torch.where(near, lo_n + span, lo_n)
+    return out.view_as(disparity)

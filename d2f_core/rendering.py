@@ -846,8 +846,16 @@ def _composite(
     method: str,
     quality: str,
     full_frame: bool,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Composite the layers of ``x`` back to front. Returns (acc, alpha).
+    front: bool = False,
+) -> tuple[torch.Tensor, torch.Tensor, tuple[torch.Tensor, torch.Tensor] | None]:
+    """Composite the layers of ``x`` back to front. Returns (acc, alpha, split).
+
+    With ``front`` (a signed plan), the layers in front of the focal plane are composited
+    from zero into their own accumulator, ``(C_f, A_f)``, and merged once,
+    ``acc = acc * (1 - A_f) + C_f``: the same composite (over is linear in what lies
+    under it). ``split`` is then ``(back, 1 - A_f)``: the accumulator of the layers at and
+    behind the focal plane (alpha first, as ``acc``) and what the front layers leave of
+    it; ``None`` without ``front`` or when no layer is in front.
 
     Without gradients ``x`` carries the leading channel of ones of :func:`_with_ones`.
 
@@ -863,7 +871,8 @@ def _composite(
     layers are pooled straight from the product (:func:`_layer_rows`). The accumulator and
     everything else stay planar.
 
-    Shape: ``x (B, C, H, W) -> acc (B, C, H, W), alpha (B, 1, H, W)``.
+    Shape: ``x (B, C, H, W) -> acc (B, C, H, W), alpha (B, 1, H, W)``, split
+    ``((B, C + 1, H, W), (B, 1, H, W))``.
     """
     b, c, height, width = x.shape
     grad = torch.is_grad_enabled() and (x.requires_grad or plan.coord.requires_grad)
@@ -894,10 +903,15 @@ def _composite(
             return acc * up[:, -1:] + up[:, :-1]
         return acc.mul_(up[:, -1:]).add_(up[:, :-1])
 
+    back = None  # the accumulator behind the focal plane, once the front layers begin
     for centre, size in plan.order:
         box = boxes.get(centre)
         if box is None:
             continue
+        if front and back is None and plan.signed and centre > 0:
+            back = flush(acc)
+            acc = x.new_zeros(b, c + 1, height, width)
+            blank = True
         factor = 1 if size <= 1 else _factor_for(size, quality)
         if spec.blades and factor > 2:
             # a 1/4-resolution grid rounds off a polygon's corners: visible in highlights
@@ -967,7 +981,12 @@ def _composite(
             transmit = _blend_transmit(transmit, blurred[:, :1], oy0, ox0, grad)
         group = (factor, colour, transmit)
     acc = flush(acc)
-    return acc[:, 1:], acc[:, :1]
+    split = None
+    if back is not None:
+        transmit = 1 - acc[:, :1].clamp(0, 1)
+        acc = back * transmit + acc if grad else acc.addcmul_(back, transmit)
+        split = (back, transmit)
+    return acc[:, 1:], acc[:, :1], split
 
 
 def _upsample(z: torch.Tensor, factor: int, height: int, width: int) -> torch.Tensor:
@@ -1069,7 +1088,8 @@ def render(
     gamma: float = GAMMA,
     full_frame: bool = False,
     placement: str = "nearest",
-) -> torch.Tensor:
+    behind: bool = False,
+) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Render bokeh with weighted layered rendering.
 
     Args:
@@ -1090,9 +1110,17 @@ def render(
         full_frame: disable the per-layer support boxes and empty-layer skipping (reference).
         placement: ``"nearest"`` or ``"paper"``: which layer a pixel between two layers goes
             to (depth order; see :func:`layer_plan`).
+        behind: also return what the layers at and behind the focal plane make of each
+            pixel (depth order): their share of the result and their own colour. A step
+            that puts the photo's sharp pixels back where they are in focus must replace
+            only that part: an in-focus pixel behind a blurred foreground is partly hidden
+            by it, and pasting the photo over it cuts the foreground's blur off.
 
     Returns:
-        ``(B, 3, H, W)`` in [0, 1].
+        ``(B, 3, H, W)`` in [0, 1]; with ``behind``, ``(image, share, colour)``: ``share``
+        ``(B, 1, H, W)`` in [0, 1] and ``colour`` ``(B, 3, H, W)``, so that the image is
+        ``share * colour + (the layers in front)``. Where nothing is in front of the
+        focal plane (and in the paper order) ``share`` is ones and ``colour`` the image.
     """
     image_max = _check_tensor("image", image, 3)[1]
     disparity_range = _check_tensor("disparity", disparity, 1)
@@ -1133,25 +1161,27 @@ def render(
             gamma=gamma,
             full_frame=full_frame,
             placement=placement,
+            behind=behind,
         )
-        return torch.cat(
-            [
-                render(
-                    image[i : i + 1],
-                    disparity[i : i + 1],
-                    f[i],
-                    blur,
-                    radiance=None if radiance is None else radiance[i : i + 1],
-                    **options,
-                )
-                for i in range(image.shape[0])
-            ]
-        )
+        parts = [
+            render(
+                image[i : i + 1],
+                disparity[i : i + 1],
+                f[i],
+                blur,
+                radiance=None if radiance is None else radiance[i : i + 1],
+                **options,
+            )
+            for i in range(image.shape[0])
+        ]
+        if behind:
+            return tuple(torch.cat([p[i] for p in parts]) for i in range(3))
+        return torch.cat(parts)
     _keep_freed_heap()
     if disparity_range[0] < 0 or disparity_range[1] > 1:
         disparity = disparity.clamp(0, 1)
     if blur == 0 and order == "depth":
-        return image.clamp(0, 1)
+        return _with_behind(image.clamp(0, 1), behind)
 
     grad = torch.is_grad_enabled() and any(
         t is not None and t.requires_grad for t in (image, disparity, radiance)
@@ -1195,8 +1225,14 @@ def render(
         blurred = any(size > 1 for _, size in plan.order)
         if blurred:
             spec = KernelSpec(kernel, int(blades), float(rotation))
-            acc, alpha = _composite(
-                x, plan, spec, method=method, quality=quality, full_frame=full_frame
+            acc, alpha, split = _composite(
+                x,
+                plan,
+                spec,
+                method=method,
+                quality=quality,
+                full_frame=full_frame,
+                front=behind and plan.signed,
             )
             norm, floor = (alpha, 1e-6) if weights is None else (acc[:, 3:], 1e-8)
             # pixels no layer reached (cannot happen with soft masks, but stay defined) keep
@@ -1204,11 +1240,28 @@ def render(
             covered = norm > 1e-6
             norm = norm.clamp(min=floor) if grad else norm.clamp_(min=floor)
     if not blurred:
-        return image.clamp(0, 1)
+        return _with_behind(image.clamp(0, 1), behind)
     out = acc[:, :3] / norm
     if not bool(covered.all()):
         out = torch.where(covered, out, image)
-    return out.clamp(0, 1) if grad else out.clamp_(0, 1)
+    out = out.clamp(0, 1) if grad else out.clamp_(0, 1)
+    if not behind:
+        return out
+    if split is None:
+        return _with_behind(out, True)
+    back, transmit = split  # back: alpha, colour (weighted), then the weight if any
+    back_norm = back[:, :1] if weights is None else back[:, 4:]
+    back = back[:, 1:]
+    # the back layers' share of the normalised result, and their own normalised colour
+    share = (back_norm * transmit / norm).clamp(0, 1)
+    colour = (back[:, :3] / back_norm.clamp(min=floor)).clamp(0, 1)
+    return out, share, torch.where(back_norm > 1e-6, colour, out)
+
+
+def _with_behind(out: torch.Tensor, behind: bool):
+    """``out``, or ``(out, ones, out)`` for a caller asking what lies behind the focal
+    plane of a render with nothing in front of it."""
+    return (out, torch.ones_like(out[:, :1]), out) if behind else out
 
 
 def image_tensor(image) -> torch.Tensor:

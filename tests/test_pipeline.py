@@ -491,3 +491,27 @@ def test_no_bright_rim_round_a_sharp_subject():
     assert rim < 0.012  # 0.005 measured
     before, _ = _rim(0.0)
     assert before > 3 * rim
+
+
+def _spill(model: D2F) -> tuple[int, int, int, int]:
+    """A bright near lamp blurred (CoC 42 px) across the line between an in-focus wall above
+    and a far, blurred room below: how far its glow reaches above, below, left and right of
+    it along its middle row and column."""
+    h = w = 256
+    rng = np.random.default_rng(0)
+    img = (0.25 + 0.1 * rng.random((h, w, 3))).astype(np.float32)
+    disp = np.zeros((h, w), np.float32)
+    disp[: h // 2] = 0.3  # the wall, in focus
+    y0, y1, x0, x1 = 108, 148, 108, 148
+    img[y0:y1, x0:x1], disp[y0:y1, x0:x1] = 0.95, 1.0
+    grey = model.render(model.prepare(img, disparity=disp), focus=0.3, blur=60.0).bokeh.mean(-1)
+    rows, cols = np.nonzero(grey[:, 128] > 0.45)[0], np.nonzero(grey[128] > 0.45)[0]
+    return y0 - rows[0], rows[-1] - (y1 - 1), x0 - cols[0], cols[-1] - (x1 - 1)
+
+
+def test_blurred_foreground_stays_round_over_an_in_focus_background(model):
+    """Sharpening the in-focus wall used to paste it over the lamp's glow: the glow stopped
+    dead at the wall (0 px above, 4 below, 6 to the sides). Now only what lies behind the
+    glow is sharpened, and the glow reaches as far on every side (12, 12, 13, 13 px)."""
+    above, below, left, right = _spill(model)
+    assert above >= 8 and max(above, below, left, right) - min(above, below, left, right) <= 2

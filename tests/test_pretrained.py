@@ -172,3 +172,33 @@ def test_no_rim_round_the_vase(model):
         model.config.edge_step = shipped
     assert rims[shipped] < 0.025  # 0.014 measured
     assert rims[0.0] > 2.5 * rims[shipped]  # 0.053 measured
+
+
+LENS_BLUR = Path(__file__).resolve().parents[2] / "shared" / "data" / "google_lensblur_depthy"
+
+
+@pytest.mark.shared_data
+def test_lamp_glow_is_not_cut_by_the_sharp_wall(model):
+    """The Lens Blur sample at K = 120 with its own depth and focus (the far wall): beside
+    the near lamp, where the wall is in focus, the result keeps the lamp's glow as the
+    low-resolution pass draws it. Pasting the sharp wall there took 25 % of the glow away
+    and left the blurred lamp with a hard top edge."""
+    from scipy.ndimage import distance_transform_edt
+
+    from d2f_core.io import load_photo
+
+    if not LENS_BLUR.is_dir():
+        pytest.skip(f"shared data not available: {LENS_BLUR}")
+    photo = load_photo(LENS_BLUR / "lensblur_sample.jpg")
+    scene = model.prepare(photo.image, disparity=photo.disparity)
+    d = scene.disparity_full()
+    near = d > 0.6
+    dist = distance_transform_edt(~near)
+    band = (dist > 2) & (dist <= 20) & (np.abs(120.0 * (d - photo.focus)) < 5)
+    assert band.sum() > 1000
+    fused = model.render(scene, focus=photo.focus, blur=120.0).bokeh.mean(-1)
+    plain = model.render(scene, focus=photo.focus, blur=120.0, fusion=False).bokeh.mean(-1)
+    sharp = np.clip(photo.image, 0, 1).mean(-1)
+    glow = float((plain - sharp)[band].mean())  # 0.032 measured
+    lost = float((plain - fused)[band].mean())  # 0.008 measured before, 0.0001 now
+    assert glow > 0.02 and lost < 0.05 * glow

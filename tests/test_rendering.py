@@ -7,7 +7,7 @@ import torch.nn.functional as F
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from d2f_core import LayeredRenderer, render, render_bokeh
+from d2f_core import LayeredRenderer, render, render_bokeh, rendering
 from d2f_core.kernels import aperture_kernel, coarse_kernel
 from d2f_core.metrics import psnr
 from d2f_core.rendering import (
@@ -730,3 +730,53 @@ def test_output_finite_and_in_range(
     assert out.shape == (h, w, 3)
     assert np.isfinite(out).all()
     assert out.min() >= 0.0 and out.max() <= 1.0
+
+
+class TestBehindFocus:
+    """``render(..., behind=True)``: the share and colour of the layers at and behind the
+    focal plane, which the full-resolution sharpening replaces."""
+
+    @staticmethod
+    def _scene(seed: int):
+        rng = np.random.default_rng(seed)
+        image = torch.from_numpy(rng.random((1, 3, 96, 128), dtype=np.float32))
+        disparity = torch.full((1, 1, 96, 128), 0.3)
+        disparity[..., 30:60, 40:80] = 1.0  # a near box, blurred over the background
+        image[..., 30:60, 40:80] = 0.9
+        return image, disparity
+
+    @pytest.mark.parametrize("quality", ["exact", "balanced"])
+    def test_splits_the_result_into_behind_and_front(self, quality):
+        image, disparity = self._scene(0)
+        plain = rendering.render(
+            image, disparity, 0.3, 40.0, quality=quality, highlight_boost=False
+        )
+        out, share, colour = rendering.render(
+            image, disparity, 0.3, 40.0, quality=quality, behind=True, highlight_boost=False
+        )
+        if quality == "exact":  # the same composite (coarse grids merge in another order)
+            torch.testing.assert_close(out, plain, atol=1e-5, rtol=0)
+        assert float(share[..., 45, 60]) < 0.01  # the middle of the box: all front
+        assert float(share[..., 90, 5]) > 0.999  # far from it: all background
+        # what is not behind comes from the front layers alone: the same for another
+        # background photo under the same box
+        other, _ = self._scene(1)
+        out2, share2, colour2 = rendering.render(
+            other, disparity, 0.3, 40.0, quality=quality, behind=True, highlight_boost=False
+        )
+        torch.testing.assert_close(share2, share, atol=1e-5, rtol=0)
+        torch.testing.assert_close(out2 - share2 * colour2, out - share * colour, atol=1e-3, rtol=0)
+
+    def test_nothing_in_front(self):
+        image, disparity = self._scene(0)
+        out, share, colour = rendering.render(image, disparity, 1.0, 40.0, behind=True)
+        assert torch.equal(share, torch.ones_like(share)) and torch.equal(colour, out)
+        out, share, colour = rendering.render(image, disparity, 0.3, 0.0, behind=True)
+        assert torch.equal(out, image) and torch.equal(share, torch.ones_like(share))
+        batch = rendering.render(image.repeat(2, 1, 1, 1), disparity.repeat(2, 1, 1, 1), 0.3,
+                                 40.0, behind=True)  # fmt: skip
+        assert [tuple(t.shape) for t in batch] == [
+            (2, 3, 96, 128),
+            (2, 1, 96, 128),
+            (2, 3, 96, 128),
+        ]
