@@ -743,6 +743,9 @@ class D2F(nn.Module):
                 blur_lr,
                 radiance=radiance_lr,
                 behind=fuse,
+                # foreground layers blurred past the fusion gate: fusion never sharpens
+                # them, and must not paste what lies behind them over their blur
+                front_size=_defocus_to_coc(self.config.fusion_gate),
                 **options,
             )  # [1,3,h,w]
             if fuse:

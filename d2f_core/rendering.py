@@ -847,15 +847,17 @@ def _composite(
     quality: str,
     full_frame: bool,
     front: bool = False,
+    front_size: float = 0.0,
 ) -> tuple[torch.Tensor, torch.Tensor, tuple[torch.Tensor, torch.Tensor] | None]:
     """Composite the layers of ``x`` back to front. Returns (acc, alpha, split).
 
     With ``front`` (a signed plan), the layers in front of the focal plane are composited
     from zero into their own accumulator, ``(C_f, A_f)``, and merged once,
     ``acc = acc * (1 - A_f) + C_f``: the same composite (over is linear in what lies
-    under it). ``split`` is then ``(back, 1 - A_f)``: the accumulator of the layers at and
-    behind the focal plane (alpha first, as ``acc``) and what the front layers leave of
-    it; ``None`` without ``front`` or when no layer is in front.
+    under it). Front layers are those in front of the focal plane with a kernel of at least
+    ``front_size`` px. ``split`` is then ``(back, 1 - A_f)``: the accumulator of all the
+    other layers (alpha first, as ``acc``) and what the front layers leave of it; ``None``
+    without ``front`` or when no layer is in front.
 
     Without gradients ``x`` carries the leading channel of ones of :func:`_with_ones`.
 
@@ -908,7 +910,7 @@ def _composite(
         box = boxes.get(centre)
         if box is None:
             continue
-        if front and back is None and plan.signed and centre > 0:
+        if front and back is None and plan.signed and centre > 0 and size >= front_size:
             back = flush(acc)
             acc = x.new_zeros(b, c + 1, height, width)
             blank = True
@@ -1089,6 +1091,7 @@ def render(
     full_frame: bool = False,
     placement: str = "nearest",
     behind: bool = False,
+    front_size: float = 0.0,
 ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Render bokeh with weighted layered rendering.
 
@@ -1115,6 +1118,9 @@ def render(
             that puts the photo's sharp pixels back where they are in focus must replace
             only that part: an in-focus pixel behind a blurred foreground is partly hidden
             by it, and pasting the photo over it cuts the foreground's blur off.
+        front_size: with ``behind``, the layers in front of the focal plane drawn with a
+            kernel under this many px count as behind it (a near subject's own slightly
+            defocused rim is for the sharpening step to decide, like the subject).
 
     Returns:
         ``(B, 3, H, W)`` in [0, 1]; with ``behind``, ``(image, share, colour)``: ``share``
@@ -1162,6 +1168,7 @@ def render(
             full_frame=full_frame,
             placement=placement,
             behind=behind,
+            front_size=front_size,
         )
         parts = [
             render(
@@ -1233,6 +1240,7 @@ def render(
                 quality=quality,
                 full_frame=full_frame,
                 front=behind and plan.signed,
+                front_size=front_size,
             )
             norm, floor = (alpha, 1e-6) if weights is None else (acc[:, 3:], 1e-8)
             # pixels no layer reached (cannot happen with soft masks, but stay defined) keep
