@@ -90,6 +90,14 @@ class D2FConfig:
         network_size: long side (px) the defocus network runs at in :meth:`D2F.prepare`.
         render_scale: scale of the low-resolution rendering pass (paper: 0.5).
         max_render_side: cap on the long side of the low-resolution pass (px).
+        full_pass_side: a photo prepared with a given disparity map (a phone's depth, a
+            user's map) whose long side is at most this (px) is rendered at its own size,
+            and the fusion step, which only restores the detail a smaller pass loses, is
+            skipped. With exact maps of generated scenes at 384x576 the half-size pass with
+            fusion is 2.5 dB under this, 2.7 dB near depth edges. The network's own maps
+            keep ``render_scale``: with them the half-size pass and fusion forgive the map's
+            errors (on the held-out photo scenes 28.06 dB, against 26.86 dB at full size).
+            0 keeps ``render_scale`` for every photo.
         order: compositing order passed to ``rendering.render`` (``"depth"`` or ``"paper"``).
         placement: layer placement passed to ``rendering.render`` (``"paper"`` or
             ``"nearest"``, see ``rendering.layer_plan``). A model renders with the placement
@@ -123,6 +131,7 @@ class D2FConfig:
     network_size: int = 768
     render_scale: float = 0.5
     max_render_side: int = 1024
+    full_pass_side: int = 0
     order: str = "depth"
     placement: str = "paper"
     train_focus: float = 1.0
@@ -164,6 +173,8 @@ class D2FConfig:
             raise ValueError("config.edge_step must be in [0, 1] and edge_radius in [0, 0.05]")
         if not 0 < self.render_scale <= 1:
             raise ValueError(f"config.render_scale must be in (0, 1], got {self.render_scale}")
+        if self.full_pass_side < 0:
+            raise ValueError(f"config.full_pass_side must be >= 0, got {self.full_pass_side}")
         if self.network_size < 32 or self.max_render_side < 16:
             raise ValueError("config.network_size must be >= 32 and max_render_side >= 16")
         if not 0 <= self.train_focus <= 1:
@@ -567,6 +578,14 @@ class D2F(nn.Module):
 
     # ---------------------------------------------------------------- inference
 
+    def pass_size(self, size: tuple[int, int], given: bool = False) -> tuple[int, int]:
+        """``(h, w)`` of the rendering pass for a photo of ``size``: with a ``given`` map the
+        photo's own size up to ``config.full_pass_side``, else ``render_scale`` of it
+        capped at ``max_render_side``."""
+        if given and max(size) <= self.config.full_pass_side:
+            return tuple(size)
+        return _scaled_size(size, self.config.render_scale, self.config.max_render_side)
+
     @torch.no_grad()
     def prepare(self, image: Any, disparity: Any = None) -> Scene:
         """Run the networks once for a photo and cache what :meth:`render` needs.
@@ -584,7 +603,7 @@ class D2F(nn.Module):
         image_t = rendering.image_tensor(image).to(device)  # [1,3,H,W]
         given = None if disparity is None else rendering.disparity_tensor(disparity).to(device)
         size = (int(image_t.shape[-2]), int(image_t.shape[-1]))
-        lr_size = _scaled_size(size, self.config.render_scale, self.config.max_render_side)
+        lr_size = self.pass_size(size, given=given is not None)
         image_lr = _resize(image_t, lr_size).clamp_(0, 1)  # [1,3,h,w]
         if given is None:
             disparity_lr = self.predict_disparity(image_lr)  # [1,1,h,w]
@@ -634,7 +653,8 @@ class D2F(nn.Module):
             scene: from :meth:`prepare`.
             focus: focal disparity in [0, 1] (1 = nearest); see :meth:`focus_at`.
             blur: ``K``, CoC diameter in px at FULL resolution for ``|d - focus| = 1``.
-            fusion: apply deep Poisson fusion at full resolution (else plain upsampling).
+            fusion: apply deep Poisson fusion at full resolution (else plain upsampling; a
+                pass at the photo's own size needs none and has none).
             max_side: preview mode: render at this long side, no fusion.
             budget: error budget of the adaptive settings (:mod:`d2f_core.adaptive`):
                 ``"high"``, ``"balanced"`` or ``"fast"`` (45, 40, 30 dB against the exact
@@ -728,6 +748,7 @@ class D2F(nn.Module):
         fuse = (
             fusion
             and max_side is None
+            and lr_size != tuple(scene.size)  # a full-size pass lost no detail to restore
             and not (settings is not None and settings.identity)
             and (settings is None or settings.fusion)
         )

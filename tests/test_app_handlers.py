@@ -673,3 +673,13 @@ def test_main_reports_missing_weights(tmp_path, capsys):
         main(["--weights", str(tmp_path / "nope.pt"), "--port", "0"])
     assert exit_info.value.code == 2
     assert "nope.pt" in capsys.readouterr().err
+
+
+def test_app_extra_reads_heic():
+    """``pip install -e ".[app]"`` must read the iPhone HEIC photos the app accepts (their
+    depth too): the HEIF plugin is part of the app extra, not only of the dev one."""
+    tomllib = pytest.importorskip("tomllib")  # Python 3.11+
+    meta = tomllib.loads((Path(__file__).resolve().parents[1] / "pyproject.toml").read_text())
+    app_extra = meta["project"]["optional-dependencies"]["app"]
+    assert any(req.startswith("pillow-heif") for req in app_extra)
+    assert any(req.startswith("gradio") for req in app_extra)

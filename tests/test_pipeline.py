@@ -515,3 +515,31 @@ def test_blurred_foreground_stays_round_over_an_in_focus_background(model):
     glow is sharpened, and the glow reaches as far on every side (12, 12, 13, 13 px)."""
     above, below, left, right = _spill(model)
     assert above >= 8 and max(above, below, left, right) - min(above, below, left, right) <= 2
+
+
+def test_small_photos_render_at_their_own_size():
+    """With a given map, up to ``full_pass_side`` the rendering pass is the photo's own size
+    and nothing is fused (there is no lost detail to restore); above it, and for the
+    network's own maps, the pass is ``render_scale`` of the photo, fused."""
+    torch.manual_seed(0)
+    model = D2F.from_config({"full_pass_side": 64})
+    image, disp = _image(), _ramp()  # 48x64
+    scene = model.prepare(image, disparity=disp)
+    assert model.pass_size((48, 64), given=True) == (48, 64) == tuple(scene.image_lr.shape[-2:])
+    assert model.pass_size((48, 64)) == (24, 32) == model.prepare(image).image_lr.shape[-2:]
+    res = model.render(scene, focus=0.6, blur=9.0)
+    expected = rendering.render_bokeh(
+        scene.image_lr[0].permute(1, 2, 0).numpy(),
+        scene.disparity_lr[0, 0].numpy(),
+        0.6,
+        9.0,
+        radiance=scene.radiance_lr,
+        placement=model.config.placement,
+    )
+    np.testing.assert_allclose(res.bokeh, expected, atol=1e-6)
+    assert not res.fusion_mask.any() and "fusion" not in res.timings
+    assert model.pass_size((48, 65), given=True) == (24, 32)  # past the side: half, fused
+    big = model.render(model.prepare(_image(48, 80), disparity=_ramp(48, 80)), 0.6, 9.0)
+    assert big.bokeh_lr.shape == (24, 40, 3) and big.fusion_mask.any()
+    with pytest.raises(ValueError, match="full_pass_side"):
+        D2F.from_config({"full_pass_side": -1})
