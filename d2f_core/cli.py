@@ -41,6 +41,11 @@ from .progress import logs_above_bar, progress
 # named explicitly: under "python -m d2f_core.cli" __name__ is "__main__"
 logger = logging.getLogger("d2f_core.cli")
 
+#: Photos above this many pixels are downscaled with a notice unless ``--max-pixels`` says
+#: otherwise (``--max-pixels 0``: no limit). 25 MP keeps a 24 MP phone photo whole; a PNG
+#: that decodes to 144 MP took minutes and several GB to render at its size.
+DEFAULT_MAX_PIXELS = 25_000_000
+
 PROG = "d2f"
 DEPTH_SUFFIXES = ("", "_depth", "-depth", "_disparity", "-disparity")
 DEPTH_FILE_EXTENSIONS = (".png", ".npy", ".pfm", ".tif", ".tiff", ".jpg", ".jpeg")
@@ -130,6 +135,17 @@ def _positive_int(text: str) -> int:
     if not math.isfinite(value) or value < 1 or value != int(value):
         raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
     return int(value)
+
+
+def _pixel_limit(text: str) -> int:
+    if text.strip() == "0":
+        return 0
+    try:
+        return _positive_int(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(
+            f"expected a positive number of pixels or 0 (no limit), got {text!r}"
+        ) from None
 
 
 def _jpeg_quality(text: str) -> int:
@@ -251,9 +267,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     model.add_argument(
         "--max-pixels",
-        type=_positive_int,
+        type=_pixel_limit,
         metavar="N",
-        help="downscale larger photos to at most N pixels before rendering",
+        help=f"downscale larger photos to at most N pixels before rendering (default "
+        f"{DEFAULT_MAX_PIXELS / 1e6:g} MP, with a notice; 0 renders every photo at its size)",
     )
     verbosity = common.add_argument_group("messages")
     verbosity.add_argument("-q", "--quiet", action="store_true", help="only errors")
@@ -462,9 +479,17 @@ def render_file(
     depth_file: Path | None,
 ) -> Path:
     """Render one photo to ``dst``; raises ``ValueError``/``RenderError`` on failure."""
-    photo = load_photo(src, max_pixels=args.max_pixels, use_embedded=not args.no_embedded_depth)
+    cap = DEFAULT_MAX_PIXELS if args.max_pixels is None else (args.max_pixels or None)
+    photo = load_photo(src, max_pixels=cap, use_embedded=not args.no_embedded_depth)
     image = photo.image
     h, w = image.shape[:2]
+    if photo.info.resized and args.max_pixels is None:
+        oh, ow = photo.info.original_size
+        logger.warning(
+            "%s is %dx%d (%.1f MP): rendered at %dx%d to stay within %g MP "
+            "(--max-pixels 0 renders it at its size)",
+            src, ow, oh, ow * oh / 1e6, w, h, DEFAULT_MAX_PIXELS / 1e6,
+        )  # fmt: skip
     disparity = None
     focus = args.focus
     if depth_file is not None:

@@ -78,7 +78,7 @@ class TestUsage:
             ["render", "in.jpg", "-o", "o.jpg", "--blur", "5", "--focus", "0", "--focus-at", "1,2"],
             ["render", "in.jpg", "-o", "o.jpg", "--blur", "5", "--focus-at", "12"],
             ["render", "in.jpg", "-o", "o.jpg", "--blur", "5", "--aperture-blades", "2"],
-            ["render", "in.jpg", "-o", "o.jpg", "--blur", "5", "--max-pixels", "0"],
+            ["render", "in.jpg", "-o", "o.jpg", "--blur", "5", "--max-pixels", "-1"],
             ["render", "in.jpg", "-o", "o.jpg", "--blur", "5", "--depth-kind", "metres"],
             ["frobnicate"],
         ],
@@ -438,3 +438,30 @@ def test_real_lens_blur_file(tmp_path, capsys):
     code, err = _run(capsys, "render", src, "-o", out, "--blur", 30, "--max-pixels", 150_000)
     assert code == 0, err
     assert load_image(out).shape[0] * load_image(out).shape[1] <= 150_000
+
+
+def test_default_pixel_cap(tmp_path, capsys, checkpoint, monkeypatch):
+    """Photos above the default cap are downscaled with a one-line notice (a 144 MP PNG
+    rendered for minutes at its size); ``--max-pixels 0`` lifts the cap, ``--max-pixels N``
+    sets it without a notice."""
+    from d2f_core import cli
+
+    img, disp = _scene()  # 48x64 = 3072 px
+    src = _write_photo(tmp_path / "big.png", img)
+    monkeypatch.setattr(cli, "DEFAULT_MAX_PIXELS", 1200)
+    common = ["--blur", 8, "--focus", 0.5, "--weights", checkpoint]
+    code, err = _run(capsys, "render", src, "-o", tmp_path / "a.png", *common)
+    assert code == 0, err
+    with Image.open(tmp_path / "a.png") as im:
+        assert im.width * im.height <= 1200 and im.width / im.height == pytest.approx(4 / 3, 0.1)
+    assert "is 64x48 (0.0 MP): rendered at" in err and "--max-pixels 0" in err
+    code, err = _run(capsys, "render", src, "-o", tmp_path / "b.png", "--max-pixels", 0, *common)
+    assert code == 0 and "rendered at" not in err
+    with Image.open(tmp_path / "b.png") as im:
+        assert im.size == (64, 48)
+    code, err = _run(capsys, "render", src, "-o", tmp_path / "c.png", "--max-pixels", 800, *common)
+    assert code == 0 and "rendered at" not in err
+    with Image.open(tmp_path / "c.png") as im:
+        assert im.width * im.height <= 800
+    code, err = _run(capsys, "render", src, "-o", tmp_path / "d.png", "--max-pixels", -5, *common)
+    assert code == 2 and "0 (no limit)" in err
