@@ -21,6 +21,7 @@ import logging
 import math
 import os
 import sys
+import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -575,6 +576,7 @@ def render_file(
     logger.info("%s: focus %.3f, blur %g px", src, focus, args.blur)
 
     protect = [src] + ([depth_file] if depth_file is not None else [])
+    maps = _map_targets(args.save_maps, dst, rendered.maps, protect)  # checked before writing
     save_image(
         dst,
         rendered.bokeh,
@@ -583,15 +585,38 @@ def render_file(
         exif=photo.info.exif,
         protect=protect,
     )
-    if args.save_maps is not None:
-        args.save_maps.mkdir(parents=True, exist_ok=True)
-        stem = dst.stem
-        for name, arr in rendered.maps.items():
-            target = args.save_maps / f"{stem}_{name}.png"
-            if any(same_file(target, p) for p in protect):
-                raise ValueError(f"--save-maps: {target} would overwrite an input file")
+    for target, arr in maps:
+        try:
             save_depth(target, np.clip(arr, 0.0, 1.0))
+        except (OSError, ValueError) as exc:
+            raise RenderError(f"{dst} was written, but not its map {target}: {exc}") from exc
     return dst
+
+
+def _map_targets(
+    folder: Path | None, dst: Path, maps: dict[str, np.ndarray], protect: list[Path]
+) -> list[tuple[Path, np.ndarray]]:
+    """The ``--save-maps`` files of ``dst``, after checking that the folder can be made and
+    written and that no map would replace an input: a failure stops the render before
+    anything is written."""
+    if folder is None:
+        return []
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as exc:
+        reason = exc.strerror or type(exc).__name__
+        raise RenderError(
+            f"--save-maps {os.fspath(folder)}: cannot write there ({reason})"
+        ) from exc
+    out = []
+    for name, arr in maps.items():
+        target = folder / f"{dst.stem}_{name}.png"
+        if any(same_file(target, p) for p in protect):
+            raise ValueError(f"--save-maps: {target} would overwrite an input file")
+        out.append((target, arr))
+    return out
 
 
 # --------------------------------------------------------------------------- commands

@@ -465,3 +465,18 @@ def test_default_pixel_cap(tmp_path, capsys, checkpoint, monkeypatch):
         assert im.width * im.height <= 800
     code, err = _run(capsys, "render", src, "-o", tmp_path / "d.png", "--max-pixels", -5, *common)
     assert code == 2 and "0 (no limit)" in err
+
+
+def test_save_maps_checked_before_anything_is_written(tmp_path, capsys, checkpoint):
+    """A maps folder that cannot be made stops the render before the main output is
+    written (it used to exit 1 after writing it)."""
+    img, disp = _scene()
+    src = _write_photo(tmp_path / "p.png", img)
+    blocker = tmp_path / "maps"
+    blocker.write_text("a file, not a folder")
+    out = tmp_path / "out.png"
+    code, err = _run(capsys, "render", src, "-o", out, "--blur", 8, "--focus", 0.5,
+                     "--weights", checkpoint, "--save-maps", blocker / "sub")  # fmt: skip
+    assert code == 1 and "--save-maps" in err and "cannot write there" in err
+    assert len(err.strip().splitlines()) == 1
+    assert not out.exists() and blocker.read_text() == "a file, not a folder"
