@@ -458,3 +458,72 @@ class TestRealFiles:
         assert raw[-h // 10 :].mean() < raw[: h // 10].mean() - 40
         d = load_depth(shared(f"google_lensblur_depthy/split/{scene}-depth.jpg"), near="dark")
         assert d[-h // 10 :].mean() > d[: h // 10].mean()
+
+
+# --------------------------------------------------------------------------- truncation fuzz
+
+
+def _png16_grey(array: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    Image.fromarray(array.astype(np.uint16)).save(buf, "PNG")
+    return buf.getvalue()
+
+
+def _fuzz_files() -> dict[str, tuple[str, bytes]]:
+    """One small file of every format with depth the project reads: name -> (ext, bytes)."""
+    z, photo, blurred = _scene()
+    disp8 = np.tile(np.linspace(255, 0, 32).astype(np.uint8), (48, 1))
+    files = {
+        "gdepth": (
+            "jpg",
+            lensblur_jpeg(photo, blurred, z, near=1.0, far=4.0, chunk_size=600, focal_distance=1.0),
+        ),  # fmt: skip
+        "apple_mpo": ("jpg", apple_mpo(photo, disp8, float_min=0.5, float_max=2.5)),
+        "png16": ("png", _png16_grey(np.tile(np.arange(0, 65536, 2048, dtype=np.uint16), (24, 1)))),
+    }
+    pfm = io.BytesIO()
+    pfm.write(b"Pf\n32 24\n-1.0\n")
+    pfm.write(np.linspace(1.0, 4.0, 32 * 24, dtype="<f4").tobytes())
+    files["pfm"] = ("pfm", pfm.getvalue())
+    try:
+        import pillow_heif
+
+        pillow_heif.register_heif_opener()
+        buf = io.BytesIO()
+        Image.fromarray(photo).save(buf, "HEIF", quality=90)
+        files["heic"] = ("heic", buf.getvalue())
+    except (ImportError, OSError, ValueError, KeyError):
+        pass  # no HEIF encoder here: the other formats still run
+    return files
+
+
+def test_truncation_fuzz(tmp_path):
+    """Every embedded-depth format cut at seeded offsets (every byte of an MPO's disparity
+    frame among them): each cut file either loads or raises ValueError naming the file, and
+    d2f's photo and depth readers never raise anything else."""
+    rng = np.random.default_rng(21)
+    files = _fuzz_files()
+    assert {"gdepth", "apple_mpo", "png16", "pfm"} <= set(files)
+    outcomes: dict[str, set[str]] = {}
+    for name, (ext, data) in files.items():
+        offsets = set(rng.integers(1, len(data), 40).tolist()) | {1, len(data) - 1}
+        if name == "apple_mpo":
+            second = data.index(b"\xff\xd8", 2)  # frame 1, the disparity image
+            offsets |= set(range(second, min(len(data), second + 400), 3))
+        for cut in sorted(offsets):
+            path = tmp_path / f"{name}_{cut}.{ext}"
+            path.write_bytes(data[:cut])
+            readers = [load_depth] if ext == "pfm" else [load_photo]
+            if ext == "png":
+                readers.append(load_depth)
+            for read in readers:
+                try:
+                    read(path)
+                    outcomes.setdefault(name, set()).add("loaded")
+                except ValueError as exc:
+                    assert path.name in str(exc), (name, cut, str(exc))
+                    outcomes.setdefault(name, set()).add("refused")
+    # the fuzz reached both outcomes where a cut file can still be a photo (a cut MPO keeps
+    # its first frame)
+    assert outcomes["apple_mpo"] == {"loaded", "refused"}
+    assert "refused" in outcomes["pfm"] and "refused" in outcomes["png16"]

@@ -364,6 +364,11 @@ def _read_google(data: bytes, name: str, size: tuple[int, int] | None, orientati
 # --------------------------------------------------------------------------- Apple MPO
 
 
+#: What Pillow raises on a cut or damaged MPO frame: a frame cut inside its markers ends in
+#: ``struct.error`` or ``IndexError`` from the JPEG header parser, not in ``OSError``.
+_CORRUPT_FRAME = (OSError, SyntaxError, EOFError, ValueError, struct.error, IndexError)
+
+
 def _read_apple_mpo(im: Image.Image, name: str, size: tuple[int, int], orientation: int):
     n_frames = getattr(im, "n_frames", 1)
     if im.format != "MPO" or n_frames < 2:
@@ -389,9 +394,12 @@ def _read_apple_mpo(im: Image.Image, name: str, size: tuple[int, int], orientati
                 depth = _grey_unit(im)
                 props_depth = props
                 props_depth["frame"] = str(index)
-        except (OSError, SyntaxError, EOFError, ValueError) as exc:
+        except _CORRUPT_FRAME as exc:
             raise ValueError(f"{name}: MPO auxiliary frame {index} is corrupt: {exc}") from exc
-    im.seek(0)
+    try:
+        im.seek(0)
+    except _CORRUPT_FRAME as exc:
+        raise ValueError(f"{name}: MPO primary frame is corrupt: {exc}") from exc
     if depth is None:
         return None
     aux = props_depth[(NS_APDI, "AuxiliaryImageType")]
