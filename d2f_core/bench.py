@@ -1,4 +1,4 @@
-"""Benchmarks: ``python -m d2f_core.bench render|accuracy|depth`` (also ``d2f-bench``); the
+"""Benchmarks: ``python -m d2f_core.bench render|accuracy|depth|peers`` (``d2f-bench``); the
 app's latency bench lives with the app (``python -m app.bench``), so the core never imports it.
 
 Figures are printed as measured here, with ratios against a baseline measured in the same run;
@@ -275,6 +275,12 @@ def _bench_depth(args: argparse.Namespace) -> int:
     return int(depth_main(args.rest) or 0)
 
 
+def _bench_peers(args: argparse.Namespace) -> int:
+    from .bench_peers import main as peers_main
+
+    return int(peers_main(args.rest) or 0)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="d2f-bench", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -298,10 +304,11 @@ def main(argv: list[str] | None = None) -> int:
     for name, func, text in (
         ("accuracy", _bench_accuracy, "renderer settings against ground truth"),
         ("depth", _bench_depth, "defocus network's depth on real photos against measured depth"),
+        ("peers", _bench_peers, "d2f against other renderers, by category, against ground truth"),
     ):
         q = sub.add_parser(name, help=text, add_help=False)
         q.set_defaults(func=func)
-    # everything after "accuracy" / "depth" (--help included) belongs to that bench
+    # everything after "accuracy" / "depth" / "peers" (--help included) belongs to that bench
     args, rest = parser.parse_known_args(argv)
     if args.command == "render" and rest:
         parser.error(f"unrecognized arguments: {' '.join(rest)}")

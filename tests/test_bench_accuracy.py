@@ -12,6 +12,7 @@ from d2f_core import bench
 from d2f_core.bench_accuracy import (
     edge_band,
     light_band,
+    load_cases,
     main,
     masked_metrics,
     pareto_front,
@@ -203,3 +204,65 @@ class TestConventions:
         assert behind > 38 and front > 38
         assert abs(behind - front) < 1.0
         assert behind > unblurred + 10
+
+
+class TestPeers:
+    def test_gather_known_answers(self):
+        from d2f_core.bench_peers import gather_render
+
+        flat = torch.full((1, 3, 20, 30), 0.4)
+        disp = torch.rand(1, 1, 20, 30)
+        assert torch.allclose(gather_render(flat, disp, 0.5, 12.0), flat, atol=1e-6)
+        img = torch.rand(1, 3, 20, 30)
+        sharp = gather_render(img, torch.full((1, 1, 20, 30), 0.5), 0.5, 12.0)
+        assert torch.allclose(sharp, img, atol=1e-6)  # every CoC 0: the photo
+        # one bright far pixel on a dark in-focus... plane of its own CoC: a disc of radius 5
+        dot = torch.zeros(1, 3, 41, 41)
+        dot[..., 20, 20] = 1.0
+        out = gather_render(dot, torch.zeros(1, 1, 41, 41), 1.0, 10.0)[0, 0]
+        lit = out > 1e-6
+        ys, xs = torch.nonzero(lit, as_tuple=True)
+        assert int(ys.min()) == 15 and int(ys.max()) == 25 and int(xs.min()) == 15
+        assert float(out[20, 20]) == pytest.approx(float(out[20, 24]), rel=1e-5)  # flat disc
+
+    def test_edge_sides(self):
+        from d2f_core.bench_peers import edge_sides
+
+        d = np.zeros((20, 40), np.float32)
+        d[:, 20:] = 1.0
+        near, far = edge_sides(d, width=3)
+        assert near[:, 20:24].all() and not near[:, :20].any() and not near[:, 24:].any()
+        assert far[:, 16:20].all() and not far[:, 20:].any() and not (near & far).any()
+
+    def test_run_peers_reports_every_category(self, tmp_path):
+        from d2f_core.bench_peers import CATEGORIES, format_table, run_peers, summary
+
+        cases = load_cases([(40, 56)], [11, 12], [0.12], samples=16, cache=tmp_path)
+        result = run_peers(cases, repeat=1, blender=False)
+        assert "Blender Defocus skipped" in result["notes"][0]
+        table = summary(result["rows"])
+        assert set(table) == {"d2f renderer", "d2f pipeline", "gather"}
+        assert table["d2f renderer"]["time ratio"] == pytest.approx(1.0)
+        for entry in table.values():
+            assert entry["all"] is not None and 5 < entry["all"] < 100
+            assert {name for name, _, _ in CATEGORIES} <= set(entry)
+        assert format_table(table).count("\n") == 4
+
+    def test_blender_peer_when_installed(self):
+        """Blender's Defocus node as the bench runs it: pixels in = pixels out where nothing
+        is blurred, a flat photo stays flat, and a bright square spreads by its CoC radius."""
+        from d2f_core.bench_peers import blender_available, blender_render
+
+        if blender_available() is None:
+            pytest.skip("blender is not on PATH (Debian: apt-get install blender)")
+        rng = np.random.default_rng(0)
+        img = rng.random((40, 56, 3)).astype(np.float32)
+        flat_d = np.zeros((40, 56), np.float32)
+        same = blender_render(img, flat_d, 0.0, 16.0)
+        assert np.abs(same - np.round(img * 255) / 255).max() <= 1.5 / 255
+        flat = blender_render(np.full((40, 56, 3), 0.4, np.float32), flat_d, 1.0, 16.0)
+        assert np.abs(flat - 0.4).max() <= 1.5 / 255
+        dot = np.zeros((40, 56, 3), np.float32)
+        dot[18:22, 26:30] = 1.0
+        ys, xs = np.nonzero(blender_render(dot, flat_d, 1.0, 16.0).mean(-1) > 0.005)
+        assert 11 <= ys.min() <= 14 and 27 <= ys.max() <= 30  # radius 8 around rows 18-21
