@@ -26,7 +26,7 @@ def model():
 def test_checkpoint_carries_its_config():
     raw = torch.load(ASSETS / "weights" / "d2f_lite.pt", map_location="cpu", weights_only=True)
     assert set(raw) == {"config", "state_dict", "version"}
-    assert raw["config"]["defocus"] == "lite" and raw["config"]["network_size"] == 384
+    assert raw["config"]["defocus"] == "lite-ctx" and raw["config"]["network_size"] == 384
     assert (ASSETS / "weights" / "d2f_lite.pt").stat().st_size < 20 * 2**20
 
 
