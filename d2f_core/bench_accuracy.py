@@ -151,9 +151,8 @@ def _dilate(mask: np.ndarray, radius: int) -> np.ndarray:
     return (out[0, 0] > 0.5).numpy()
 
 
-def edge_band(disparity: np.ndarray, blur: float, *, jump: float = 0.02) -> np.ndarray:
-    """Pixels near an occlusion edge: a disparity jump above ``jump`` between neighbours,
-    grown by ``clamp(K / 4, 2, 24)`` px, where a wrong layer order or a mask leak shows.
+def jump_pixels(disparity: np.ndarray, jump: float = 0.02) -> np.ndarray:
+    """Both pixels of every neighbour pair whose disparities differ by more than ``jump``.
 
     Shape: ``(H, W) -> (H, W)`` bool.
     """
@@ -165,7 +164,16 @@ def edge_band(disparity: np.ndarray, blur: float, *, jump: float = 0.02) -> np.n
     edges[1:] |= dy
     edges[:, :-1] |= dx
     edges[:, 1:] |= dx
-    return _dilate(edges, int(min(24, max(2, math.ceil(blur / 4)))))
+    return edges
+
+
+def edge_band(disparity: np.ndarray, blur: float, *, jump: float = 0.02) -> np.ndarray:
+    """Pixels near an occlusion edge: a disparity jump above ``jump`` between neighbours,
+    grown by ``clamp(K / 4, 2, 24)`` px, where a wrong layer order or a mask leak shows.
+
+    Shape: ``(H, W) -> (H, W)`` bool.
+    """
+    return _dilate(jump_pixels(disparity, jump), int(min(24, max(2, math.ceil(blur / 4)))))
 
 
 def light_band(lights: np.ndarray, blur: float) -> np.ndarray:

@@ -47,7 +47,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from .bench_accuracy import Case, _dilate, load_cases, masked_metrics
+from .bench_accuracy import Case, _dilate, jump_pixels, load_cases, masked_metrics
 from .rendering import render
 
 __all__ = ["CATEGORIES", "edge_sides", "gather_render", "main", "run_peers", "thin_band"]
@@ -104,14 +104,7 @@ def edge_sides(disparity: np.ndarray, width: int = EDGE_PX, jump: float = 0.02):
     Shape: ``(H, W) -> ((H, W), (H, W))`` bool.
     """
     d = disparity.astype(np.float32)
-    edges = np.zeros(d.shape, bool)
-    dy = np.abs(np.diff(d, axis=0)) > jump
-    dx = np.abs(np.diff(d, axis=1)) > jump
-    edges[:-1] |= dy
-    edges[1:] |= dy
-    edges[:, :-1] |= dx
-    edges[:, 1:] |= dx
-    band = _dilate(edges, width)
+    band = _dilate(jump_pixels(d, jump), width)
     t = torch.from_numpy(d)[None, None]
     reach = width + 1  # a band pixel's window holds both sides of its edge
     hi = F.max_pool2d(t, 2 * reach + 1, 1, reach)[0, 0].numpy()
