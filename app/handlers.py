@@ -590,7 +590,7 @@ class RefocusApp:
         if fmt not in FORMATS:
             raise user_error(f"Download format must be PNG or JPEG, got {fmt!r}.")
         if session is None:
-            return gr.update(value=None, label="Download")
+            return gr.update(value=None, label="Download", interactive=False)
         with session.lock:
             image, params = session.last_full, session.last_full_params
         if image is None or params is None:
@@ -604,4 +604,4 @@ class RefocusApp:
             image, folder / name, icc_profile=session.icc_profile, exif=session.exif
         )
         h, w = image.shape[:2]
-        return gr.update(value=str(path), label=f"Download {fmt} ({w}x{h})")
+        return gr.update(value=str(path), label=f"Download {fmt} ({w}x{h})", interactive=True)

@@ -183,7 +183,8 @@ def build_demo(
                     fmt = gr.Radio(
                         list(FORMATS), value="JPEG", label="Download format", elem_id="format"
                     )
-                    download = gr.DownloadButton("Download", elem_id="download")
+                    # nothing to save before the first full render
+                    download = gr.DownloadButton("Download", elem_id="download", interactive=False)
 
         options = [blades, rotation, highlight, fusion, view, quality]
         shown = [result, compare, legend, info]

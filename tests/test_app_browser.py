@@ -95,12 +95,19 @@ def test_refocus_in_browser(
             page.set_default_timeout(TIMEOUT_MS)
             page.goto(server.url)
             page.wait_for_selector("#focus input[type=range]")
+            download = page.locator("button#download, #download button").first
+            assert download.is_disabled()  # nothing to save before a render
 
             # 0. a bundled example renders (network disparity of the tiny random model)
             page.locator(".gallery-item, [data-testid=examples] button").first.click()
             src = wait_new_result(page, None)
             page.wait_for_function(
                 "() => document.querySelector('#info textarea').value.startsWith('512x512 px')"
+            )
+            download.wait_for(state="visible")
+            page.wait_for_function(
+                "() => { const b = document.querySelector('button#download, #download button');"
+                " return b && !b.disabled; }"
             )
             shot(page, "example")
 

@@ -588,7 +588,7 @@ class TestDownload:
         up = logic.download(session, "PNG")
         path = Path(up["value"])
         assert path.suffix == ".png" and path.name.startswith("scene_bokeh_f")
-        assert "320x240" in up["label"]
+        assert "320x240" in up["label"] and up["interactive"] is True  # enabled with a file
         np.testing.assert_array_equal(np.asarray(Image.open(path)), session.last_full)
 
     def test_jpeg_replaces_png(self, loaded):
@@ -603,7 +603,8 @@ class TestDownload:
         logic, session, _ = loaded
         with pytest.raises(gr.Error, match="PNG or JPEG"):
             logic.download(session, "GIF")
-        assert logic.download(None, "PNG")["value"] is None
+        none = logic.download(None, "PNG")
+        assert none["value"] is None and none["interactive"] is False  # nothing to save
 
     def test_session_delete_removes_files(self, loaded):
         logic, session, _ = loaded
