@@ -312,9 +312,19 @@ class RefocusApp:
         )
 
     @staticmethod
-    def _settings_text(settings: Any) -> str:
-        """What the adaptive picker chose, for the info line."""
-        return "" if settings is None else settings.describe()
+    def _settings_text(settings: Any, quality: str) -> str:
+        """The quality the user chose and, briefly, what the adaptive picker did for it (the
+        renderer's own preset names are not the user's words)."""
+        if settings is None:
+            return f"{quality} quality"
+        if settings.identity:
+            return f"{quality} quality: every blur under 1 px, photo shown as it is"
+        done = f"{settings.num_layers} blur layers"
+        if settings.quality != "exact":
+            done += ", large blurs computed at reduced size"
+        if not settings.fusion:
+            done += ", no sharpening pass needed"
+        return f"{quality} quality: {done}"
 
     @staticmethod
     def _info(session: Session, params: RenderParams, kind: str, ms: float, extra: str = "") -> str:
@@ -445,7 +455,7 @@ class RefocusApp:
             session.last_full = bokeh
             session.last_full_params = params
             self._store_views(session, result, bokeh)
-        extra = self._settings_text(result.settings)
+        extra = self._settings_text(result.settings, params.quality)
         return (*self.view_outputs(session, view), self._info(session, params, "full", ms, extra))
 
     @reported
@@ -521,7 +531,7 @@ class RefocusApp:
             if session.full_seq != seq or params == session.full_params:
                 return SKIP4
             self._store_views(session, result, bokeh)
-        extra = self._settings_text(result.settings)
+        extra = self._settings_text(result.settings, params.quality)
         info = self._info(session, params, "preview", ms, extra)
         return (*self.view_outputs(session, view), info)
 

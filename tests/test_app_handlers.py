@@ -483,10 +483,11 @@ class TestRender:
     def test_info_names_the_adaptive_settings(self, loaded):
         logic, session, scene = loaded
         out = logic.render_full(session, 0.5, 0.0)
-        assert "input shown" in out[-1]
+        assert "balanced quality: every blur under 1 px" in out[-1]
         np.testing.assert_array_equal(pixels(out[0]), np.asarray(Image.open(scene.photo)))
         out = logic.render_full(session, 0.5, BLUR)
-        assert "15 layers" in out[-1] and "preset" in out[-1]
+        # the user's word for the setting, not the renderer's preset name
+        assert "balanced quality: 15 blur layers" in out[-1] and "preset" not in out[-1]
         assert "layers" in logic.render_preview(session, 0.45, BLUR)[-1]
 
     def test_quality_option_sets_the_budget(self, loaded):
@@ -495,8 +496,9 @@ class TestRender:
         for quality in ("high", "fast"):
             info[quality] = logic.render_full(session, 1.0, 3000.0, quality=quality)[-1]
         # CoCs far over 64 px: only the 30 dB budget affords fewer than 15 layers
-        assert "15 layers" in info["high"] and "15 layers" not in info["fast"]
-        assert " layers, " in info["fast"]
+        assert "high quality: 15 blur layers" in info["high"]
+        assert info["fast"].split(" | ")[-1].startswith("fast quality: ")
+        assert "15 blur layers" not in info["fast"] and " blur layers" in info["fast"]
         with pytest.raises(gr.Error, match="quality"):
             logic.render_full(session, 0.5, BLUR, quality="ultra")
 
