@@ -32,6 +32,7 @@ import numpy as np
 
 from app import imaging
 from app.cache import SCENE_CACHE, SceneCache, content_key
+from d2f_core.kernels import PAPER_GROWING_SIZES
 
 log = logging.getLogger(__name__)
 
@@ -48,13 +49,16 @@ DEPTH_KINDS = ("disparity (bright = near)", "depth (bright = far)")
 #: the value the slider sends back compare equal.
 FOCUS_DECIMALS = 3
 
+#: The CoC (px at the render pass) that the defocus map draws as 1 (the paper's schedule).
+MAX_DEFOCUS_COC = max(PAPER_GROWING_SIZES)
+
 _LEGENDS = {
     "Disparity": ("viridis", "0 far", "1 near", "Disparity (network map or your upload)"),
     "Defocus": (
         "magma",
         "0 in focus",
-        "1 = CoC of 69 px at the render pass",
-        "Defocus |d - focus| scaled by the blur amount",
+        "1 = a blur of {px} px or more across",
+        "Defocus: how blurred each pixel is (size of its blur disc in the full image)",
     ),
     "Fusion mask": (
         "gray",
@@ -286,6 +290,21 @@ class RefocusApp:
             "Fusion mask": imaging.map_to_display(result.fusion_mask, size, "gray"),
         }
 
+    @staticmethod
+    def _legend(session: Session, view: str) -> tuple[str, str, str, str] | None:
+        """The legend of ``view``; the defocus map's top end in full-resolution pixels."""
+        legend = _LEGENDS.get(view)
+        if legend is None or view != "Defocus":
+            return legend
+        # the defocus map is the paper's D of the CoC at the render pass, 1 = 69 px there;
+        # the pass is smaller than the photo by the width ratio of the two
+        shown = session.views.get("Defocus")
+        pass_w = session.scene.image_lr.shape[-1] if session.scene is not None else None
+        scale = session.size[0] / pass_w if pass_w else 1.0
+        px = round(MAX_DEFOCUS_COC * scale) if shown is not None else MAX_DEFOCUS_COC
+        cmap, low, high, title = legend
+        return cmap, low, high.format(px=px), title
+
     def view_outputs(self, session: Session | None, view: str) -> tuple:
         """``(result, compare, legend)`` updates that show ``view`` of the last render."""
         if session is None or not session.views:
@@ -302,7 +321,7 @@ class RefocusApp:
                 gr.update(visible=False),
             )
         picture = session.views.get(view, session.views["Bokeh"])
-        legend = _LEGENDS.get(view)
+        legend = self._legend(session, view)
         return (
             gr.update(value=self._display_file(session, picture), visible=True),
             gr.update(visible=False),

@@ -561,6 +561,11 @@ class TestRender:
         disp = pixels(logic.show_view(session, "Disparity")[0])
         x, y = session.size[0] - 5, 5  # far background: disparity 0 -> first viridis stop
         np.testing.assert_allclose(disp[y, x], imaging.COLORMAPS["viridis"][0], atol=2)
+        # the defocus legend's top end in full-resolution pixels: 69 px at the render pass
+        legend = logic.show_view(session, "Defocus")[2]["value"]
+        scale = session.size[0] / session.scene.image_lr.shape[-1]
+        assert f"1 = a blur of {round(69 * scale)} px or more across" in legend
+        assert "render pass" not in legend
         with pytest.raises(gr.Error, match="Unknown view"):
             logic.show_view(session, "X-ray")
         assert logic.show_view(None, "Bokeh")[0]["value"] is None
