@@ -298,10 +298,7 @@ class RefocusApp:
             return legend
         # the defocus map is the paper's D of the CoC at the render pass, 1 = 69 px there;
         # the pass is smaller than the photo by the width ratio of the two
-        shown = session.views.get("Defocus")
-        pass_w = session.scene.image_lr.shape[-1] if session.scene is not None else None
-        scale = session.size[0] / pass_w if pass_w else 1.0
-        px = round(MAX_DEFOCUS_COC * scale) if shown is not None else MAX_DEFOCUS_COC
+        px = round(MAX_DEFOCUS_COC * session.size[0] / session.scene.image_lr.shape[-1])
         cmap, low, high, title = legend
         return cmap, low, high.format(px=px), title
 

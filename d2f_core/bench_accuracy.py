@@ -151,6 +151,11 @@ def _dilate(mask: np.ndarray, radius: int) -> np.ndarray:
     return (out[0, 0] > 0.5).numpy()
 
 
+def reach_px(blur: float, divisor: int, cap: int) -> int:
+    """How far (px) a band grows around what it marks: ``clamp(K / divisor, 2, cap)``."""
+    return int(min(cap, max(2, math.ceil(blur / divisor))))
+
+
 def jump_pixels(disparity: np.ndarray, jump: float = 0.02) -> np.ndarray:
     """Both pixels of every neighbour pair whose disparities differ by more than ``jump``.
 
@@ -173,7 +178,7 @@ def edge_band(disparity: np.ndarray, blur: float, *, jump: float = 0.02) -> np.n
 
     Shape: ``(H, W) -> (H, W)`` bool.
     """
-    return _dilate(jump_pixels(disparity, jump), int(min(24, max(2, math.ceil(blur / 4)))))
+    return _dilate(jump_pixels(disparity, jump), reach_px(blur, 4, 24))
 
 
 def light_band(lights: np.ndarray, blur: float) -> np.ndarray:
@@ -181,7 +186,7 @@ def light_band(lights: np.ndarray, blur: float) -> np.ndarray:
 
     Shape: ``(H, W) -> (H, W)`` bool.
     """
-    return _dilate(lights, int(min(48, max(2, math.ceil(blur / 2)))))
+    return _dilate(lights, reach_px(blur, 2, 48))
 
 
 def _focus_for(scene, mode: str) -> float:

@@ -47,7 +47,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from .bench_accuracy import Case, _dilate, jump_pixels, load_cases, masked_metrics
+from .bench_accuracy import Case, _dilate, jump_pixels, load_cases, masked_metrics, reach_px
 from .rendering import render
 
 __all__ = ["CATEGORIES", "edge_sides", "gather_render", "main", "run_peers", "thin_band"]
@@ -131,7 +131,7 @@ def thin_band(case: Case) -> np.ndarray:
             continue
         crop = layer.alpha[y0 - layer.top : y1 - layer.top, x0 - layer.left : x1 - layer.left]
         mask[y0:y1, x0:x1] |= crop > 0.5
-    return _dilate(mask, int(min(24, max(2, math.ceil(case.blur / 4)))))
+    return _dilate(mask, reach_px(case.blur, 4, 24))
 
 
 _BLENDER_SCRIPT = """

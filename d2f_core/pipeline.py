@@ -535,18 +535,25 @@ class D2F(nn.Module):
         mask = torch.zeros((1, 1, height, width), device=bokeh_up.device, dtype=bokeh_up.dtype)
         image, d_full = scene.image, scene.disparity_full_tensor()
         halo = self.fusion_net.halo
+
+        def sharpen(y0: int, y1: int, x0: int, x1: int, m: Tensor | float) -> None:
+            """Put the photo back into ``bokeh_up`` with weight ``m`` over one region."""
+            region, photo = bokeh_up[..., y0:y1, x0:x1], image[..., y0:y1, x0:x1]
+            if behind is None:
+                mask[..., y0:y1, x0:x1] = m
+                if isinstance(m, float):  # m = 1: the photo itself
+                    region.copy_(photo)
+                else:
+                    region.copy_(torch.lerp(region, photo, m))
+                return
+            m = behind[0][..., y0:y1, x0:x1] * m
+            mask[..., y0:y1, x0:x1] = m
+            region.addcmul_(m, photo - behind[1][..., y0:y1, x0:x1])
+
         for row in range(lo.shape[0]):
             y0, y1 = row * t, min(height, (row + 1) * t)
             for c in torch.nonzero(all_sharp[row]).flatten().tolist():
-                x0, x1 = c * t, min(width, (c + 1) * t)
-                if behind is None:
-                    mask[..., y0:y1, x0:x1] = 1.0
-                    bokeh_up[..., y0:y1, x0:x1] = image[..., y0:y1, x0:x1]
-                    continue
-                share = behind[0][..., y0:y1, x0:x1]
-                mask[..., y0:y1, x0:x1] = share
-                photo = image[..., y0:y1, x0:x1] - behind[1][..., y0:y1, x0:x1]
-                bokeh_up[..., y0:y1, x0:x1].addcmul_(share, photo)
+                sharpen(y0, y1, c * t, min(width, (c + 1) * t), 1.0)
             for c0, c1 in _runs(torch.nonzero(needs_pixels[row]).flatten().tolist()):
                 x0, x1 = c0 * t, min(width, (c1 + 1) * t)
                 use_net = bool(needs_net[row, c0 : c1 + 1].any())
@@ -565,15 +572,7 @@ class D2F(nn.Module):
                     )
                     m_s = m_s * (defocus < cfg.fusion_gate).to(m_s.dtype)
                     m = torch.maximum(m, m_s)
-                m = m[..., y0 - ya : y1 - ya, x0 - xa : x1 - xa]
-                region = bokeh_up[..., y0:y1, x0:x1]
-                if behind is None:
-                    mask[..., y0:y1, x0:x1] = m
-                    region.copy_(torch.lerp(region, image[..., y0:y1, x0:x1], m))
-                    continue
-                m = m * behind[0][..., y0:y1, x0:x1]
-                mask[..., y0:y1, x0:x1] = m
-                region.addcmul_(m, image[..., y0:y1, x0:x1] - behind[1][..., y0:y1, x0:x1])
+                sharpen(y0, y1, x0, x1, m[..., y0 - ya : y1 - ya, x0 - xa : x1 - xa])
         return bokeh_up, mask
 
     # ---------------------------------------------------------------- inference

@@ -48,6 +48,26 @@ def _local_max(x: Tensor, radius: int) -> Tensor:
     return F.max_pool2d(F.pad(x, (radius, radius, 0, 0), mode="replicate"), (1, k), 1)
 
 
+def _check_pair(image: Tensor, disparity: Tensor) -> None:
+    if image.shape[-2:] != disparity.shape[-2:] or image.shape[1] != 3:
+        raise ValueError(
+            f"image {tuple(image.shape)} must be (B, 3, H, W) at the map's size "
+            f"{tuple(disparity.shape)}"
+        )
+
+
+def _colour_share(
+    colour: Tensor, c_near: Tensor, c_far: Tensor, eps: float, dim: int, keepdim: bool
+) -> tuple[Tensor, Tensor]:
+    """A pixel's share of the near region, the projection of its ``colour`` onto the line
+    from the far region's colour to the near one's (not clamped), and how distinct the two
+    colours are (``dist2 / (dist2 + eps)``); colour channels along ``dim``."""
+    axis = c_near - c_far
+    dist2 = (axis * axis).sum(dim, keepdim=keepdim)
+    alpha = ((colour - c_far) * axis).sum(dim, keepdim=keepdim) / dist2.clamp_min(1e-6)
+    return alpha, dist2 / (dist2 + eps)
+
+
 def _two_regions(
     image: Tensor, disparity: Tensor, radius: int, eps: float
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -55,11 +75,7 @@ def _two_regions(
     ``lo + span`` are the window's smallest and largest disparity, ``alpha`` a pixel's share
     of the near region read off its colour and ``conf`` how far apart the two regions'
     colours are (0 alike, 1 distinct)."""
-    if image.shape[-2:] != disparity.shape[-2:] or image.shape[1] != 3:
-        raise ValueError(
-            f"image {tuple(image.shape)} must be (B, 3, H, W) at the map's size "
-            f"{tuple(disparity.shape)}"
-        )
+    _check_pair(image, disparity)
     hi, lo = _local_max(disparity, radius), -_local_max(-disparity, radius)
     span = hi - lo
     w = (disparity - lo) / span.clamp_min(1e-4)
@@ -67,12 +83,8 @@ def _two_regions(
     near_w = means[:, :1]
     c_near = means[:, 1:4] / near_w.clamp_min(1e-4)
     c_far = (means[:, 4:7] - means[:, 1:4]) / (1.0 - near_w).clamp_min(1e-4)
-    axis = c_near - c_far
-    dist2 = (axis * axis).sum(1, keepdim=True)
-    alpha = ((image - c_far) * axis).sum(1, keepdim=True) / dist2.clamp_min(1e-6)
-    alpha = box_mean(alpha.clamp(0, 1), 1)
-    conf = dist2 / (dist2 + eps)
-    return lo, span, alpha, conf
+    alpha, conf = _colour_share(image, c_near, c_far, eps, dim=1, keepdim=True)
+    return lo, span, box_mean(alpha.clamp(0, 1), 1), conf
 
 
 def snap_edges(image: Tensor, disparity: Tensor, radius: int, eps: float = 1e-3) -> Tensor:
@@ -133,11 +145,7 @@ def harden_edges(
 
     Shape: image (B, 3, H, W) in [0, 1], disparity (B, 1, H, W) -> (B, 1, H, W).
     """
-    if image.shape[-2:] != disparity.shape[-2:] or image.shape[1] != 3:
-        raise ValueError(
-            f"image {tuple(image.shape)} must be (B, 3, H, W) at the map's size "
-            f"{tuple(disparity.shape)}"
-        )
+    _check_pair(image, disparity)
     if disparity.shape[0] != 1:
         return torch.cat(
             [
@@ -194,11 +202,8 @@ def harden_edges(
         near_w = weight.sum(1)
         c_near = (colours * weight).sum(2) / near_w.clamp_min(1e-4)
         c_far = (colours * (valid - weight)).sum(2) / (count - near_w).clamp_min(1e-4)
-        axis = c_near - c_far  # [3, M]
-        dist2 = (axis * axis).sum(0)
-        own_rgb = torch.stack([torch.take(c, centre) for c in rgb_pad])
-        alpha = ((own_rgb - c_far) * axis).sum(0) / dist2.clamp_min(1e-6)
-        conf = dist2 / (dist2 + eps)
+        own_rgb = torch.stack([torch.take(c, centre) for c in rgb_pad])  # [3, M]
+        alpha, conf = _colour_share(own_rgb, c_near, c_far, eps, dim=0, keepdim=False)
         near = torch.lerp(own, alpha.clamp(0, 1), conf) >= 0.5
         out[part] = torch.where(near, lo_n + span, lo_n)
     return out.view_as(disparity)

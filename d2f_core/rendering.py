@@ -1259,10 +1259,9 @@ def render(
         return _with_behind(out, True)
     back, transmit = split  # back: alpha, colour (weighted), then the weight if any
     back_norm = back[:, :1] if weights is None else back[:, 4:]
-    back = back[:, 1:]
     # the back layers' share of the normalised result, and their own normalised colour
     share = (back_norm * transmit / norm).clamp(0, 1)
-    colour = (back[:, :3] / back_norm.clamp(min=floor)).clamp(0, 1)
+    colour = (back[:, 1:4] / back_norm.clamp(min=floor)).clamp(0, 1)
     return out, share, torch.where(back_norm > 1e-6, colour, out)
 
 
