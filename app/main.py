@@ -9,17 +9,17 @@ from __future__ import annotations
 import argparse
 import logging
 import os
-from pathlib import Path
 from typing import Any
 
 import gradio as gr
 
 from app.cache import SceneCache
 from app.handlers import DEPTH_KINDS, FORMATS, QUALITIES, VIEWS, RefocusApp, delete_session
+from d2f_core import bundled
 
 log = logging.getLogger(__name__)
 
-SAMPLES_DIR = Path(__file__).resolve().parent.parent / "assets" / "samples"
+SAMPLES_DIR = bundled.assets_dir() / "samples"
 #: Events that run the model share one concurrency group of this many parallel calls
 #: (all sessions together); on a 2-core CPU more only adds contention.
 DEFAULT_CONCURRENCY = 4
@@ -38,8 +38,8 @@ Dragging a slider shows a quick preview; releasing it renders at full resolution
 
 
 def sample_paths() -> list[str]:
-    """The bundled example photos (``assets/samples/*.jpg``), sorted by name."""
-    return sorted(str(p) for p in SAMPLES_DIR.glob("*.jpg"))
+    """The bundled example photos (``assets/samples/``, installed with the package), by name."""
+    return [str(p) for p in bundled.sample_photos()]
 
 
 def load_model(weights: str | os.PathLike | None = None) -> Any:

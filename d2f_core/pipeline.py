@@ -42,7 +42,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from . import adaptive, rendering
+from . import adaptive, bundled, rendering
 from .errors import InputTypeError
 from .kernels import PAPER_GROWING_SIZES
 from .networks import (
@@ -72,11 +72,11 @@ _FUSION_TILE = 256
 
 
 def default_weights_path() -> Path:
-    """``$D2F_WEIGHTS`` if set, else ``assets/weights/d2f_lite.pt`` in the repository."""
+    """``$D2F_WEIGHTS`` if set, else the shipped weights (:func:`bundled.shipped_weights`)."""
     env = os.environ.get("D2F_WEIGHTS")
     if env:
         return Path(env)
-    return Path(__file__).resolve().parents[1] / "assets" / "weights" / "d2f_lite.pt"
+    return bundled.shipped_weights()
 
 
 @dataclass
