@@ -42,8 +42,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from . import adaptive, bundled, rendering
+from . import adaptive, bundled, depth_sources, rendering
 from .errors import InputTypeError
+from .io.embedded import Photo
 from .kernels import PAPER_GROWING_SIZES
 from .networks import (
     build_defocus_net,
@@ -207,7 +208,12 @@ class Scene:
         disparity_lr: ``[1, 1, h, w]`` in [0, 1], 1 = nearest.
         radiance_lr: ``R0`` before the HDR boost, ``[1, 1, h, w]`` in (0, 1).
         size: ``(H, W)`` of the full-resolution photo.
-        disparity_source: ``"network"`` or ``"given"``.
+        disparity_source: the depth source (:mod:`d2f_core.depth_sources`): ``"d2f"``,
+            ``"embedded"``, ``"file:PATH"``, ``"transformers:MODEL"``, or ``"given"`` for a
+            bare map passed to :meth:`D2F.prepare`.
+        disparity_output: what that source gave (``"relative inverse depth"``, ``"metric
+            depth"``, ``"phone depth (apple_mpo)"``, ``"D2F network disparity"``, ...).
+        refined: whether :meth:`D2F.refine_disparity` ran on the map.
         cache: derived tensors (full-res disparity, preview-size inputs), filled lazily.
     """
 
@@ -216,7 +222,9 @@ class Scene:
     disparity_lr: Tensor
     radiance_lr: Tensor
     size: tuple[int, int]
-    disparity_source: str = "network"
+    disparity_source: str = "d2f"
+    disparity_output: str = "D2F network disparity"
+    refined: bool = True
     given_disparity: Tensor | None = field(default=None, repr=False)
     cache: dict[Any, Any] = field(default_factory=dict, repr=False)
 
@@ -437,9 +445,9 @@ class D2F(nn.Module):
 
     # ---------------------------------------------------------------- networks
 
-    def predict_disparity(self, image: Tensor) -> Tensor:
+    def predict_disparity(self, image: Tensor, refine: bool = True) -> Tensor:
         """Defocus network at ``config.network_size`` (averaged with its mirror image with
-        ``config.flip_average``), resized back to the input size; with
+        ``config.flip_average``), resized back to the input size; with ``refine`` and
         ``config.refine="snap"`` its edges are then moved onto the photo's
         (:func:`refine.snap_edges`).
 
@@ -455,10 +463,32 @@ class D2F(nn.Module):
         else:
             d = self.defocus_net(small)
         d = _resize(d, size)  # [B,1,h,w]
-        if self.config.refine == "snap":
-            radius = max(1, round(self.config.refine_radius * max(size)))
-            d = snap_edges(image, d, radius, self.config.refine_eps)
+        if refine:
+            d = self._snap(image, d)
         return d.clamp(0, 1)
+
+    def _snap(self, image: Tensor, disparity: Tensor) -> Tensor:
+        if self.config.refine != "snap":
+            return disparity
+        radius = max(1, round(self.config.refine_radius * max(image.shape[-2:])))
+        return snap_edges(image, disparity, radius, self.config.refine_eps).clamp_(0, 1)
+
+    def refine_disparity(self, image: Tensor, disparity: Tensor) -> Tensor:
+        """Edge-aware refinement of a disparity map from any source, guided by the photo at
+        the map's size (:meth:`prepare` runs it at the rendering pass's size):
+
+        1. with ``config.refine="snap"``, soft edges are moved onto the photo's colour edges
+           (:func:`refine.snap_edges`, window ``config.refine_radius`` of the long side);
+        2. with ``config.edge_step > 0``, every pixel on a silhouette's ramp is put on one
+           side of it by its colour (:func:`refine.harden_edges`).
+
+        Shape: image (1, 3, h, w) in [0, 1], disparity (1, 1, h, w) -> (1, 1, h, w) in [0, 1].
+        """
+        d = self._snap(image, disparity)
+        if self.config.edge_step > 0:
+            radius = max(3, round(self.config.edge_radius * max(image.shape[-2:])))
+            d = harden_edges(image, d, radius, self.config.edge_step)
+        return d
 
     def fusion_mask(
         self,
@@ -586,31 +616,58 @@ class D2F(nn.Module):
         return _scaled_size(size, self.config.render_scale, self.config.max_render_side)
 
     @torch.no_grad()
-    def prepare(self, image: Any, disparity: Any = None) -> Scene:
+    def prepare(
+        self, image: Any, disparity: Any = None, *, depth: Any = None, refine: bool = True
+    ) -> Scene:
         """Run the networks once for a photo and cache what :meth:`render` needs.
 
         Args:
-            image: ``H x W x 3`` numpy (uint8, or float32 in [0, 1]) or a ``[1, 3, H, W]``
-                tensor in [0, 1].
-            disparity: optional ``H' x W'`` map in [0, 1] (1 = nearest), any size; it replaces
-                the network's map (resized to the photo).
+            image: ``H x W x 3`` numpy (uint8, or float32 in [0, 1]), a ``[1, 3, H, W]``
+                tensor in [0, 1], or a :class:`d2f_core.io.Photo` (whose phone depth the
+                ``"embedded"`` source reads).
+            depth: where the disparity comes from (:mod:`d2f_core.depth_sources`): ``None``
+                or ``"d2f"`` (this model's defocus network), ``"embedded"``, ``"file:PATH"``,
+                ``"transformers:MODEL"``, a :class:`~d2f_core.depth_sources.DepthMap`, or a
+                ready ``H' x W'`` map in [0, 1] (1 = nearest) of any size, resized to the
+                photo.
+            disparity: a ready map, as ``depth`` (its older name).
+            refine: edge-aware refinement (:meth:`refine_disparity`) of the map at the
+                rendering pass's size, the same for every source; ``False`` keeps the map as
+                the source gave it.
 
         Returns:
-            A :class:`Scene` on the model's device.
+            A :class:`Scene` on the model's device; ``scene.disparity_source`` names the
+            source (``"given"`` for a bare map).
         """
+        if disparity is not None and depth is not None:
+            raise ValueError("pass the map as depth or as disparity, not both")
+        depth = disparity if depth is None else depth
+        photo = None
+        if isinstance(image, Photo):
+            photo, image = image, image.image
         device = self.device
         image_t = rendering.image_tensor(image).to(device)  # [1,3,H,W]
-        given = None if disparity is None else rendering.disparity_tensor(disparity).to(device)
+        source, output = depth_sources.DEFAULT_SOURCE, "D2F network disparity"
+        if isinstance(depth, (str, depth_sources.DepthSource)):
+            spec = depth_sources.parse_source(depth)
+            if spec.kind == "d2f":
+                depth = None
+            else:
+                depth = depth_sources.depth_map(spec, image_t, photo=photo, device=device)
+        if isinstance(depth, depth_sources.DepthMap):
+            source, output, depth = depth.source, depth.output, depth.disparity
+        elif depth is not None:
+            source, output = "given", "disparity map"
+        given = None if depth is None else rendering.disparity_tensor(depth).to(device)
         size = (int(image_t.shape[-2]), int(image_t.shape[-1]))
         lr_size = self.pass_size(size, given=given is not None)
         image_lr = _resize(image_t, lr_size).clamp_(0, 1)  # [1,3,h,w]
         if given is None:
-            disparity_lr = self.predict_disparity(image_lr)  # [1,1,h,w]
+            disparity_lr = self.predict_disparity(image_lr, refine=False)  # [1,1,h,w]
         else:
             disparity_lr = _resize(given, lr_size).clamp_(0, 1)
-        if self.config.edge_step > 0:
-            radius = max(3, round(self.config.edge_radius * max(lr_size)))
-            disparity_lr = harden_edges(image_lr, disparity_lr, radius, self.config.edge_step)
+        if refine:
+            disparity_lr = self.refine_disparity(image_lr, disparity_lr)
         radiance_lr = self.radiance_net(image_lr)  # [1,1,h,w]
         return Scene(
             image=image_t,
@@ -618,7 +675,9 @@ class D2F(nn.Module):
             disparity_lr=disparity_lr,
             radiance_lr=radiance_lr,
             size=size,
-            disparity_source="network" if given is None else "given",
+            disparity_source=source,
+            disparity_output=output,
+            refined=bool(refine),
             given_disparity=given,
         )
 

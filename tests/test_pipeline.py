@@ -41,7 +41,7 @@ class TestPrepareRender:
         assert scene.disparity_lr.shape == (1, 1, 24, 32)
         assert scene.radiance_lr.shape == (1, 1, 24, 32)
         assert scene.size == (48, 64)
-        assert scene.disparity_source == "network"
+        assert scene.disparity_source == "d2f"
         assert 0 <= float(scene.disparity_lr.min()) <= float(scene.disparity_lr.max()) <= 1
         assert scene.disparity_full().shape == (48, 64)
 

@@ -1,0 +1,430 @@
+"""Depth sources (``d2f_core.depth_sources``): parsing, conversions, hub models loaded from
+local folders (tiny random models, never downloaded), the clear errors, and the refinement
+that every source's map goes through in ``D2F.prepare``."""
+
+from __future__ import annotations
+
+import sys
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+from d2f_core import depth_sources as ds
+from d2f_core.io import Photo
+from d2f_core.pipeline import D2F, _resize
+from d2f_core.refine import box_mean
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+def _photo(h: int = 40, w: int = 64, seed: int = 0) -> np.ndarray:
+    return np.random.default_rng(seed).random((h, w, 3)).astype(np.float32)
+
+
+def _spearman(a: np.ndarray, b: np.ndarray) -> float:
+    ra = np.argsort(np.argsort(a.ravel())).astype(np.float64)
+    rb = np.argsort(np.argsort(b.ravel())).astype(np.float64)
+    return float(np.corrcoef(ra, rb)[0, 1])
+
+
+@pytest.fixture(autouse=True)
+def _fresh_models():
+    """No hub model stays loaded from one test to the next."""
+    ds._LOADED.clear()
+    yield
+    ds._LOADED.clear()
+
+
+# ------------------------------------------------------------------------------ parsing
+
+
+class TestParse:
+    def test_names(self):
+        assert ds.parse_source("d2f") == ds.DepthSource("d2f")
+        assert ds.parse_source(" Embedded ") == ds.DepthSource("embedded")
+        assert ds.parse_source("file:/a/b.png").arg == "/a/b.png"
+        src = ds.parse_source("transformers:depth-anything/Depth-Anything-V2-Small-hf")
+        assert (src.kind, src.arg) == ("transformers", "depth-anything/Depth-Anything-V2-Small-hf")
+        assert src.name == "transformers:depth-anything/Depth-Anything-V2-Small-hf"
+        assert ds.parse_source("file:C:/maps/x.png").arg == "C:/maps/x.png"  # one split only
+
+    @pytest.mark.parametrize(
+        "bad, match",
+        [
+            ("midas", "unknown depth source"),
+            ("transformers", "needs a model id"),
+            ("transformers:", "needs a model id"),
+            ("file", "needs a map file"),
+            ("d2f:big", "takes no argument"),
+        ],
+    )
+    def test_bad(self, bad, match):
+        with pytest.raises(ValueError, match=match):
+            ds.parse_source(bad)
+        with pytest.raises(TypeError):
+            ds.parse_source(3)
+
+
+# ------------------------------------------------------------------------------ conversions
+
+
+class TestConversions:
+    def test_relative(self):
+        # larger = nearer, any scale and shift: min-max to [0, 1] (under 1000 px: extremes)
+        got = ds.relative_to_disparity(np.array([[3.0, 5.0], [7.0, 11.0]]))
+        np.testing.assert_allclose(got, [[0.0, 0.25], [0.5, 1.0]], atol=1e-6)
+        # scale and shift do not matter
+        again = ds.relative_to_disparity(np.array([[3.0, 5.0], [7.0, 11.0]]) * 40 - 9)
+        np.testing.assert_allclose(again, got, atol=1e-6)
+
+    def test_metric(self):
+        # metres, larger = farther: 1/z, then min-max; nearest is 1
+        got = ds.metric_to_disparity(np.array([[1.0, 2.0], [4.0, 4.0]]))
+        np.testing.assert_allclose(got, [[1.0, 1 / 3], [0.0, 0.0]], atol=1e-6)
+        # a zero is a hole, filled from its neighbours, never the nearest point
+        holed = ds.metric_to_disparity(np.array([[1.0, 0.0], [4.0, 4.0]]))
+        assert np.all(np.isfinite(holed)) and holed[0, 0] == pytest.approx(1.0)
+        assert 0.0 <= holed[0, 1] < 1.0
+
+    def test_robust_on_large_maps(self):
+        # with 1000 pixels or more the 0.5/99.5 percentiles bound the range: one wild
+        # value cannot squash the rest
+        ramp = np.linspace(1.0, 2.0, 40 * 50).reshape(40, 50)
+        ramp[0, 0] = 1e6
+        got = ds.relative_to_disparity(ramp)
+        assert got.min() == 0.0 and got.max() == 1.0
+        assert got[20, 25] == pytest.approx(0.5, abs=0.02)
+
+    def test_tensor_input_and_bad_shapes(self):
+        got = ds.relative_to_disparity(torch.tensor([[[0.0, 2.0]]]))
+        np.testing.assert_allclose(got, [[0.0, 1.0]])
+        with pytest.raises(ValueError, match="H x W"):
+            ds.relative_to_disparity(np.zeros((2, 3, 4)))
+
+    def test_model_output_kind(self):
+        kind = ds.model_output_kind
+        ns = SimpleNamespace
+        assert (
+            kind(ns(model_type="depth_anything", depth_estimation_type="relative")) == ds.RELATIVE
+        )
+        assert kind(ns(model_type="depth_anything", depth_estimation_type="metric")) == ds.METRIC
+        assert kind(ns(model_type="dpt", backbone_config=None)) == ds.RELATIVE
+        assert kind(ns(model_type="dpt", backbone_config=ns(model_type="dinov2"))) == ds.METRIC
+        for metric in ("zoedepth", "depth_pro", "glpn"):
+            assert kind(ns(model_type=metric)) == ds.METRIC
+
+
+# ------------------------------------------------------------------------------ sources
+
+
+class TestLocalSources:
+    def test_embedded(self):
+        image = _photo()
+        disp = np.tile(np.linspace(0, 1, 32, dtype=np.float32), (20, 1))  # half size
+        photo = Photo(image=image, info=None, disparity=disp, focus=0.4)
+        photo.depth_info = {"source": "apple_mpo"}
+        got = ds.depth_map("embedded", image, photo=photo)
+        assert got.disparity.shape == (40, 64) and got.focus == 0.4
+        assert got.source == "embedded" and got.output == "phone depth (apple_mpo)"
+        assert got.disparity[:, 0].mean() < 0.05 and got.disparity[:, -1].mean() > 0.95
+        with pytest.raises(ValueError, match="no phone depth"):
+            ds.depth_map("embedded", image, photo=Photo(image=image, info=None))
+        with pytest.raises(ValueError, match="no phone depth"):
+            ds.depth_map("embedded", image)
+
+    def test_file(self, tmp_path):
+        image = _photo()
+        depth = np.tile(np.linspace(1.0, 5.0, 64), (40, 1))  # metres: left is near
+        np.save(tmp_path / "d.npy", depth)
+        got = ds.depth_map(f"file:{tmp_path / 'd.npy'}", image, file_kind="depth")
+        assert got.disparity.shape == (40, 64) and got.output == "depth map"
+        assert got.disparity[:, 0].mean() > 0.95 and got.disparity[:, -1].mean() < 0.05
+        with pytest.raises(ValueError, match="no such file"):
+            ds.depth_map(f"file:{tmp_path / 'missing.png'}", image)
+
+    def test_d2f(self, tiny_checkpoint):
+        model = D2F.from_checkpoint(tiny_checkpoint)
+        image = _photo(48, 64)
+        got = ds.depth_map("d2f", image, model=model)
+        scene = model.prepare(image, refine=False)
+        assert got.source == "d2f" and got.disparity.shape == (48, 64)
+        expected = _resize(scene.disparity_lr, (48, 64))[0, 0].numpy()
+        np.testing.assert_allclose(got.disparity, expected, atol=1e-5)
+        with pytest.raises(ValueError, match="needs the D2F model"):
+            ds.depth_map("d2f", image)
+
+
+# ------------------------------------------------------------------------------ hub models
+
+transformers = pytest.importorskip("transformers", reason="the hub extra is not installed")
+
+
+def _scale_weights(model: torch.nn.Module, seed: int) -> None:
+    """Random weights large enough that a tiny model's output varies across the image
+    (at the library's initialisation scale the ReLU head gives ~0 everywhere)."""
+    gen = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for name, p in model.named_parameters():
+            if p.ndim > 1:
+                p.copy_(torch.randn(p.shape, generator=gen) / np.sqrt(p[0].numel()))
+            elif "bias" in name:
+                p.copy_(0.1 * torch.randn(p.shape, generator=gen).abs())
+
+
+def _save_depth_anything(folder, *, metric: bool = False) -> None:
+    from transformers import (
+        DepthAnythingConfig,
+        DepthAnythingForDepthEstimation,
+        Dinov2Config,
+        DPTImageProcessor,
+    )
+
+    backbone = Dinov2Config(
+        hidden_size=32,
+        num_hidden_layers=2,
+        num_attention_heads=2,
+        intermediate_size=64,
+        patch_size=14,
+        image_size=56,
+        out_features=["stage1", "stage2"],
+        reshape_hidden_states=False,
+    )
+    extra = {"depth_estimation_type": "metric", "max_depth": 20} if metric else {}
+    config = DepthAnythingConfig(
+        backbone_config=backbone,
+        reassemble_hidden_size=32,
+        neck_hidden_sizes=[8, 16],
+        reassemble_factors=[4, 2],
+        fusion_hidden_size=16,
+        head_hidden_size=8,
+        patch_size=14,
+        **extra,
+    )
+    torch.manual_seed(0)
+    model = DepthAnythingForDepthEstimation(config).eval()
+    _scale_weights(model, 1)
+    model.save_pretrained(folder)
+    DPTImageProcessor(
+        size={"height": 56, "width": 56}, keep_aspect_ratio=True, ensure_multiple_of=14
+    ).save_pretrained(folder)
+
+
+def _save_dpt(folder) -> None:
+    from transformers import DPTConfig, DPTForDepthEstimation, DPTImageProcessor
+
+    config = DPTConfig(
+        hidden_size=32,
+        num_hidden_layers=4,
+        num_attention_heads=2,
+        intermediate_size=64,
+        image_size=32,
+        patch_size=8,
+        backbone_out_indices=[0, 1, 2, 3],
+        neck_hidden_sizes=[8, 8, 16, 16],
+        fusion_hidden_size=16,
+    )
+    torch.manual_seed(0)
+    model = DPTForDepthEstimation(config).eval()
+    _scale_weights(model, 2)
+    model.save_pretrained(folder)
+    DPTImageProcessor(size={"height": 32, "width": 32}, keep_aspect_ratio=False).save_pretrained(
+        folder
+    )
+
+
+def _reference(folder, image: np.ndarray) -> np.ndarray:
+    """The model's own prediction at the photo's size, straight from transformers."""
+    processor = transformers.AutoImageProcessor.from_pretrained(
+        folder, **ds._processor_options(transformers)
+    )
+    model = transformers.AutoModelForDepthEstimation.from_pretrained(folder).eval()
+    pixels = np.round(image * 255).astype(np.uint8)
+    with torch.no_grad():
+        out = model(**processor(images=pixels, return_tensors="pt"))
+    post = processor.post_process_depth_estimation(out, target_sizes=[image.shape[:2]])
+    return post[0]["predicted_depth"].numpy()
+
+
+@pytest.fixture(scope="module")
+def hub_folders(tmp_path_factory):
+    root = tmp_path_factory.mktemp("hub")
+    folders = {"da": root / "da", "da_metric": root / "da_metric", "dpt": root / "dpt"}
+    _save_depth_anything(folders["da"])
+    _save_depth_anything(folders["da_metric"], metric=True)
+    _save_dpt(folders["dpt"])
+    return folders
+
+
+class TestHubModels:
+    @pytest.mark.parametrize(
+        "name, kind, sign",
+        [("da", ds.RELATIVE, 1.0), ("dpt", ds.RELATIVE, 1.0), ("da_metric", ds.METRIC, -1.0)],
+    )
+    def test_local_folder(self, hub_folders, name, kind, sign, monkeypatch):
+        monkeypatch.setenv("HF_HUB_OFFLINE", "1")  # a folder never needs the hub
+        folder = hub_folders[name]
+        image = _photo(40, 64)
+        got = ds.depth_map(f"transformers:{folder}", image)
+        assert got.source == f"transformers:{folder}" and got.output == kind
+        d = got.disparity
+        assert d.shape == (40, 64) and d.dtype == np.float32
+        assert d.min() == 0.0 and d.max() == 1.0
+        # orientation: 1 = near. Relative inverse depth keeps the model's order, metric
+        # depth reverses it (percentile clipping ties only the extremes)
+        reference = _reference(folder, image)
+        assert np.ptp(reference) > 0
+        assert sign * _spearman(d, reference) > 0.98
+
+    def test_large_photo_is_shrunk_first(self, hub_folders, monkeypatch):
+        monkeypatch.setattr(ds, "HUB_MAX_SIDE", 32)
+        got = ds.depth_map(f"transformers:{hub_folders['da']}", _photo(60, 96))
+        assert got.disparity.shape == (60, 96)
+        assert 0.0 <= got.disparity.min() < got.disparity.max() <= 1.0
+
+    def test_prepare_records_the_source(self, hub_folders, tiny_checkpoint):
+        model = D2F.from_checkpoint(tiny_checkpoint)
+        image = _photo(48, 64)
+        source = f"transformers:{hub_folders['dpt']}"
+        scene = model.prepare(image, depth=source)
+        assert scene.disparity_source == source
+        assert scene.disparity_output == ds.RELATIVE
+        # the same pass and the same refinement as any given map
+        expected = ds.depth_map(source, image).disparity
+        ref = model.prepare(image, depth=expected)
+        torch.testing.assert_close(scene.disparity_lr, ref.disparity_lr)
+        assert ref.disparity_source == "given"
+
+    def test_model_stays_loaded(self, hub_folders):
+        source = f"transformers:{hub_folders['da']}"
+        ds.depth_map(source, _photo())
+        first = ds._LOADED[(str(hub_folders["da"]), "cpu")]
+        ds.depth_map(source, _photo(seed=1))
+        assert ds._LOADED[(str(hub_folders["da"]), "cpu")] is first
+
+
+class TestHubErrors:
+    def test_extra_missing(self, monkeypatch, tmp_path):
+        monkeypatch.setitem(sys.modules, "transformers", None)  # import fails
+        with pytest.raises(ValueError, match=r"hub extra.*d2f\[hub\]"):
+            ds.depth_map(f"transformers:{tmp_path}", _photo())
+        assert not ds.hub_available()
+
+    def test_not_cached_while_offline(self, monkeypatch):
+        monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+        with pytest.raises(ValueError, match="not in the local Hugging Face cache.*HF_HUB_OFFLINE"):
+            ds.depth_map("transformers:d2f-tests/no-such-depth-model", _photo())
+
+    def test_folder_without_a_model(self, tmp_path):
+        with pytest.raises(ValueError, match="holds no depth-estimation model"):
+            ds.depth_map(f"transformers:{tmp_path}", _photo())
+
+    def test_folder_with_another_kind_of_model(self, tmp_path):
+        from transformers import BertConfig, BertModel, DPTImageProcessor
+
+        BertModel(
+            BertConfig(
+                vocab_size=16,
+                hidden_size=8,
+                num_hidden_layers=1,
+                num_attention_heads=2,
+                intermediate_size=8,
+            )
+        ).save_pretrained(tmp_path)
+        DPTImageProcessor().save_pretrained(tmp_path)
+        with pytest.raises(ValueError, match="holds no depth-estimation model"):
+            ds.depth_map(f"transformers:{tmp_path}", _photo())
+
+    def test_missing_folder(self, tmp_path):
+        with pytest.raises(ValueError, match="no such folder"):
+            ds.depth_map(f"transformers:{tmp_path / 'nothing'}", _photo())
+
+
+# ------------------------------------------------------------------------------ refinement
+
+
+class TestRefinement:
+    """``D2F.refine_disparity``: what ``prepare`` runs on every source's map."""
+
+    @staticmethod
+    def _model() -> D2F:
+        return D2F.from_config({"refine": "snap", "network_size": 64, "max_render_side": 256})
+
+    @staticmethod
+    def _step(n: int = 96, edge: int = 40):
+        """A photo with a colour edge at column ``edge`` and the depth step as a low-res
+        map sees it: 2 px to the right and blurred over 7 px (the refinement window is 3 px
+        at this size)."""
+        torch.manual_seed(0)
+        cols = torch.arange(n)
+        near = (cols < edge).float().expand(n, n)
+        image = torch.stack([0.2 + 0.6 * near, 0.6 - 0.3 * near, 0.4 + 0 * near])[None]
+        image = (image + 0.03 * torch.rand(1, 3, n, n)).clamp(0, 1)
+        shifted = (cols < edge + 2).float().expand(n, n)[None, None]
+        soft = box_mean(shifted, 3)
+        return image, near[None, None], soft
+
+    def test_pulls_a_blurred_step_onto_the_photo_edge(self):
+        image, truth, soft = self._step()
+        out = self._model().refine_disparity(image, soft)
+        err_before = float((soft - truth).abs().mean())
+        err_after = float((out - truth).abs().mean())
+        assert err_after < 0.35 * err_before  # 0.024 -> 0.007
+        # the edge (where the map crosses 0.5) sits on the photo's edge, at column 40
+        crossing = (out[0, 0] > 0.5).sum(1).float().median()
+        assert abs(float(crossing) - 40) <= 1
+
+    def test_flat_map_unchanged_and_range_kept(self):
+        model = self._model()
+        image, _, _ = self._step()
+        flat = torch.full((1, 1, 96, 96), 0.3)
+        torch.testing.assert_close(model.refine_disparity(image, flat), flat)
+        noisy = torch.rand(1, 1, 96, 96)
+        out = model.refine_disparity(image, noisy)
+        assert 0.0 <= float(out.min()) and float(out.max()) <= 1.0
+
+    def test_same_for_every_source_and_switchable(self, tmp_path):
+        model = self._model()
+        image, _, soft = self._step(64, 24)
+        photo = image[0].permute(1, 2, 0).numpy()
+        lr = model.pass_size((64, 64), given=True)
+        image_lr = _resize(image, lr).clamp(0, 1)
+        expected = model.refine_disparity(image_lr, _resize(soft, lr).clamp(0, 1))
+        np.save(tmp_path / "map.npy", soft[0, 0].numpy())
+        wrapped = Photo(image=photo, info=None, disparity=soft[0, 0].numpy())
+        scenes = {
+            "array": model.prepare(photo, depth=soft[0, 0].numpy()),
+            "file": model.prepare(photo, depth=f"file:{tmp_path / 'map.npy'}"),
+            "embedded": model.prepare(wrapped, depth="embedded"),
+        }
+        for name, scene in scenes.items():
+            assert scene.refined
+            torch.testing.assert_close(scene.disparity_lr, expected, msg=name, atol=1e-5, rtol=0)
+        off = model.prepare(photo, depth=soft[0, 0].numpy(), refine=False)
+        assert not off.refined
+        torch.testing.assert_close(off.disparity_lr, _resize(soft, lr).clamp(0, 1))
+        assert scenes["file"].disparity_source == f"file:{tmp_path / 'map.npy'}"
+        assert scenes["embedded"].disparity_source == "embedded"
+
+    def test_prepare_arguments(self):
+        model = self._model()
+        image = _photo(32, 32)
+        with pytest.raises(ValueError, match="not both"):
+            model.prepare(image, np.zeros((4, 4)), depth="d2f")
+        with pytest.raises(ValueError, match="unknown depth source"):
+            model.prepare(image, depth="midas")
+        assert model.prepare(image, depth="d2f").disparity_source == "d2f"
+
+
+def test_import_touches_no_hub():
+    """Importing the package and the registry loads neither transformers nor huggingface_hub."""
+    import subprocess
+
+    code = (
+        "import sys, d2f_core.pipeline, d2f_core.depth_sources, d2f_core.cli; "
+        "bad = [m for m in ('transformers', 'huggingface_hub') if m in sys.modules]; "
+        "sys.exit(', '.join(bad) or None)"
+    )
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
