@@ -212,7 +212,7 @@ def plot_render(rows: list[dict], path: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from .bench_accuracy import _log_axis
+    from .bench_accuracy import log_axis
 
     sizes = list(dict.fromkeys(r["size"] for r in rows))
     fig, axes = plt.subplots(1, len(sizes), figsize=(4.6 * len(sizes), 4.2), squeeze=False)
@@ -247,7 +247,7 @@ def plot_render(rows: list[dict], path: str) -> None:
                 fontsize=8,
                 color="grey",
             )
-        _log_axis(ax.xaxis)
+        log_axis(ax.xaxis)
         ax.set_ylim(RENDER_MIN_PSNR - 5, _CHART_TOP_DB + 5)
         ax.set_title(f"{size}, K = {part[0]['blur']:.0f} px", fontsize=9)
         ax.set_xlabel("ms per render (median, log scale)")

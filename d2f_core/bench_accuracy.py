@@ -50,12 +50,16 @@ __all__ = [
     "Setting",
     "calibrate",
     "default_settings",
+    "dilate",
     "edge_band",
+    "jump_pixels",
     "light_band",
     "load_cases",
+    "log_axis",
     "main",
     "masked_metrics",
     "pareto_front",
+    "reach_px",
     "run_grid",
 ]
 
@@ -138,7 +142,7 @@ class Case:
         return img.contiguous(), disp.contiguous()
 
 
-def _dilate(mask: np.ndarray, radius: int) -> np.ndarray:
+def dilate(mask: np.ndarray, radius: int) -> np.ndarray:
     """Binary dilation with a (2r+1)-px disk. Shape: ``(H, W) -> (H, W)``."""
     if radius <= 0 or not mask.any():
         return mask.copy()
@@ -178,7 +182,7 @@ def edge_band(disparity: np.ndarray, blur: float, *, jump: float = 0.02) -> np.n
 
     Shape: ``(H, W) -> (H, W)`` bool.
     """
-    return _dilate(jump_pixels(disparity, jump), reach_px(blur, 4, 24))
+    return dilate(jump_pixels(disparity, jump), reach_px(blur, 4, 24))
 
 
 def light_band(lights: np.ndarray, blur: float) -> np.ndarray:
@@ -186,7 +190,7 @@ def light_band(lights: np.ndarray, blur: float) -> np.ndarray:
 
     Shape: ``(H, W) -> (H, W)`` bool.
     """
-    return _dilate(lights, reach_px(blur, 2, 48))
+    return dilate(lights, reach_px(blur, 2, 48))
 
 
 def _focus_for(scene, mode: str) -> float:
@@ -530,7 +534,7 @@ _AXIS_COLOURS = {
 }
 
 
-def _log_axis(axis) -> None:
+def log_axis(axis) -> None:
     """Log x scale labelled with plain numbers: at 1-9 x 10^k over less than a decade (so a
     narrow range still gets ticks), at 1, 2, 5 x 10^k over more."""
     from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
@@ -599,7 +603,7 @@ def plot_accuracy(summary: Sequence[dict[str, Any]], path: Path, title: str) -> 
         base = [e for e in summary if e["size"] == size and e["axis"] == "baseline"]
         if base:
             ax.axhline(base[0]["psnr"], color="grey", lw=0.8, ls=":", label="input (no blur)")
-        _log_axis(ax.xaxis)
+        log_axis(ax.xaxis)
         ax.set_xlabel("ms per frame (median, log scale)")
         ax.set_ylabel("PSNR vs thin-lens ground truth (dB)")
         ax.set_title(f"{size}, {rows[0]['cases'] if rows else 0} scene/K cases", fontsize=9)
@@ -814,7 +818,7 @@ def plot_e2e(rows: Sequence[dict[str, Any]], path: Path, title: str) -> None:
         ha="right",
         fontsize=7,
     )
-    _log_axis(ax.xaxis)
+    log_axis(ax.xaxis)
     ax.set_xlabel("prepare + render, s per photo (median, CPU, log scale)")
     ax.set_ylabel("PSNR vs thin-lens ground truth (dB)")
     ax.grid(True, which="both", alpha=0.3)

@@ -47,7 +47,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from .bench_accuracy import Case, _dilate, jump_pixels, load_cases, masked_metrics, reach_px
+from .bench_accuracy import Case, dilate, jump_pixels, load_cases, masked_metrics, reach_px
 from .rendering import render
 
 __all__ = ["CATEGORIES", "edge_sides", "gather_render", "main", "run_peers", "thin_band"]
@@ -104,7 +104,7 @@ def edge_sides(disparity: np.ndarray, width: int = EDGE_PX, jump: float = 0.02):
     Shape: ``(H, W) -> ((H, W), (H, W))`` bool.
     """
     d = disparity.astype(np.float32)
-    band = _dilate(jump_pixels(d, jump), width)
+    band = dilate(jump_pixels(d, jump), width)
     t = torch.from_numpy(d)[None, None]
     reach = width + 1  # a band pixel's window holds both sides of its edge
     hi = F.max_pool2d(t, 2 * reach + 1, 1, reach)[0, 0].numpy()
@@ -131,7 +131,7 @@ def thin_band(case: Case) -> np.ndarray:
             continue
         crop = layer.alpha[y0 - layer.top : y1 - layer.top, x0 - layer.left : x1 - layer.left]
         mask[y0:y1, x0:x1] |= crop > 0.5
-    return _dilate(mask, reach_px(case.blur, 4, 24))
+    return dilate(mask, reach_px(case.blur, 4, 24))
 
 
 _BLENDER_SCRIPT = """

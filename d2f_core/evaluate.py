@@ -33,7 +33,8 @@ import torch.nn.functional as F
 
 from . import metrics
 from .data import EBBDataset
-from .pipeline import D2F, D2FConfig, _coc_to_defocus
+from .pipeline import D2F, D2FConfig
+from .schedule import coc_to_defocus
 
 __all__ = [
     "FUSION_METHODS",
@@ -247,7 +248,7 @@ def _fusion_rows(model: D2F, item: dict, use_gt: bool, theta: float) -> list[lis
     )
     with torch.no_grad():
         d = scene.disparity_full_tensor()
-        defocus = _coc_to_defocus(blur * ratio * (d - focus).abs())[0, 0].cpu().numpy()
+        defocus = coc_to_defocus(blur * ratio * (d - focus).abs())[0, 0].cpu().numpy()
     mask = (defocus < theta).astype(np.float32)
     rows = []
     for method in FUSION_METHODS:

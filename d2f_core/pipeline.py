@@ -45,7 +45,6 @@ from torch import Tensor, nn
 from . import adaptive, bundled, depth_sources, rendering
 from .errors import InputTypeError
 from .io.embedded import Photo
-from .kernels import PAPER_GROWING_SIZES
 from .networks import (
     build_defocus_net,
     build_fusion_net,
@@ -54,6 +53,14 @@ from .networks import (
     rgb_to_gray,
 )
 from .refine import harden_edges, snap_edges
+
+# the schedule and the size helpers live in their own modules; the short private names
+# keep this module's many call sites as they were
+from .schedule import coc_to_defocus as _coc_to_defocus
+from .schedule import defocus_to_coc as _defocus_to_coc
+from .sizing import resize as _resize
+from .sizing import scaled_size as _scaled_size
+from .sizing import size_ratio as _size_ratio
 
 __all__ = [
     "CHECKPOINT_VERSION",
@@ -289,25 +296,6 @@ class Result:
 # --------------------------------------------------------------------------------------
 # helpers
 # --------------------------------------------------------------------------------------
-
-
-def _resize(x: Tensor, size: tuple[int, int]) -> Tensor:
-    """Bilinear resize, antialiased when shrinking. Shape: (B, C, h, w) -> (B, C, *size)."""
-    if tuple(x.shape[-2:]) == tuple(size):
-        return x
-    shrink = size[0] < x.shape[-2] or size[1] < x.shape[-1]
-    return F.interpolate(x, size=size, mode="bilinear", align_corners=False, antialias=shrink)
-
-
-def _scaled_size(size: tuple[int, int], scale: float, max_side: int | None) -> tuple[int, int]:
-    h, w = size
-    if max_side is not None:
-        scale = min(scale, max_side / max(h, w))
-    return max(1, round(h * scale)), max(1, round(w * scale))
-
-
-def _size_ratio(small: tuple[int, int], big: tuple[int, int]) -> float:
-    return 0.5 * (small[0] / big[0] + small[1] / big[1])
 
 
 def _per_sample(value: float | Tensor, batch: int, ref: Tensor) -> Tensor:
@@ -1092,48 +1080,3 @@ def _runs(columns: list[int]) -> list[tuple[int, int]]:
         else:
             runs.append([c, c])
     return [(a, b) for a, b in runs]
-
-
-def _defocus_to_coc(defocus: float) -> float:
-    """CoC (px at the low-res pass) of normalised defocus ``defocus`` (inverse of the schedule)."""
-    sizes = PAPER_GROWING_SIZES
-    pos = min(max(defocus, 0.0), 1.0) * (len(sizes) - 1)
-    i = min(int(pos), len(sizes) - 2)
-    return sizes[i] + (pos - i) * (sizes[i + 1] - sizes[i])
-
-
-def _schedule_lines() -> list[tuple[float, float]] | None:
-    """The growing schedule's inverse as lines ``(a, b)``: layer index = min(a + b * coc).
-
-    The schedule's steps only grow, so its inverse is concave and piecewise linear, which
-    makes it the minimum of its segments' lines. ``None`` if that does not hold.
-    """
-    sizes = PAPER_GROWING_SIZES
-    lines: list[tuple[float, float]] = []
-    for i in range(len(sizes) - 1):
-        slope = 1.0 / (sizes[i + 1] - sizes[i])
-        if lines and abs(lines[-1][1] - slope) < 1e-12:
-            continue
-        if lines and slope > lines[-1][1]:
-            return None
-        lines.append((i - slope * sizes[i], slope))
-    return lines
-
-
-_LINES = _schedule_lines()
-
-
-def _coc_to_defocus(coc: Tensor) -> Tensor:
-    """``rendering.coc_to_defocus`` for tensors, as a few elementwise ops (no searchsorted).
-
-    At 12 MP the generic piecewise-linear lookup costs seconds; this costs tens of ms.
-    Shape: any -> same, values in [0, 1].
-    """
-    if _LINES is None:
-        return rendering.coc_to_defocus(coc)
-    top = len(PAPER_GROWING_SIZES) - 1
-    out = None
-    for a, b in _LINES:
-        line = coc * b + a
-        out = line if out is None else torch.minimum(out, line)
-    return out.clamp(0, top) / top

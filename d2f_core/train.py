@@ -42,9 +42,10 @@ from . import metrics
 from .data import EBBDataset
 from .losses import D2FLoss
 from .networks import read_torch_file
-from .pipeline import D2F, D2FConfig, _resize, _scaled_size, _size_ratio
+from .pipeline import D2F, D2FConfig
 from .progress import progress
 from .rendering import PLACEMENTS
+from .sizing import resize, scaled_size, size_ratio
 
 __all__ = ["TrainResult", "build_parser", "main", "train"]
 
@@ -158,10 +159,10 @@ def batch_loss(
     focus, blur = _focus_blur(batch, model.config, device)
     if stage == 1:
         size = (int(image.shape[-2]), int(image.shape[-1]))
-        lr_size = _scaled_size(size, model.config.render_scale, None)
-        ratio = _size_ratio(lr_size, size)
-        image_lr = _resize(image, lr_size).clamp(0, 1)  # [B,3,h,w]
-        target_lr = _resize(target, lr_size).clamp(0, 1)
+        lr_size = scaled_size(size, model.config.render_scale, None)
+        ratio = size_ratio(lr_size, size)
+        image_lr = resize(image, lr_size).clamp(0, 1)  # [B,3,h,w]
+        target_lr = resize(target, lr_size).clamp(0, 1)
         out = forward(image_lr, focus, blur * ratio)
         return criterion.stage1(out["bokeh_lr"], target_lr, out["disparity"], image_lr)
     out = forward(image, focus, blur)

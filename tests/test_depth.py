@@ -234,9 +234,9 @@ class TestHardenEdges:
 
 
 def _resized(d, like):
-    from d2f_core.pipeline import _resize
+    from d2f_core.sizing import resize
 
-    return _resize(d, tuple(like.shape[-2:])).clamp(0, 1)
+    return resize(d, tuple(like.shape[-2:])).clamp(0, 1)
 
 
 # ------------------------------------------------------------------------------ subject focus

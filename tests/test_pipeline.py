@@ -9,7 +9,8 @@ import torch
 from d2f_core import rendering
 from d2f_core.adaptive import BUDGETS
 from d2f_core.metrics import psnr
-from d2f_core.pipeline import D2F, D2FConfig, Result, Scene, _coc_to_defocus
+from d2f_core.pipeline import D2F, D2FConfig, Result, Scene
+from d2f_core.schedule import coc_to_defocus
 from d2f_core.synth import linear_to_srgb, make_scene, render_pinhole
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -170,7 +171,7 @@ class TestFusion:
     def test_fast_defocus_matches_renderer(self):
         coc = torch.linspace(0, 120, 20001)
         torch.testing.assert_close(
-            _coc_to_defocus(coc), rendering.coc_to_defocus(coc), atol=1e-6, rtol=0
+            coc_to_defocus(coc), rendering.coc_to_defocus(coc), atol=1e-6, rtol=0
         )
 
 

@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from .lens import Scene, linear_to_srgb, render_pinhole, render_thin_lens
-from .scene import _describe_layers, builtin_textures, load_textures, make_scene
+from .scene import builtin_textures, describe_layers, load_textures, make_scene
 
 logger = logging.getLogger(__name__)
 
@@ -115,7 +115,7 @@ def make_pair(
         "mode": mode,
         "encoding": encoding,
         "margin": scene.margin,
-        "layers": _describe_layers(scene.layers),
+        "layers": describe_layers(scene.layers),
     }
     return SynthPair(_encode(pinhole, encoding), _encode(bokeh, encoding), disparity, params)
 

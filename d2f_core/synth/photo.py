@@ -20,7 +20,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from .lens import Layer, Scene, srgb_to_linear
-from .scene import _resize
+from .scene import resize_image
 
 __all__ = ["Cutout", "PhotoScenes", "feather", "make_photo_scene"]
 
@@ -47,8 +47,8 @@ def _cut_layer(
     h0, w0 = alpha.shape
     scale = height_px / h0
     h, w = max(4, round(h0 * scale)), max(4, round(w0 * scale))
-    rgb_s = np.clip(_resize(rgb.astype(np.float32), h, w), 0, 1)
-    a = np.clip(_resize(alpha[..., None].astype(np.float32), h, w)[..., 0], 0, 1)
+    rgb_s = np.clip(resize_image(rgb.astype(np.float32), h, w), 0, 1)
+    a = np.clip(resize_image(alpha[..., None].astype(np.float32), h, w)[..., 0], 0, 1)
     a = feather(a >= 0.5, 0.7) if a.max() > 0 else a
     lin = srgb_to_linear(rgb_s).transpose(2, 0, 1) * a[None]
     top, left = round(bottom - h), round(cx - w / 2)
@@ -83,7 +83,7 @@ def make_photo_scene(
     margin = int(np.ceil(0.06 * max(height, width))) + 2 if margin is None else int(margin)
     rng = np.random.default_rng(seed)
     bh, bw = height + 2 * margin, width + 2 * margin
-    bg = np.clip(_resize(background.astype(np.float32), bh, bw), 0, 1)
+    bg = np.clip(resize_image(background.astype(np.float32), bh, bw), 0, 1)
     d_top = rng.uniform(0.0, 0.15)
     d_bottom = d_top + (rng.uniform(0.15, 0.45) if rng.random() < 0.75 else 0.0)
     slope_y = (d_bottom - d_top) / max(1, height - 1)

@@ -77,7 +77,8 @@ def _as_rgb_float(img: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(img[..., :3])
 
 
-def _resize(img: np.ndarray, h: int, w: int) -> np.ndarray:
+def resize_image(img: np.ndarray, h: int, w: int) -> np.ndarray:
+    """Bilinear, antialiased resize of an ``H x W x C`` float array to ``h x w x C``."""
     t = torch.from_numpy(np.ascontiguousarray(img.transpose(2, 0, 1)))[None]
     t = F.interpolate(t, size=(h, w), mode="bilinear", align_corners=False, antialias=True)
     return t[0].permute(1, 2, 0).numpy()
@@ -97,7 +98,7 @@ def _texture(
     # Resize only the source window that the crop needs.
     ch, cw = min(th, math.ceil(h / s) + 2), min(tw, math.ceil(w / s) + 2)
     y, x = rng.integers(th - ch + 1), rng.integers(tw - cw + 1)
-    img = _resize(tex[y : y + ch, x : x + cw], math.ceil(ch * s), math.ceil(cw * s))[:h, :w]
+    img = resize_image(tex[y : y + ch, x : x + cw], math.ceil(ch * s), math.ceil(cw * s))[:h, :w]
     if rng.random() < 0.5:
         img = img[:, ::-1]
     grey = img.mean(axis=2, keepdims=True)
@@ -290,7 +291,7 @@ def _lights(rng, disparity, size, margin, group) -> list[Layer]:
     return layers
 
 
-def _describe_layers(layers: Sequence[Layer]) -> list[dict]:
+def describe_layers(layers: Sequence[Layer]) -> list[dict]:
     """Layer summaries for the JSON; each light group and the ground's pieces are folded into
     one entry each (the ground's ``order`` lists its pieces' sort keys)."""
     out, groups = [], {}
