@@ -294,6 +294,32 @@ def test_subject_target_stands_on_the_layout():
     assert depth_train.subject_target(flat, mask, lift=0.05)[20, 30] == pytest.approx(0.35)
 
 
+def test_ground_in_front_of_a_subject_stays_nearer():
+    """A subject standing on a floor is no nearer than the floor in front of it: the lift
+    counts only what surrounds it at and above its lowest row."""
+    h, w = 64, 64
+    layout = depth_train.ramp(h, w)
+    mask = np.zeros((h, w), np.float32)
+    mask[10:40, 20:40] = 1.0  # stands at row 39
+    t = depth_train.subject_target(layout, mask, lift=0.0)
+    # the floor rows below the subject stay as they were and nearer than the subject
+    np.testing.assert_array_equal(t[45:, 20:40], layout[45:, 20:40])
+    assert t[20, 30] == pytest.approx(39 / 63, abs=0.02)
+    assert (t[45:, 20:40] > t[20, 30]).all()
+
+
+def test_teacher_weight_trusts_a_teacher_that_agrees_with_the_ramp():
+    ramp = depth_train.ramp(48, 32)
+    assert depth_train.teacher_weight(ramp) == pytest.approx(0.8)  # capped
+    assert depth_train.teacher_weight(ramp, cap=1.0) == pytest.approx(1.0)
+    assert depth_train.teacher_weight(1.0 - ramp) == 0.0  # upside down: not trusted
+    assert depth_train.teacher_weight(np.full((48, 32), 0.5, np.float32)) == 0.0  # flat
+    # half ramp, half noise: the correlation, about 0.7
+    rng = np.random.default_rng(0)
+    noisy = ramp + rng.normal(0, ramp.std(), ramp.shape).astype(np.float32)
+    assert depth_train.teacher_weight(noisy) == pytest.approx(2**-0.5, abs=0.05)
+
+
 def test_ssi_align_and_gradient_loss():
     target = torch.rand(2, 1, 16, 16)
     pred = 0.5 * target + 0.2
