@@ -1,14 +1,48 @@
-"""d2f: single-image bokeh rendering and live refocusing (the D2F method).
+"""d2f: shallow depth of field from one photo (the D2F method, "Defocus to Focus").
 
-Stages, each in its own module:
+The public API, importable from ``d2f_core``:
 
-- :mod:`d2f_core.kernels`: soft/hard disk and polygonal aperture kernels, size schedules.
-- :mod:`d2f_core.rendering`: weighted layered rendering ``f_l``, HDR boost, refocus.
-- :mod:`d2f_core.networks`: defocus hallucination ``f_d``, radiance ``f_r``, fusion ``f_p``.
-- :mod:`d2f_core.pipeline`: :class:`D2F` with ``prepare`` (networks, cached) and ``render``.
-- :mod:`d2f_core.losses`, :mod:`d2f_core.data`, :mod:`d2f_core.train`,
-  :mod:`d2f_core.evaluate`, :mod:`d2f_core.synth`: training and evaluation.
-- :mod:`d2f_core.io`: the only module that reads and writes files.
+The model
+    :class:`D2F` (``D2F.from_pretrained()`` loads the shipped weights), its settings
+    :class:`D2FConfig`, a prepared photo :class:`Scene` (``model.prepare(image)``) and a
+    refocused render :class:`Result` (``model.render(scene, focus, blur)``).
+
+Depth sources (:mod:`d2f_core.depth_sources`)
+    :func:`depth_map` turns a source (``"embedded"`` phone depth, ``"file:PATH"``, ``"d2f"``,
+    ``"transformers:MODEL"``) into a :class:`DepthMap`; :data:`SOURCES` lists them,
+    :func:`parse_source` reads one as a :class:`DepthSource`. ``D2F.prepare(image,
+    depth=...)`` takes any of them.
+
+The renderer alone (:mod:`d2f_core.rendering`), for a photo and a disparity map you have
+    :func:`render_bokeh` (numpy in, numpy out), :class:`LayeredRenderer` (a module with fixed
+    options for repeated renders), :func:`render` (tensors), :func:`hdr_boost`, and the
+    kernels :func:`soft_disk_kernel`, :func:`hard_disk_kernel`, :func:`polygon_kernel`,
+    :func:`kernel_sizes`; :func:`coc_to_defocus` maps a blur diameter to the paper's
+    normalised defocus (:mod:`d2f_core.schedule`).
+
+Files (:mod:`d2f_core.io`, the only module that reads and writes them)
+    :func:`load_image`, :func:`load_photo` (with its embedded depth), :func:`load_depth`,
+    :func:`save_image`.
+
+Errors
+    Bad input raises ``ValueError`` naming the problem; :class:`InputTypeError` (a
+    ``ValueError`` and a ``TypeError``) is input of the wrong type. Missing weights raise
+    ``FileNotFoundError``.
+
+Example::
+
+    from d2f_core import D2F, load_image, save_image
+
+    model = D2F.from_pretrained()
+    scene = model.prepare(load_image("photo.jpg"))
+    focus, _ = model.subject_focus(scene)
+    save_image("bokeh.jpg", model.render(scene, focus, blur=40).bokeh)
+
+Other modules: :mod:`d2f_core.pipeline` (the model's stages), :mod:`d2f_core.adaptive`
+(renderer settings per error budget), :mod:`d2f_core.networks`, :mod:`d2f_core.refine`,
+:mod:`d2f_core.bundled` (the shipped weights and sample photos), and for training and
+evaluation :mod:`d2f_core.losses`, :mod:`d2f_core.data`, :mod:`d2f_core.train`,
+:mod:`d2f_core.evaluate`, :mod:`d2f_core.synth`.
 
 Names are imported on first use, so ``import d2f_core`` (and ``d2f --help``) stays fast.
 """
@@ -20,19 +54,34 @@ import importlib
 __version__ = "0.1.0"
 
 _LAZY = {
+    # the model
     "D2F": "pipeline",
-    "InputTypeError": "errors",
+    "D2FConfig": "pipeline",
     "Scene": "pipeline",
     "Result": "pipeline",
+    # depth sources
+    "DepthMap": "depth_sources",
+    "DepthSource": "depth_sources",
+    "SOURCES": "depth_sources",
+    "depth_map": "depth_sources",
+    "parse_source": "depth_sources",
+    # the renderer
     "LayeredRenderer": "rendering",
-    "coc_to_defocus": "rendering",
     "hdr_boost": "rendering",
     "render": "rendering",
     "render_bokeh": "rendering",
+    "coc_to_defocus": "schedule",
     "hard_disk_kernel": "kernels",
     "kernel_sizes": "kernels",
     "polygon_kernel": "kernels",
     "soft_disk_kernel": "kernels",
+    # files
+    "load_depth": "io",
+    "load_image": "io",
+    "load_photo": "io",
+    "save_image": "io",
+    # errors
+    "InputTypeError": "errors",
 }
 
 __all__ = sorted(_LAZY)
