@@ -3,8 +3,11 @@
     d2f render IN -o OUT [--focus F | --focus-at X,Y] --blur K [--depth FILE ...]
     d2f batch DIR -o OUTDIR [same options]
 
-Depth comes from, in order: ``--depth``, the phone depth embedded in the photo (Google Lens
-Blur, Apple portrait JPEG/HEIC), or the D2F defocus network. The focal plane comes from
+Depth comes from ``--depth-model SOURCE`` (:mod:`d2f_core.depth_sources`: ``embedded``,
+``file:PATH``, ``d2f``, ``transformers:MODEL``), else, in order: ``--depth``, the phone depth
+embedded in the photo (Google Lens Blur, Apple portrait JPEG/HEIC), or the D2F defocus
+network. Every map is refined to the photo's edges (``--no-refine-depth`` keeps it as the
+source gave it); ``-v`` says which source was used. The focal plane comes from
 ``--focus``/``--focus-at``, else the focus stored by the phone, else the subject found in the
 disparity map (``D2F.subject_focus``; the image centre when nothing stands out).
 Without network weights, photos with a depth map still render (the physical layered
@@ -31,7 +34,6 @@ import numpy as np
 from .io import (
     READ_EXTENSIONS,
     SAVE_FORMATS,
-    load_depth,
     load_photo,
     same_file,
     save_depth,
@@ -149,6 +151,15 @@ def _pixel_limit(text: str) -> int:
         ) from None
 
 
+def _depth_source(text: str) -> Any:
+    from .depth_sources import parse_source
+
+    try:
+        return parse_source(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
 def _jpeg_quality(text: str) -> int:
     value = _positive_int(text)
     if value > 100:
@@ -248,6 +259,20 @@ def build_parser() -> argparse.ArgumentParser:
         "--no-embedded-depth",
         action="store_true",
         help="ignore phone depth embedded in the photo",
+    )
+    depth.add_argument(
+        "--depth-model",
+        type=_depth_source,
+        metavar="SOURCE",
+        help="where depth comes from: embedded (the phone's), file:PATH, d2f (the shipped "
+        "network, offline) or transformers:MODEL (a Hugging Face depth model id or a local "
+        "folder; needs the hub extra). Default: --depth, else the phone's, else d2f",
+    )
+    depth.add_argument(
+        "--no-refine-depth",
+        action="store_true",
+        help="keep the depth map as its source gave it (default: its edges are refined to "
+        "the photo's)",
     )
     out = common.add_argument_group("output")
     out.add_argument(
@@ -472,6 +497,39 @@ def _find_depth_file(folder: Path, stem: str) -> Path | None:
     return None
 
 
+def _choose_depth(src: Path, photo: Any, args: argparse.Namespace, depth_file: Path | None) -> Any:
+    """The photo's :class:`~d2f_core.depth_sources.DepthMap` from the source the command line
+    names (``--depth-model``, else ``--depth``, else the phone's depth), or ``None`` for the
+    D2F network; logs the source (``-v``)."""
+    from .depth_sources import DepthSource, depth_map
+
+    source = args.depth_model
+    if source is None:
+        if depth_file is not None:
+            source = DepthSource("file", str(depth_file))
+        elif photo.disparity is not None:
+            source = DepthSource("embedded")
+        else:
+            source = DepthSource("d2f")
+    elif source.kind == "file" and depth_file is not None:
+        raise UsageError("give the map once: --depth FILE or --depth-model file:PATH")
+    elif source.kind == "embedded" and args.no_embedded_depth:
+        raise UsageError("--depth-model embedded and --no-embedded-depth contradict each other")
+    if source.kind == "d2f":
+        logger.info("%s: depth from d2f (the shipped network)", src)
+        return None
+    depth = depth_map(
+        source,
+        photo.image,
+        photo=photo,
+        file_kind=args.depth_kind,
+        near=args.near,
+        zero_is_hole=True if args.zero_is_hole else None,
+    )
+    logger.info("%s: depth from %s", src, depth.describe())
+    return depth
+
+
 def render_file(
     src: Path,
     dst: Path,
@@ -491,25 +549,13 @@ def render_file(
             "(--max-pixels 0 renders it at its size)",
             src, ow, oh, ow * oh / 1e6, w, h, DEFAULT_MAX_PIXELS / 1e6,
         )  # fmt: skip
-    disparity = None
     focus = args.focus
-    if depth_file is not None:
-        disparity = load_depth(
-            depth_file,
-            kind=args.depth_kind,
-            near=args.near,
-            size=(h, w),
-            guide=image,
-            zero_is_hole=True if args.zero_is_hole else None,
-        )
-        logger.info("%s: depth from %s", src, depth_file)
-    elif photo.disparity is not None:
-        disparity = photo.disparity
-        source = photo.depth_info.get("source") if photo.depth_info else "embedded"
-        logger.info("%s: using the phone depth embedded in the photo (%s)", src, source)
-        if focus is None and args.focus_at is None and photo.focus is not None:
-            focus = float(photo.focus)
+    depth = _choose_depth(src, photo, args, depth_file)
+    if depth is not None and depth.focus is not None:
+        if focus is None and args.focus_at is None:
+            focus = float(depth.focus)
             logger.info("%s: focus %.3f from the photo's metadata", src, focus)
+    disparity = None if depth is None else depth.disparity
 
     point = None
     if focus is None:
@@ -527,7 +573,7 @@ def render_file(
         options["placement"] = args.placement
     model = engine.model()
     if model is not None:
-        scene = model.prepare(image, disparity=disparity)
+        scene = model.prepare(image, depth=depth, refine=not args.no_refine_depth)
         if point == "subject":
             focus, (sx, sy) = model.subject_focus(scene)
             logger.info("%s: no focus given; focusing on the subject at (%.0f, %.0f)", src, sx, sy)
@@ -571,11 +617,13 @@ def render_file(
         raise RenderError(
             f"{src}: no depth map: the photo has no embedded phone depth and no --depth was "
             f"given, and the D2F network weights are unavailable ({engine.error}); pass "
-            "--depth FILE or --weights CKPT"
+            "--depth FILE, --depth-model transformers:MODEL or --weights CKPT"
         )
     logger.info("%s: focus %.3f, blur %g px", src, focus, args.blur)
 
     protect = [src] + ([depth_file] if depth_file is not None else [])
+    if args.depth_model is not None and args.depth_model.kind == "file":
+        protect.append(Path(args.depth_model.arg))
     maps = _map_targets(args.save_maps, dst, rendered.maps, protect)  # checked before writing
     save_image(
         dst,

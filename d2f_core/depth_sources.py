@@ -114,7 +114,7 @@ class DepthMap:
         disparity: ``H x W`` float32 in [0, 1], 1 = nearest, at the photo's size.
         source: the source's name (:attr:`DepthSource.name`).
         output: what the source gave before it was turned into disparity: ``"relative
-            inverse depth"``, ``"metric depth"``, ``"phone depth (apple_mpo)"``,
+            inverse depth"``, ``"metric depth"``, ``"apple_mpo phone depth"``,
             ``"disparity map"``, ``"depth map"`` or ``"D2F network disparity"``.
         focus: a focal disparity that came with the map (a phone's focus), or ``None``.
     """
@@ -272,7 +272,7 @@ def depth_map(
         info = getattr(photo, "depth_info", None) or {}
         d = _fit(np.asarray(disparity, dtype=np.float32), size)
         kind = info.get("source", "phone")
-        return DepthMap(d, spec.name, f"phone depth ({kind})", getattr(photo, "focus", None))
+        return DepthMap(d, spec.name, f"{kind} phone depth", getattr(photo, "focus", None))
     if spec.kind == "file":
         from .io.depth import load_depth
 

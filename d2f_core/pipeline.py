@@ -219,7 +219,7 @@ class Scene:
             ``"embedded"``, ``"file:PATH"``, ``"transformers:MODEL"``, or ``"given"`` for a
             bare map passed to :meth:`D2F.prepare`.
         disparity_output: what that source gave (``"relative inverse depth"``, ``"metric
-            depth"``, ``"phone depth (apple_mpo)"``, ``"D2F network disparity"``, ...).
+            depth"``, ``"apple_mpo phone depth"``, ``"D2F network disparity"``, ...).
         refined: whether :meth:`D2F.refine_disparity` ran on the map.
         cache: derived tensors (full-res disparity, preview-size inputs), filled lazily.
     """

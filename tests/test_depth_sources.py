@@ -127,7 +127,7 @@ class TestLocalSources:
         photo.depth_info = {"source": "apple_mpo"}
         got = ds.depth_map("embedded", image, photo=photo)
         assert got.disparity.shape == (40, 64) and got.focus == 0.4
-        assert got.source == "embedded" and got.output == "phone depth (apple_mpo)"
+        assert got.source == "embedded" and got.output == "apple_mpo phone depth"
         assert got.disparity[:, 0].mean() < 0.05 and got.disparity[:, -1].mean() > 0.95
         with pytest.raises(ValueError, match="no phone depth"):
             ds.depth_map("embedded", image, photo=Photo(image=image, info=None))
@@ -428,3 +428,58 @@ def test_import_touches_no_hub():
     )
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert run.returncode == 0, run.stderr
+
+
+# ------------------------------------------------------------------------------ the CLI
+
+
+class TestCli:
+    @staticmethod
+    def _write_photo(path):
+        from d2f_core.io import save_image
+
+        save_image(path, _photo(48, 64))
+        return path
+
+    def test_render_with_a_local_hub_model(self, hub_folders, tiny_checkpoint, tmp_path, capsys):
+        from d2f_core.cli import main
+        from d2f_core.io import load_image
+
+        photo = self._write_photo(tmp_path / "p.png")
+        out = tmp_path / "out.png"
+        source = f"transformers:{hub_folders['da']}"
+        argv = ["render", str(photo), "-o", str(out), "--blur", "8", "--focus", "0.5"]
+        code = main([*argv, "--depth-model", source, "--weights", str(tiny_checkpoint), "-v"])
+        err = capsys.readouterr().err
+        assert code == 0, err
+        assert f"depth from {source} (relative inverse depth)" in err
+        assert load_image(out).shape == (48, 64, 3)
+
+    def test_hub_model_without_weights(self, hub_folders, tmp_path, capsys, monkeypatch):
+        from d2f_core.cli import main
+
+        monkeypatch.setenv("D2F_WEIGHTS", str(tmp_path / "none.pt"))
+        photo = self._write_photo(tmp_path / "p.png")
+        argv = ["render", str(photo), "-o", str(tmp_path / "o.png"), "--blur", "8"]
+        code = main([*argv, "--depth-model", f"transformers:{hub_folders['dpt']}"])
+        assert code == 0, capsys.readouterr().err
+        assert (tmp_path / "o.png").is_file()
+
+    def test_clear_failures(self, tmp_path, capsys, monkeypatch, tiny_checkpoint):
+        from d2f_core.cli import main
+
+        photo = self._write_photo(tmp_path / "p.png")
+        base = ["render", str(photo), "-o", str(tmp_path / "o.png"), "--blur", "8"]
+        base += ["--weights", str(tiny_checkpoint)]
+        assert main([*base, "--depth-model", "midas"]) == 2
+        assert "unknown depth source 'midas'" in capsys.readouterr().err
+        assert main([*base, "--depth-model", "embedded"]) == 1
+        err = capsys.readouterr().err.strip()
+        assert "carries no phone depth" in err and len(err.splitlines()) == 1
+        monkeypatch.setitem(sys.modules, "transformers", None)
+        assert main([*base, "--depth-model", f"transformers:{tmp_path}"]) == 1
+        err = capsys.readouterr().err.strip()
+        assert "d2f[hub]" in err and "Traceback" not in err
+        np.save(tmp_path / "d.npy", np.ones((48, 64)))
+        file_twice = ["--depth", str(tmp_path / "d.npy"), "--depth-model", "file:x.npy"]
+        assert main([*base, *file_twice]) == 2
