@@ -31,8 +31,10 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import glob
 import math
 import os
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -171,6 +173,89 @@ def _focus_tensor(focus, batch: int, ref: torch.Tensor) -> torch.Tensor:
         return f.view(batch, 1, 1, 1)
     value = _check_scalar("focus", focus, 0.0, 1.0)
     return torch.full((batch, 1, 1, 1), value, device=ref.device, dtype=ref.dtype)
+
+
+# --------------------------------------------------------------------------------------
+# threads
+# --------------------------------------------------------------------------------------
+
+# How often (s) a render looks again at how busy the machine is.
+_RECHECK_S = 0.05
+
+
+def _running_elsewhere() -> int | None:
+    """Threads of other processes running right now (Linux ``/proc``); ``None`` elsewhere.
+
+    ``/proc/loadavg`` counts every runnable thread of the machine, this process's own
+    (the reading thread, and OpenMP workers still spinning after an operation) among them.
+    """
+    try:
+        with open("/proc/loadavg", encoding="ascii") as fh:
+            running = int(fh.read().split()[3].split("/")[0])
+    except (OSError, ValueError, IndexError):
+        return None
+    ours = 0
+    for path in glob.glob("/proc/self/task/*/stat"):
+        try:
+            with open(path, encoding="ascii", errors="replace") as fh:
+                state = fh.read().rsplit(")", 1)[1].split()[0]
+        except (OSError, IndexError):  # the thread ended meanwhile
+            continue
+        ours += state == "R"
+    return max(0, running - max(ours, 1))
+
+
+def _usable_cores() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+def _threads_free(wanted: int) -> int:
+    """Of ``wanted`` threads, how many have a core to themselves now (at least 1)."""
+    others = _running_elsewhere()
+    if others is None:
+        return wanted
+    return max(1, min(wanted, _usable_cores() - others))
+
+
+class _ThreadChoice:
+    """Torch threads for one render: the caller's count while the machine has a core free for
+    each, fewer while other processes keep cores busy (looked at again every
+    :data:`_RECHECK_S` s by :meth:`check`).
+
+    A render is some hundreds of tensor operations, each an OpenMP parallel region whose end
+    waits for every thread: with one thread descheduled by another process, each operation
+    waits for the scheduler to run it again. 2-thread renders were 5-11x slower than 1-thread
+    ones beside one busy process.
+    """
+
+    def __init__(self) -> None:
+        self.saved = self.current = 1
+        self.last = 0.0
+
+    def __enter__(self) -> _ThreadChoice:
+        self.saved = self.current = torch.get_num_threads()
+        self.check(force=True)
+        return self
+
+    def check(self, force: bool = False) -> None:
+        if self.saved <= 1:
+            return
+        now = time.perf_counter()
+        if not force and now - self.last < _RECHECK_S:
+            return
+        self.last = now
+        want = _threads_free(self.saved)
+        if want != self.current:
+            torch.set_num_threads(want)
+            self.current = want
+
+    def __exit__(self, *exc) -> None:
+        if self.current != self.saved:
+            torch.set_num_threads(self.saved)
+            self.current = self.saved
 
 
 # --------------------------------------------------------------------------------------
@@ -848,6 +933,7 @@ def _composite(
     full_frame: bool,
     front: bool = False,
     front_size: float = 0.0,
+    threads: _ThreadChoice | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, tuple[torch.Tensor, torch.Tensor] | None]:
     """Composite the layers of ``x`` back to front. Returns (acc, alpha, split).
 
@@ -910,6 +996,8 @@ def _composite(
         box = boxes.get(centre)
         if box is None:
             continue
+        if threads is not None:
+            threads.check()
         if front and back is None and plan.signed and centre > 0 and size >= front_size:
             back = flush(acc)
             acc = x.new_zeros(b, c + 1, height, width)
@@ -1194,75 +1282,80 @@ def render(
         t is not None and t.requires_grad for t in (image, disparity, radiance)
     )
 
-    # Without gradients the layers run in inference mode: no autograd bookkeeping in a few
-    # hundred small tensor operations (about 1 ms per render). The result is divided out of
-    # it, so callers get an ordinary tensor.
-    with contextlib.nullcontext() if grad else torch.inference_mode():
-        weights = None
-        if highlight_boost:
-            if radiance is not None or image_max >= HDR_THRESHOLD:
-                weights = hdr_boost(image, radiance)
-        elif radiance is not None:
-            weights = radiance
-        # a floor keeps the normalisation defined where every weight is 0 (e.g. pure red)
-        if weights is None:
-            x = image if grad else _with_ones(image)
-        elif grad:
-            weights = weights + 1e-4
-            x = torch.cat([weights * image, weights], dim=1)  # [B,3+Cr,H,W]
-        else:
-            # [1, w I, w] built in place: the layers are then mask * x in one product
-            cw = weights.shape[1]
-            x = image.new_empty(image.shape[0], 4 + cw, *image.shape[2:])
-            x[:, :1] = 1
-            torch.add(weights, 1e-4, out=x[:, 4:])
-            torch.mul(image, x[:, 4:], out=x[:, 1:4])
+    # Without gradients, fewer threads while other processes keep the cores busy (see
+    # _ThreadChoice); a training step keeps its own.
+    threads = None if grad else _ThreadChoice()
+    with threads or contextlib.nullcontext():
+        # Without gradients the layers run in inference mode: no autograd bookkeeping in a few
+        # hundred small tensor operations (about 1 ms per render). The result is divided out of
+        # it, so callers get an ordinary tensor.
+        with contextlib.nullcontext() if grad else torch.inference_mode():
+            weights = None
+            if highlight_boost:
+                if radiance is not None or image_max >= HDR_THRESHOLD:
+                    weights = hdr_boost(image, radiance)
+            elif radiance is not None:
+                weights = radiance
+            # a floor keeps the normalisation defined where every weight is 0 (e.g. pure red)
+            if weights is None:
+                x = image if grad else _with_ones(image)
+            elif grad:
+                weights = weights + 1e-4
+                x = torch.cat([weights * image, weights], dim=1)  # [B,3+Cr,H,W]
+            else:
+                # [1, w I, w] built in place: the layers are then mask * x in one product
+                cw = weights.shape[1]
+                x = image.new_empty(image.shape[0], 4 + cw, *image.shape[2:])
+                x[:, :1] = 1
+                torch.add(weights, 1e-4, out=x[:, 4:])
+                torch.mul(image, x[:, 4:], out=x[:, 1:4])
 
-        plan = layer_plan(
-            disparity,
-            f,
-            blur,
-            order=order,
-            num_layers=int(num_layers),
-            schedule=schedule,
-            gamma=gamma,
-            placement=placement,
-        )
-        # when nothing is blurred every layer is the identity, so is the composite
-        blurred = any(size > 1 for _, size in plan.order)
-        if blurred:
-            spec = KernelSpec(kernel, int(blades), float(rotation))
-            acc, alpha, split = _composite(
-                x,
-                plan,
-                spec,
-                method=method,
-                quality=quality,
-                full_frame=full_frame,
-                front=behind and plan.signed,
-                front_size=front_size,
+            plan = layer_plan(
+                disparity,
+                f,
+                blur,
+                order=order,
+                num_layers=int(num_layers),
+                schedule=schedule,
+                gamma=gamma,
+                placement=placement,
             )
-            norm, floor = (alpha, 1e-6) if weights is None else (acc[:, 3:], 1e-8)
-            # pixels no layer reached (cannot happen with soft masks, but stay defined) keep
-            # the input
-            covered = norm > 1e-6
-            norm = norm.clamp(min=floor) if grad else norm.clamp_(min=floor)
-    if not blurred:
-        return _with_behind(image.clamp(0, 1), behind)
-    out = acc[:, :3] / norm
-    if not bool(covered.all()):
-        out = torch.where(covered, out, image)
-    out = out.clamp(0, 1) if grad else out.clamp_(0, 1)
-    if not behind:
-        return out
-    if split is None:
-        return _with_behind(out, True)
-    back, transmit = split  # back: alpha, colour (weighted), then the weight if any
-    back_norm = back[:, :1] if weights is None else back[:, 4:]
-    # the back layers' share of the normalised result, and their own normalised colour
-    share = (back_norm * transmit / norm).clamp(0, 1)
-    colour = (back[:, 1:4] / back_norm.clamp(min=floor)).clamp(0, 1)
-    return out, share, torch.where(back_norm > 1e-6, colour, out)
+            # when nothing is blurred every layer is the identity, so is the composite
+            blurred = any(size > 1 for _, size in plan.order)
+            if blurred:
+                spec = KernelSpec(kernel, int(blades), float(rotation))
+                acc, alpha, split = _composite(
+                    x,
+                    plan,
+                    spec,
+                    method=method,
+                    quality=quality,
+                    full_frame=full_frame,
+                    front=behind and plan.signed,
+                    front_size=front_size,
+                    threads=threads,
+                )
+                norm, floor = (alpha, 1e-6) if weights is None else (acc[:, 3:], 1e-8)
+                # pixels no layer reached (cannot happen with soft masks, but stay defined) keep
+                # the input
+                covered = norm > 1e-6
+                norm = norm.clamp(min=floor) if grad else norm.clamp_(min=floor)
+        if not blurred:
+            return _with_behind(image.clamp(0, 1), behind)
+        out = acc[:, :3] / norm
+        if not bool(covered.all()):
+            out = torch.where(covered, out, image)
+        out = out.clamp(0, 1) if grad else out.clamp_(0, 1)
+        if not behind:
+            return out
+        if split is None:
+            return _with_behind(out, True)
+        back, transmit = split  # back: alpha, colour (weighted), then the weight if any
+        back_norm = back[:, :1] if weights is None else back[:, 4:]
+        # the back layers' share of the normalised result, and their own normalised colour
+        share = (back_norm * transmit / norm).clamp(0, 1)
+        colour = (back[:, 1:4] / back_norm.clamp(min=floor)).clamp(0, 1)
+        return out, share, torch.where(back_norm > 1e-6, colour, out)
 
 
 def _with_behind(out: torch.Tensor, behind: bool):
