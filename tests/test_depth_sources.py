@@ -349,7 +349,7 @@ class TestRefinement:
 
     @staticmethod
     def _model() -> D2F:
-        return D2F.from_config({"refine": "snap", "network_size": 64, "max_render_side": 256})
+        return D2F.from_config({"network_size": 64, "max_render_side": 256})
 
     @staticmethod
     def _step(n: int = 96, edge: int = 40):
