@@ -483,3 +483,74 @@ class TestCli:
         np.save(tmp_path / "d.npy", np.ones((48, 64)))
         file_twice = ["--depth", str(tmp_path / "d.npy"), "--depth-model", "file:x.npy"]
         assert main([*base, *file_twice]) == 2
+
+
+# ------------------------------------------------------------------------------ the app
+
+
+class TestApp:
+    """The app's "Depth source" control (app/sources.py, RefocusApp.load)."""
+
+    @pytest.fixture
+    def logic(self, tiny_model, tmp_path):
+        pytest.importorskip("gradio", reason="the app extra is not installed")
+        from app.cache import SceneCache
+        from app.handlers import RefocusApp
+
+        return RefocusApp(tiny_model, SceneCache(256 << 20), download_root=tmp_path / "dl")
+
+    def test_choices(self, monkeypatch):
+        from app import sources
+
+        values = [v for _, v in sources.choices()]
+        assert values == ["auto", "embedded", "file", "d2f", "transformers"]
+        assert "embedded" not in [v for _, v in sources.choices(has_embedded=False)]
+        monkeypatch.setattr(ds, "hub_available", lambda: False)
+        assert "transformers" not in [v for _, v in sources.choices()]
+        with pytest.raises(ValueError, match=r"d2f\[hub\]"):
+            sources.resolve("transformers", "x/y", False, False)
+
+    def test_resolve(self):
+        from app.sources import resolve
+
+        assert resolve("auto", "", True, True) == ("file", "")
+        assert resolve(None, "", False, True) == ("embedded", "")
+        assert resolve("auto", "", False, False) == ("d2f", "")
+        assert resolve("d2f", "", True, True) == ("d2f", "")
+        assert resolve("transformers", " org/model ", False, False) == (
+            "transformers:org/model",
+            "",
+        )
+        source, note = resolve("embedded", "", False, False)  # falls back, and says so
+        assert source == "d2f" and "no phone depth" in note
+        with pytest.raises(ValueError, match="Name a Hugging Face depth model"):
+            resolve("transformers", "  ", False, False)
+
+    def test_switching_sources(self, logic, two_plane_scene, hub_folders):
+        photo, disp = str(two_plane_scene.photo), str(two_plane_scene.disparity)
+        args = (disp, "disparity", None, 0.5, 40.0, 0, 0.0, True, True, "Bokeh", "balanced")
+        mine = logic.load(photo, *args, "auto", "")
+        assert mine[0].scene.disparity_source == "file"
+        net = logic.load(photo, *args, "d2f", "")
+        assert net[0].scene.disparity_source == "d2f" and "shipped network" in net[-1]
+        assert net[0].scene is not mine[0].scene  # the cache keys on the source
+        hub = f"transformers:{hub_folders['da']}"
+        out = logic.load(photo, *args, "transformers", str(hub_folders["da"]))
+        assert out[0].scene.disparity_source == hub
+        assert f"depth: {hub} (relative inverse depth)" in out[-1]
+        assert "cached scene" not in out[-1]
+        back = logic.load(photo, *args, "auto", "")  # back to the user's map: cached
+        assert "cached scene" in back[-1] and back[0].scene is mine[0].scene
+
+    def test_clear_errors(self, logic, two_plane_scene, tmp_path):
+        import gradio as gr
+
+        photo = str(two_plane_scene.photo)
+        args = (None, "disparity", None, 0.5, 40.0, 0, 0.0, True, True, "Bokeh", "balanced")
+        with pytest.raises(gr.Error, match="Name a Hugging Face depth model"):
+            logic.load(photo, *args, "transformers", "")
+        with pytest.raises(gr.Error, match="holds no depth-estimation model"):
+            logic.load(photo, *args, "transformers", str(tmp_path))
+        # the photo's own depth on a photo without any: the network, with a note
+        out = logic.load(photo, *args, "embedded", "")
+        assert out[0].scene.disparity_source == "d2f"
