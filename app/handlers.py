@@ -17,6 +17,7 @@ from __future__ import annotations
 import atexit
 import functools
 import logging
+import os
 import shutil
 import tempfile
 import threading
@@ -30,7 +31,7 @@ from typing import Any
 import gradio as gr
 import numpy as np
 
-from app import imaging
+from app import imaging, sources
 from app.cache import SCENE_CACHE, SceneCache, content_key
 from d2f_core.kernels import PAPER_GROWING_SIZES
 
@@ -39,8 +40,16 @@ log = logging.getLogger(__name__)
 #: The adaptive renderer's error budgets (``D2F.render(budget=...)``), fastest last.
 QUALITIES = ("high", "balanced", "fast")
 VIEWS = ("Bokeh", "Before / after", "Disparity", "Defocus", "Fusion mask")
-#: Display files kept per session (Gradio copies each one into its cache when it is sent).
+#: Display and download files kept per session: Gradio copies each one into its cache once
+#: the event that made it returns, so only files at least :data:`FILE_MIN_AGE_S` old are
+#: removed, and never the newest :data:`DISPLAY_FILES_KEPT` (an event may still be waiting
+#: for its copy while others of the same session write theirs).
 DISPLAY_FILES_KEPT = 8
+FILE_MIN_AGE_S = 60.0
+#: Live sessions (a photo loaded, not yet expired); an upload past it gets a message.
+DEFAULT_MAX_SESSIONS = 16
+#: A session unused this long (seconds) is closed: its pictures and files are freed.
+DEFAULT_SESSION_IDLE_S = 1800.0
 #: Long side of the live preview rendered while a slider is dragged.
 PREVIEW_MAX_SIDE = 512
 FORMATS = ("PNG", "JPEG")
@@ -125,26 +134,43 @@ class RenderParams:
         }
 
 
+class SessionClosed(Exception):
+    """An event reached a session that was closed (expired, ended, or replaced)."""
+
+
 @dataclass
 class Session:
-    """One user's work: the prepared scene and what was last shown.
+    """One user's work: where its prepared scene is found, and what was last shown.
+
+    A session holds no scene: :attr:`scene` looks the photo up in the process-wide scene
+    cache by :attr:`key` and prepares it again from the session's copy of the upload when
+    the cache has dropped it. Its own memory is the display-size pictures (``before``,
+    ``views``); the latest full render is kept on disk (:attr:`last_full`).
 
     Attributes:
-        scene: ``d2f_core.pipeline.Scene`` of the upload (shared with the scene cache).
+        key: the photo's key in the scene cache (:func:`app.cache.content_key`).
+        get_scene: ``() -> Scene`` for :attr:`key` (cache, else prepare again).
         name: file stem of the upload, used for the download's name.
         shown_size: ``(width, height)`` of the upload as the browser shows it; clicks come
             in these coordinates.
         size: ``(width, height)`` of the scene (the upload, possibly downscaled).
         before: ``(h, w, 3)`` uint8 input at display size.
-        views: uint8 pictures of the last render per view name, at display size.
-        full_params: params of the latest full-resolution render requested (None: none).
+        views: the last render at display size: ``"Bokeh"`` ``(h, w, 3)`` uint8, the maps
+            ``(h, w)`` uint8 (0..255 for 0..1), coloured when shown.
+        full_params: params of the full-resolution render the views hold or will hold
+            (None: none, or a preview has replaced it).
         full_seq: counts full-resolution renders; a preview that overlaps one is dropped.
-        last_full: ``(H, W, 3)`` uint8 of the latest full render, for the download.
+        last_full_params: params of the full render saved for the download.
+        download_file: ``(params, format, path)`` of the latest download file written.
         folder: this session's folder for display and download files (removed with it).
         icc_profile, exif: metadata of the upload, written into the download.
+        owner: the Gradio session hash of the browser tab or client that loaded it.
+        last_used: ``time.monotonic()`` of its latest event.
+        closed: True once :meth:`close` ran.
     """
 
-    scene: Any
+    key: str
+    get_scene: Callable[[], Any] = field(repr=False)
     name: str
     shown_size: tuple[int, int]
     size: tuple[int, int]
@@ -152,24 +178,80 @@ class Session:
     views: dict[str, np.ndarray] = field(default_factory=dict)
     full_params: RenderParams | None = None
     full_seq: int = 0
-    last_full: np.ndarray | None = None
     last_full_params: RenderParams | None = None
+    download_file: tuple[RenderParams, str, Path] | None = None
     folder: Path | None = None
     icc_profile: bytes | None = None
     exif: bytes | None = None
+    owner: str | None = None
+    last_used: float = field(default_factory=time.monotonic)
+    closed: bool = False
+    files_written: int = 0
+    on_close: Callable[[Session], None] | None = field(default=None, repr=False)
     lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
+    @property
+    def scene(self) -> Any:
+        """The prepared scene (from the shared cache, or prepared again)."""
+        if self.closed:
+            raise SessionClosed
+        return self.get_scene()
+
+    @property
+    def last_full(self) -> np.ndarray | None:
+        """``(H, W, 3)`` uint8 of the latest full render (read from the session's folder)."""
+        if self.last_full_params is None or self.folder is None:
+            return None
+        try:
+            return np.load(self.folder / "last_full.npy")
+        except FileNotFoundError:
+            return None
+
+    def touch(self) -> None:
+        """Mark the session used now (idle sessions are closed)."""
+        if self.closed:
+            raise SessionClosed
+        self.last_used = time.monotonic()
+
     def close(self) -> None:
-        """Delete this session's download files."""
-        if self.folder is not None:
-            shutil.rmtree(self.folder, ignore_errors=True)
-            self.folder = None
+        """Free the pictures and delete the session's files (display, download, upload)."""
+        with self.lock:
+            self.closed = True
+            self.views = {}
+            self.before = np.zeros((1, 1, 3), np.uint8)
+            self.last_full_params = None
+            folder, self.folder = self.folder, None
+        if folder is not None:
+            shutil.rmtree(folder, ignore_errors=True)
+        if self.on_close is not None:
+            self.on_close(self)
+
+
+def _no_scene() -> Any:
+    raise SessionClosed
 
 
 def delete_session(session: Session | None) -> None:
-    """``gr.State`` delete callback: free the session's files when it expires."""
+    """``gr.State`` delete callback: free the session when Gradio drops its state."""
     if isinstance(session, Session):
         session.close()
+
+
+def _prune(folder: Path, keep: int, min_age_s: float = FILE_MIN_AGE_S) -> None:
+    """Delete the entries of ``folder`` beyond the newest ``keep`` (by name, which counts
+    up) that are older than ``min_age_s``: a younger file may be an event's output that
+    Gradio has not copied into its cache yet."""
+    now = time.time()
+    for old in sorted(folder.iterdir())[:-keep] if keep else sorted(folder.iterdir()):
+        try:
+            if now - old.stat().st_mtime < min_age_s:
+                continue
+            if old.is_dir():
+                shutil.rmtree(old, ignore_errors=True)
+            else:
+                old.unlink(missing_ok=True)
+        except FileNotFoundError:
+            continue
 
 
 def _payload_path(value: Any) -> str | None:
@@ -215,6 +297,11 @@ def reported(fn: Callable) -> Callable:
             return fn(*args, **kwargs)
         except gr.Error:
             raise
+        except SessionClosed:
+            raise user_error(
+                "This photo was closed to free memory (unused for a while, or the page was "
+                "closed); please upload it again."
+            ) from None
         except (ValueError, TypeError) as err:
             raise user_error(str(err)) from None
         except MemoryError:
@@ -230,6 +317,17 @@ def reported(fn: Callable) -> Callable:
 
 
 SKIP4 = (gr.skip(), gr.skip(), gr.skip(), gr.skip())
+#: The download button while a preview is shown: nothing that matches the screen to save.
+DOWNLOAD_WAIT = {"__type__": "update", "interactive": False}
+
+
+def _env_number(name: str, default: float) -> float:
+    raw = os.environ.get(name)
+    try:
+        return float(raw) if raw else default
+    except ValueError:
+        log.warning("ignoring %s=%r (not a number)", name, raw)
+        return default
 
 
 class RefocusApp:
@@ -240,6 +338,10 @@ class RefocusApp:
             ``focus_at``).
         cache: scene cache shared across sessions (default: the process-wide one).
         download_root: where per-session download folders go (default: a temp folder).
+        max_sessions: live sessions at most (default ``D2F_APP_MAX_SESSIONS`` or 16); an
+            upload that would open one more gets a message asking to retry later.
+        session_idle_s: a session unused this long is closed (default
+            ``D2F_APP_SESSION_IDLE_S`` or 1800 s).
     """
 
     def __init__(
@@ -247,6 +349,9 @@ class RefocusApp:
         model: Any,
         cache: SceneCache | None = None,
         download_root: str | Path | None = None,
+        *,
+        max_sessions: int | None = None,
+        session_idle_s: float | None = None,
     ) -> None:
         self.model = model
         self.cache = SCENE_CACHE if cache is None else cache
@@ -256,6 +361,85 @@ class RefocusApp:
             atexit.register(shutil.rmtree, download_root, ignore_errors=True)
         self.download_root = Path(download_root)
         self.download_root.mkdir(parents=True, exist_ok=True)
+        if max_sessions is None:
+            max_sessions = int(_env_number("D2F_APP_MAX_SESSIONS", DEFAULT_MAX_SESSIONS))
+        if session_idle_s is None:
+            session_idle_s = _env_number("D2F_APP_SESSION_IDLE_S", DEFAULT_SESSION_IDLE_S)
+        if max_sessions < 1 or session_idle_s <= 0:
+            raise ValueError(
+                f"max_sessions must be >= 1 and session_idle_s > 0, got {max_sessions} and "
+                f"{session_idle_s}"
+            )
+        self.max_sessions = int(max_sessions)
+        self.session_idle_s = float(session_idle_s)
+        self._sessions: dict[int, Session] = {}
+        self._sessions_lock = threading.Lock()
+        self._sweeper: threading.Thread | None = None
+
+    # -------------------------------------------------------------- sessions
+    @property
+    def live_sessions(self) -> int:
+        """Sessions open now (a photo loaded, not closed)."""
+        with self._sessions_lock:
+            return len(self._sessions)
+
+    def _forget(self, session: Session) -> None:
+        with self._sessions_lock:
+            self._sessions.pop(id(session), None)
+
+    def expire_idle(self) -> int:
+        """Close the sessions unused for ``session_idle_s``; return how many."""
+        now = time.monotonic()
+        with self._sessions_lock:
+            idle = [s for s in self._sessions.values() if now - s.last_used > self.session_idle_s]
+        for session in idle:
+            log.info("closing session %s: idle %.0f s", session.name, now - session.last_used)
+            session.close()
+        return len(idle)
+
+    def end_sessions(self, owner: str | None) -> int:
+        """Close every session loaded by ``owner`` (a Gradio session hash); return how many.
+
+        Wired to the page's unload event: a closed browser tab frees its photo at once.
+        """
+        if owner is None:
+            return 0
+        with self._sessions_lock:
+            mine = [s for s in self._sessions.values() if s.owner == owner]
+        for session in mine:
+            session.close()
+        return len(mine)
+
+    def _sweep_forever(self) -> None:
+        while True:
+            time.sleep(min(30.0, max(0.5, self.session_idle_s / 4)))
+            try:
+                self.expire_idle()
+            except Exception:  # never let the sweeper die
+                log.exception("session sweep failed")
+
+    def _admit(self, replacing: Session | None) -> None:
+        """Make room for one more session or refuse with a message (``replacing`` is the
+        uploader's own previous session, which the new one replaces)."""
+        if self._sweeper is None:
+            self._sweeper = threading.Thread(
+                target=self._sweep_forever, name="d2f-session-sweeper", daemon=True
+            )
+            self._sweeper.start()
+        self.expire_idle()
+        with self._sessions_lock:
+            others = sum(1 for s in self._sessions.values() if s is not replacing)
+        if others >= self.max_sessions:
+            minutes = max(1, round(self.session_idle_s / 60))
+            raise user_error(
+                f"The app is at its limit of {self.max_sessions} open photos. Please try again "
+                f"in a few minutes (a photo unused for {minutes} min is closed)."
+            )
+
+    def _register(self, session: Session) -> None:
+        session.on_close = self._forget
+        with self._sessions_lock:
+            self._sessions[id(session)] = session
 
     # ----------------------------------------------------------------- views
     def _session_dir(self, session: Session, name: str) -> Path:
@@ -265,30 +449,46 @@ class RefocusApp:
         folder.mkdir(parents=True, exist_ok=True)
         return folder
 
+    @staticmethod
+    def _next_name(session: Session, suffix: str) -> str:
+        # a per-session count, zero-padded, so that names sort by age (a clock's digits
+        # can roll over: 999... sorted after 1000... made every new file the "oldest")
+        with session.lock:
+            session.files_written += 1
+            return f"{session.files_written:09d}{suffix}"
+
     def _display_file(self, session: Session, image: np.ndarray) -> str:
         """Write a picture for the browser as a fast PNG and return its path.
 
         Gradio would encode arrays itself at PNG level 6 (0.7 s for 1600x1200 here, 0.14 s
-        at level 1); it copies the file into its cache, so only the newest few are kept.
+        at level 1); it copies the file into its cache after the event returns, so a file
+        is removed only once it is old (see :func:`_prune`).
         """
         folder = self._session_dir(session, "display")
-        path = folder / f"{time.monotonic_ns()}_{uuid.uuid4().hex[:8]}.png"
+        path = folder / self._next_name(session, ".png")
         imaging.write_png(image, path)
-        for old in sorted(folder.iterdir())[:-DISPLAY_FILES_KEPT]:
-            old.unlink(missing_ok=True)
+        _prune(folder, DISPLAY_FILES_KEPT)
         return str(path)
 
     def _store_views(self, session: Session, result: Any, bokeh: np.ndarray) -> None:
         shown = imaging.fit_display(bokeh)
         size = (shown.shape[1], shown.shape[0])
         # maps come at the render pass's size; shown at the bokeh's size they line up when
-        # the user switches views
+        # the user switches views. Kept grey (one byte a pixel), coloured when shown.
         session.views = {
             "Bokeh": shown,
-            "Disparity": imaging.map_to_display(result.disparity, size, "viridis"),
-            "Defocus": imaging.map_to_display(result.defocus, size, "magma"),
-            "Fusion mask": imaging.map_to_display(result.fusion_mask, size, "gray"),
+            "Disparity": imaging.map_to_display(result.disparity, size, "gray")[..., 0],
+            "Defocus": imaging.map_to_display(result.defocus, size, "gray")[..., 0],
+            "Fusion mask": imaging.map_to_display(result.fusion_mask, size, "gray")[..., 0],
         }
+
+    @staticmethod
+    def _view_picture(session: Session, view: str) -> np.ndarray:
+        picture = session.views.get(view, session.views["Bokeh"])
+        if picture.ndim == 2:
+            cmap = _LEGENDS[view][0]
+            return imaging.colorize(picture.astype(np.float32) / 255.0, cmap)
+        return picture
 
     @staticmethod
     def _legend(session: Session, view: str) -> tuple[str, str, str, str] | None:
@@ -317,7 +517,7 @@ class RefocusApp:
                 ),
                 gr.update(visible=False),
             )
-        picture = session.views.get(view, session.views["Bokeh"])
+        picture = self._view_picture(session, view)
         legend = self._legend(session, view)
         return (
             gr.update(value=self._display_file(session, picture), visible=True),
@@ -367,8 +567,15 @@ class RefocusApp:
         fusion: Any = True,
         view: str = "Bokeh",
         quality: Any = "balanced",
+        depth_source: Any = sources.AUTO,
+        hub_model: Any = "",
+        request: gr.Request | None = None,
     ) -> tuple:
         """Decode an upload (and optional depth map), prepare it (cached), render it.
+
+        The new session replaces ``session``; past :attr:`max_sessions` other live
+        sessions the upload is refused with a message. ``request`` (given by Gradio) names
+        the browser tab, whose sessions are closed when it is closed.
 
         Returns:
             ``(session, focus, result, compare, legend, info)``; ``focus`` is the focal plane
@@ -386,23 +593,32 @@ class RefocusApp:
             focus, blur, blades, rotation, highlight_boost, fusion, quality
         )
         t0 = time.perf_counter()
-        photo = imaging.load_photo(path, _payload_name(image, ext=True))
+        photo_name = _payload_name(image, ext=True)
+        depth_path = _payload_path(depth)
+        depth_name = _payload_name(depth, "depth map", ext=True)
+        photo, disparity, source, depth_size = self._decode(
+            path, photo_name, depth_path, depth_kind, depth_name
+        )
+        # the "Depth source" control (app/sources.py): the scene cache keys on the source
+        chosen, note = sources.resolve(
+            depth_source, hub_model, depth_path is not None, photo.disparity is not None
+        )
+        if note:
+            gr.Warning(note)
+        disparity, own_map = sources.pick(chosen, disparity, photo)
+        if not own_map:
+            depth_size = None
+            if chosen == "embedded":
+                source = f"depth embedded in the photo ({photo.depth_source})"
+        new_focus = gr.skip()
         if photo.notice:
             gr.Warning(photo.notice)
-        disparity, new_focus, source = None, gr.skip(), "network"
-        depth_path = _payload_path(depth)
-        if depth_path is not None:
-            kind = "depth" if str(depth_kind).startswith("depth") else "disparity"
-            disparity, (dw, dh) = imaging.load_depth_map(
-                depth_path, photo.size, kind, _payload_name(depth, "depth map", ext=True)
-            )
-            source = f"your {kind} map"
+        if depth_size is not None:
             w, h = photo.size
+            dw, dh = depth_size
             if (dw, dh) != (w, h):
                 gr.Info(f"The depth map ({dw}x{dh}) was resized to the photo ({w}x{h}).")
-        elif photo.disparity is not None:
-            disparity = photo.disparity
-            source = f"depth embedded in the photo ({photo.depth_source})"
+        elif disparity is not None:
             gr.Info(f"Using the {source}.")
             if photo.focus is not None:
                 new_focus = round(float(photo.focus), FOCUS_DECIMALS)
@@ -410,10 +626,12 @@ class RefocusApp:
                     new_focus, blur, blades, rotation, highlight_boost, fusion, quality
                 )
         t_decode = time.perf_counter()
-        key = content_key(photo.image, disparity)
+        self._admit(session)
+        key = sources.scene_key(content_key(photo.image, disparity), chosen)
         scene, cached = self.cache.get_or_prepare(
-            self.model, key, lambda: self.model.prepare(photo.image, disparity=disparity)
+            self.model, key, lambda: sources.prepare(self.model, photo.image, disparity, chosen)
         )
+        source = sources.describe(scene, source)
         t_prepare = time.perf_counter()
         subject = ""
         if disparity is None:
@@ -426,16 +644,26 @@ class RefocusApp:
             subject = f" | focus on the subject at ({sx:.0f}, {sy:.0f})"
         if session is not None:
             session.close()
-        session = Session(
-            scene=scene,
+        new = Session(
+            key=key,
+            get_scene=_no_scene,  # set below, once the upload is kept
             name=_payload_name(image),
             shown_size=photo.shown_size,
             size=photo.size,
             before=imaging.fit_display(imaging.to_uint8(photo.image)),
             icc_profile=photo.icc_profile,
             exif=photo.exif,
+            owner=getattr(request, "session_hash", None),
         )
-        outputs = self._render_full(session, params, view)
+        new.get_scene = self._scene_source(new, key, path, photo_name, depth_path, depth_kind,
+                                           depth_name, chosen)  # fmt: skip
+        self._register(new)
+        session = new
+        try:
+            outputs = self._render_full(session, params, view, scene)
+        except BaseException:
+            session.close()
+            raise
         prep = "cached scene" if cached else f"prepare {1000 * (t_prepare - t_decode):.0f} ms"
         log.info(
             "loaded %s (%dx%d), depth: %s, %s %r", session.name, *session.size, source, prep, image
@@ -447,17 +675,80 @@ class RefocusApp:
         )
         return (session, new_focus, *outputs[:3], info)
 
+    def _decode(
+        self,
+        path: str,
+        name: str,
+        depth_path: str | None,
+        depth_kind: Any,
+        depth_name: str,
+    ) -> tuple[imaging.Photo, np.ndarray | None, str, tuple[int, int] | None]:
+        """``(photo, disparity or None, where the disparity comes from, the depth file's
+        size or None)`` of an upload."""
+        photo = imaging.load_photo(path, name)
+        if depth_path is not None:
+            kind = "depth" if str(depth_kind).startswith("depth") else "disparity"
+            disparity, size = imaging.load_depth_map(depth_path, photo.size, kind, depth_name)
+            return photo, disparity, f"your {kind} map", size
+        if photo.disparity is not None:
+            source = f"depth embedded in the photo ({photo.depth_source})"
+            return photo, photo.disparity, source, None
+        return photo, None, "network", None
+
+    def _scene_source(
+        self,
+        session: Session,
+        key: str,
+        path: str,
+        name: str,
+        depth_path: str | None,
+        depth_kind: Any,
+        depth_name: str,
+        chosen: str,
+    ) -> Callable[[], Any]:
+        """``() -> Scene``: the cached scene of ``key``, else the session's copy of the
+        upload decoded and prepared again (the cache may have dropped it for other photos)."""
+        folder = self._session_dir(session, "upload")
+        kept = folder / f"photo{Path(path).suffix.lower()}"
+        shutil.copyfile(path, kept)
+        kept_depth = None
+        if depth_path is not None:
+            kept_depth = folder / f"depth{Path(depth_path).suffix.lower()}"
+            shutil.copyfile(depth_path, kept_depth)
+        model, cache = self.model, self.cache
+
+        def prepare() -> Any:
+            photo, disparity, _, _ = self._decode(
+                str(kept), name, None if kept_depth is None else str(kept_depth), depth_kind,
+                depth_name,
+            )  # fmt: skip
+            log.info("preparing %s again (dropped from the scene cache)", name)
+            disparity, _ = sources.pick(chosen, disparity, photo)
+            return sources.prepare(model, photo.image, disparity, chosen)
+
+        def get_scene() -> Any:
+            scene = cache.get(model, key)
+            if scene is None:
+                scene, _ = cache.get_or_prepare(model, key, prepare)
+            return scene
+
+        return get_scene
+
     # --------------------------------------------------------------- renders
-    def _render_full(self, session: Session, params: RenderParams, view: str) -> tuple:
+    def _render_full(
+        self, session: Session, params: RenderParams, view: str, scene: Any = None
+    ) -> tuple:
+        session.touch()
         with session.lock:
             session.full_seq += 1
             seq = session.full_seq
             session.full_params = params
         try:
+            if scene is None:
+                scene = session.scene
             t0 = time.perf_counter()
-            result = self.model.render(
-                session.scene, params.focus, params.blur, **params.render_options()
-            )
+            result = self.model.render(scene, params.focus, params.blur, **params.render_options())
+            del scene
             ms = 1000 * (time.perf_counter() - t0)
         except BaseException:
             with session.lock:
@@ -466,9 +757,13 @@ class RefocusApp:
             raise
         bokeh = imaging.to_uint8(result.bokeh)
         with session.lock:
-            if session.full_seq != seq:
+            if session.full_seq != seq or session.closed:
                 return SKIP4  # a newer full render is on its way
-            session.last_full = bokeh
+            # the full render waits on disk for the download, not in memory
+            folder = self._session_dir(session, "")
+            part = folder / "last_full.part.npy"
+            np.save(part, bokeh)
+            os.replace(part, folder / "last_full.npy")
             session.last_full_params = params
             self._store_views(session, result, bokeh)
         extra = self._settings_text(result.settings, params.quality)
@@ -497,6 +792,7 @@ class RefocusApp:
         params = RenderParams.from_inputs(
             focus, blur, blades, rotation, highlight_boost, fusion, quality
         )
+        session.touch()
         with session.lock:
             if params == session.full_params:
                 return SKIP4  # already rendered (or being rendered) at full resolution
@@ -519,19 +815,22 @@ class RefocusApp:
 
         Dropped (``gr.skip()``) when a full render of the same params was requested, or when
         a full render started while this preview ran: a preview must never replace the full
-        result that the release of the slider asked for.
+        result that the release of the slider asked for. While a preview is shown the
+        download button is disabled (it would save another picture than the one on screen);
+        the full render that follows enables it again.
 
         Returns:
-            ``(result, compare, legend, info)``.
+            ``(result, compare, legend, info, download)``.
         """
         if session is None:
-            return SKIP4
+            return (*SKIP4, gr.skip())
         params = RenderParams.from_inputs(
             focus, blur, blades, rotation, highlight_boost, fusion, quality
         )
+        session.touch()
         with session.lock:
             if params == session.full_params:
-                return SKIP4
+                return (*SKIP4, gr.skip())
             seq = session.full_seq
         t0 = time.perf_counter()
         result = self.model.render(
@@ -544,12 +843,14 @@ class RefocusApp:
         ms = 1000 * (time.perf_counter() - t0)
         bokeh = imaging.to_uint8(result.bokeh)
         with session.lock:
-            if session.full_seq != seq or params == session.full_params:
-                return SKIP4
+            if session.full_seq != seq or params == session.full_params or session.closed:
+                return (*SKIP4, gr.skip())
             self._store_views(session, result, bokeh)
+            # the views no longer hold the full render: releasing at its params renders again
+            session.full_params = None
         extra = self._settings_text(result.settings, params.quality)
         info = self._info(session, params, "preview", ms, extra)
-        return (*self.view_outputs(session, view), info)
+        return (*self.view_outputs(session, view), info, gr.update(**DOWNLOAD_WAIT))
 
     @reported
     def click(
@@ -572,6 +873,7 @@ class RefocusApp:
         if session is None:
             gr.Warning("Upload a photo first.")
             return (gr.skip(), *SKIP4)
+        session.touch()
         try:
             x, y = (float(v) for v in index)
         except (TypeError, ValueError):
@@ -602,6 +904,8 @@ class RefocusApp:
         """
         if view not in VIEWS:
             raise user_error(f"Unknown view {view!r}; expected one of {', '.join(VIEWS)}.")
+        if session is not None:
+            session.touch()
         return self.view_outputs(session, view)
 
     # -------------------------------------------------------------- download
@@ -617,17 +921,35 @@ class RefocusApp:
             raise user_error(f"Download format must be PNG or JPEG, got {fmt!r}.")
         if session is None:
             return gr.update(value=None, label="Download", interactive=False)
+        session.touch()
         with session.lock:
-            image, params = session.last_full, session.last_full_params
-        if image is None or params is None:
+            params = session.last_full_params
+            if params is None or session.full_params != params:
+                return gr.skip()  # no full render, or a preview is shown
+            done = session.download_file
+            image = None
+            if done is None or done[:2] != (params, fmt) or not done[2].exists():
+                image = session.last_full
+        if done is not None and image is None:  # written already: hand out the same file
+            w, h = session.size
+            label = f"Download {fmt} ({w}x{h})"
+            return gr.update(value=str(done[2]), label=label, interactive=True)
+        if image is None:
             return gr.skip()
-        folder = self._session_dir(session, "download")
-        for old in folder.iterdir():
-            old.unlink(missing_ok=True)
+        # each file in its own numbered folder, written once: a file handed to Gradio is
+        # never rewritten or removed while it may still be copied (see _prune)
+        root = self._session_dir(session, "download")
+        folder = root / self._next_name(session, "")
+        folder.mkdir()
         ext = "png" if fmt == "PNG" else "jpg"
         name = f"{session.name}_bokeh_f{params.focus:.3f}_K{params.blur:g}.{ext}"
         path = imaging.save_image(
             image, folder / name, icc_profile=session.icc_profile, exif=session.exif
         )
+        _prune(root, 2)
+        with session.lock:
+            if session.last_full_params != params or session.full_params != params:
+                return gr.skip()  # a newer render came in while this file was written
+            session.download_file = (params, fmt, path)
         h, w = image.shape[:2]
         return gr.update(value=str(path), label=f"Download {fmt} ({w}x{h})", interactive=True)

@@ -13,6 +13,7 @@ from typing import Any
 
 import gradio as gr
 
+from app import sources as depth_choice
 from app.cache import SceneCache
 from app.handlers import DEPTH_KINDS, FORMATS, QUALITIES, VIEWS, RefocusApp, delete_session
 from d2f_core import bundled
@@ -23,18 +24,54 @@ SAMPLES_DIR = bundled.assets_dir() / "samples"
 #: Events that run the model share one concurrency group of this many parallel calls
 #: (all sessions together); on a 2-core CPU more only adds contention.
 DEFAULT_CONCURRENCY = 4
-#: Sessions idle this long (seconds) drop their scene from memory.
+#: Gradio drops a session's state this long (seconds) after it was last set; the app
+#: closes idle sessions itself, sooner (``D2F_APP_SESSION_IDLE_S``, app/handlers.py).
 SESSION_TTL_S = 3600
+#: Uploads larger than this many MB are refused by Gradio (``D2F_APP_MAX_UPLOAD_MB``).
+DEFAULT_MAX_UPLOAD_MB = 100
+#: Page states (one per browser tab or API client) Gradio keeps, oldest dropped first
+#: (its default is 10000); each holds a copy of the page's component settings.
+STATE_SESSIONS = 1000
 
 CSS = """
 #result img, #input img { object-fit: contain; }
 .d2f-legend { padding: 2px 6px; }
 """
 
+#: Gradio's slider sends ``release`` (the full render) only on pointer-up over the track and
+#: when its number box loses focus. This page script ends the other ways of setting a value
+#: the same way: arrow / Home / End / Page keys on a focused slider (on key-up, so a held key
+#: renders once) and Enter in the number box. It sends the pointer-up that Gradio listens to.
+RELEASE_JS = """
+() => {
+    const keys = new Set(["ArrowLeft", "ArrowRight", "ArrowUp", "ArrowDown", "Home", "End",
+                          "PageUp", "PageDown"]);
+    const release = (el) => el.dispatchEvent(new PointerEvent("pointerup", {bubbles: true}));
+    document.addEventListener("keyup", (e) => {
+        const el = e.target;
+        if (el instanceof HTMLInputElement && el.dataset.testid === "range-input"
+            && keys.has(e.key)) release(el);
+    }, true);
+    document.addEventListener("keydown", (e) => {
+        const el = e.target;
+        if (el instanceof HTMLInputElement && el.dataset.testid === "number-input"
+            && e.key === "Enter" && !e.repeat) release(el);
+    }, true);
+}
+"""
+
 INTRO = """# D2F refocus
 Upload a photo, then **click where it should be sharp** or move the focal-plane slider.
 Dragging a slider shows a quick preview; releasing it renders at full resolution.
 """
+
+
+def holding_download(outputs: tuple) -> tuple:
+    """A render's outputs and an update of the Download button: disabled when the render
+    shows a new picture (its status line is text), until the chained download event hands
+    it that picture's file; a click in between would save the previous render."""
+    changed = isinstance(outputs[-1], str)
+    return (*outputs, gr.update(interactive=False) if changed else gr.skip())
 
 
 def sample_paths() -> list[str]:
@@ -156,6 +193,20 @@ def build_demo(
                         label="The map holds",
                         elem_id="depth_kind",
                     )
+                with gr.Accordion("Depth source", open=False):
+                    depth_source = gr.Radio(
+                        depth_choice.choices(),
+                        value=depth_choice.AUTO,
+                        label="Depth from",
+                        elem_id="depth_source",
+                    )
+                    hub_model = gr.Textbox(
+                        label="Hugging Face depth model: id or folder on the server "
+                        "(downloaded once into the Hugging Face cache)",
+                        placeholder=depth_choice.HUB_PLACEHOLDER,
+                        visible=any(v == "transformers" for _, v in depth_choice.choices()),
+                        elem_id="hub_model",
+                    )
                 examples = None
                 if sample_paths():
                     examples = gr.Examples(sample_paths(), inputs=[photo], label="Examples")
@@ -189,10 +240,27 @@ def build_demo(
         options = [blades, rotation, highlight, fusion, view, quality]
         shown = [result, compare, legend, info]
 
+        # Gradio passes the request (the tab's session hash) by its annotation
+        def load_ui(request: gr.Request, *values):
+            return holding_download(logic.load(*values, request=request))
+
+        def render_full_ui(*values):
+            return holding_download(logic.render_full(*values))
+
         load_io = {
-            "fn": logic.load,
-            "inputs": [photo, depth, depth_kind, session, focus, blur, *options],
-            "outputs": [session, focus, *shown],
+            "fn": load_ui,
+            "inputs": [
+                photo,
+                depth,
+                depth_kind,
+                session,
+                focus,
+                blur,
+                *options,
+                depth_source,
+                hub_model,
+            ],  # fmt: skip
+            "outputs": [session, focus, *shown, download],
             # raw upload payloads: decoding errors are reported by the app, not by Gradio
             "preprocess": False,
             **heavy,
@@ -200,8 +268,22 @@ def build_demo(
         }
         # .upload, not .change: an upload fires .change twice in Gradio 6, and the two runs
         # then race on the same output file
-        gr.on([photo.upload, photo.clear, depth.change, depth_kind.change], api_name="load",
+        # a new depth source re-prepares this photo only (.input: the user's choice, not the
+        # choices offered again for a new photo)
+        gr.on([photo.upload, photo.clear, depth.change, depth_kind.change, depth_source.input,
+               hub_model.submit], api_name="load",
               **load_io).success(logic.download, [session, fmt], [download], **chained)  # fmt: skip
+        # the photo's own depth is offered only when the photo has some
+        photo.upload(
+            lambda payload: gr.update(
+                choices=depth_choice.choices(depth_choice.has_embedded_depth(payload))
+            ),
+            [photo],
+            [depth_source],
+            preprocess=False,
+            api_visibility="private",
+            show_progress="hidden",
+        )
         if examples is not None:
             examples.load_input_event.then(api_visibility="private", **load_io).success(
                 logic.download, [session, fmt], [download], **chained
@@ -211,27 +293,28 @@ def build_demo(
         # .change only (never .input as well: two concurrent runs break the image); .change
         # also follows values set by click-to-focus, whose preview is then skipped
         for slider in (focus, blur, rotation):
+            # a preview also disables Download until the full render is there to save
             slider.change(
                 logic.render_preview,
                 render_inputs,
-                shown,
+                [*shown, download],
                 api_name=f"preview_{slider.elem_id}",
                 **heavy,
                 **quiet,
             )
             slider.release(
-                logic.render_full,
+                render_full_ui,
                 render_inputs,
-                shown,
+                [*shown, download],
                 api_name=f"render_{slider.elem_id}",
                 **heavy,
                 **quiet,
             ).success(logic.download, [session, fmt], [download], **chained)
         gr.on(
             [blades.change, highlight.change, fusion.change, quality.change],
-            logic.render_full,
+            render_full_ui,
             render_inputs,
-            shown,
+            [*shown, download],
             api_name="render",
             **heavy,
             **quiet,
@@ -249,14 +332,24 @@ def build_demo(
             quality_v,
             evt: gr.SelectData,
         ):
-            return logic.click(
-                state, evt.index, blur_v, blades_v, rotation_v, hdr_v, fusion_v, view_v, quality_v
+            return holding_download(
+                logic.click(
+                    state,
+                    evt.index,
+                    blur_v,
+                    blades_v,
+                    rotation_v,
+                    hdr_v,
+                    fusion_v,
+                    view_v,
+                    quality_v,
+                )  # fmt: skip
             )
 
         photo.select(
             on_select,
             [session, blur, *options],
-            [focus, *shown[:4]],
+            [focus, *shown, download],
             api_visibility="private",
             **heavy,
             **quiet,
@@ -271,8 +364,29 @@ def build_demo(
         fmt.change(
             logic.download, [session, fmt], [download], api_name="download", show_progress="hidden"
         )
+
+        # a closed tab frees its photo at once (API clients' sessions expire when idle)
+        def end_session(request: gr.Request):
+            logic.end_sessions(getattr(request, "session_hash", None))
+
+        demo.unload(end_session)
     demo.queue(default_concurrency_limit=concurrency)
     return demo
+
+
+def launch_options() -> dict[str, Any]:
+    """Keyword arguments of ``demo.launch`` that the app needs besides host and port: the
+    page script (:data:`RELEASE_JS`), the style sheet, the examples' folder, the upload
+    limit (``D2F_APP_MAX_UPLOAD_MB``, default 100) and how many sessions' page state Gradio
+    keeps (:data:`STATE_SESSIONS`)."""
+    upload_mb = os.environ.get("D2F_APP_MAX_UPLOAD_MB", str(DEFAULT_MAX_UPLOAD_MB))
+    return {
+        "js": RELEASE_JS,
+        "css": CSS,
+        "allowed_paths": [str(SAMPLES_DIR)],
+        "max_file_size": int(float(upload_mb) * (1 << 20)),
+        "state_session_capacity": STATE_SESSIONS,
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -308,9 +422,7 @@ def main(argv: list[str] | None = None) -> int:
     except (FileNotFoundError, ValueError) as err:
         parser.error(str(err))
     demo = build_demo(model)
-    demo.launch(
-        server_name=args.host, server_port=args.port, share=False, allowed_paths=[str(SAMPLES_DIR)]
-    )
+    demo.launch(server_name=args.host, server_port=args.port, share=False, **launch_options())
     return 0
 
 

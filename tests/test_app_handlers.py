@@ -473,12 +473,36 @@ class TestRender:
         logic, session, _ = loaded
         out = logic.render_preview(session, 0.3, BLUR)
         assert max(pixels(out[0]).shape[:2]) <= PREVIEW_MAX_SIDE
-        assert "preview" in out[-1]
+        assert "preview" in out[3]
         logic.render_full(session, 0.3, BLUR)
         assert all(is_skip(o) for o in logic.render_preview(session, 0.3, BLUR))
         # the same params again at full resolution: nothing new to do
         assert all(is_skip(o) for o in logic.render_full(session, 0.3, BLUR))
         assert not is_skip(logic.render_preview(session, 0.31, BLUR)[0])
+
+    def test_download_follows_what_is_shown(self, loaded):
+        """A preview disables Download (it would save another picture); the full render of
+        the value shown enables it with that value's file, also when a drag returns to the
+        value of the last full render."""
+        logic, session, _ = loaded
+        first = logic.download(session, "JPEG")
+        assert first["interactive"] is True and "_f0.500_K120.jpg" in first["value"]
+        # asked again (each render event asks): the same file, not written again
+        assert logic.download(session, "JPEG")["value"] == first["value"]
+        out = logic.render_preview(session, 0.7, 100.0)
+        assert out[4] == {"__type__": "update", "interactive": False}
+        assert is_skip(logic.download(session, "JPEG"))  # nothing full to save yet
+        # the slider comes back to the full render's value and is released there: the
+        # preview on screen is replaced by the full render again, and Download saves it
+        back = logic.render_full(session, 0.5, BLUR)
+        assert not is_skip(back[0]) and "full render" in back[3]
+        again = logic.download(session, "JPEG")
+        assert again["interactive"] is True and "_f0.500_K120.jpg" in again["value"]
+        logic.render_preview(session, 0.7, 100.0)
+        logic.render_full(session, 0.7, 100.0)
+        saved = logic.download(session, "PNG")
+        assert "_f0.700_K100.png" in saved["value"]
+        np.testing.assert_array_equal(np.asarray(Image.open(saved["value"])), session.last_full)
 
     def test_info_names_the_adaptive_settings(self, loaded):
         logic, session, scene = loaded
@@ -488,7 +512,7 @@ class TestRender:
         out = logic.render_full(session, 0.5, BLUR)
         # the user's word for the setting, not the renderer's preset name
         assert "balanced quality: 15 blur layers" in out[-1] and "preset" not in out[-1]
-        assert "layers" in logic.render_preview(session, 0.45, BLUR)[-1]
+        assert "layers" in logic.render_preview(session, 0.45, BLUR)[3]
 
     def test_quality_option_sets_the_budget(self, loaded):
         logic, session, _ = loaded
@@ -570,22 +594,114 @@ class TestRender:
             logic.show_view(session, "X-ray")
         assert logic.show_view(None, "Bokeh")[0]["value"] is None
 
-    def test_display_files_are_pruned(self, loaded):
-        from app.handlers import DISPLAY_FILES_KEPT
+    def test_display_files_are_pruned_only_when_old(self, loaded):
+        """Gradio copies an event's picture into its cache after the event returns, while
+        other events of the session may write theirs: a young file is never removed."""
+        import os
+
+        from app.handlers import DISPLAY_FILES_KEPT, FILE_MIN_AGE_S
 
         logic, session, _ = loaded
-        for k in range(DISPLAY_FILES_KEPT + 4):
+        sent = [logic.render_preview(session, 0.1 + 0.01 * k, BLUR)[0]["value"]
+                for k in range(DISPLAY_FILES_KEPT + 4)]  # fmt: skip
+        assert all(Path(p).exists() for p in sent)
+        folder = session.folder / "display"
+        old = time.time() - FILE_MIN_AGE_S - 5
+        for f in folder.iterdir():
+            os.utime(f, (old, old))
+        newest = logic.render_preview(session, 0.9, BLUR)[0]["value"]
+        kept = sorted(folder.iterdir())
+        assert len(kept) == DISPLAY_FILES_KEPT and Path(newest) == kept[-1]
+
+    def test_display_file_survives_a_clock_rollover(self, loaded, monkeypatch):
+        """Display files were named by time.monotonic_ns() and pruned by name: once the
+        clock gained a digit (10**12 ns is 16.7 min after boot, 10**13 ns 2.8 h), every new
+        file sorted before the older ones and was deleted as soon as written, so Gradio
+        could not copy it and the browser got 403 for every picture of that session."""
+        from app import handlers
+
+        logic, session, _ = loaded
+        ticks = [10**12 - 100 + k for k in range(10)] + [10**12 + k for k in range(10)]
+        clock = iter(ticks)
+        monkeypatch.setattr(handlers.time, "monotonic_ns", lambda: next(clock))
+        for k in range(10):  # 12-digit times
             logic.render_preview(session, 0.1 + 0.01 * k, BLUR)
-        assert len(list((session.folder / "display").iterdir())) == DISPLAY_FILES_KEPT
+        for k in range(3):  # the clock has rolled over to 13 digits
+            path = logic.render_preview(session, 0.6 + 0.01 * k, BLUR)[0]["value"]
+            assert Path(path).exists()
 
     def test_render_without_session(self, logic):
         assert all(is_skip(o) for o in logic.render_full(None, 0.5, 10))
         assert all(is_skip(o) for o in logic.render_preview(None, 0.5, 10))
+        assert len(logic.render_preview(None, 0.5, 10)) == 5
 
     def test_core_value_error_becomes_gr_error(self, loaded):
         logic, session, _ = loaded
         with pytest.raises(gr.Error, match="blur"):
             logic.render_full(session, 0.5, 20_000)
+
+
+class TestSessions:
+    """Sessions hold a key into the one scene cache, are capped, and free everything when
+    they end."""
+
+    def test_scene_dropped_from_the_cache_is_prepared_again(self, loaded):
+        logic, session, scene = loaded
+        logic.cache.clear()
+        out = logic.render_full(session, 0.5, 0.0)  # zero blur: the photo itself
+        np.testing.assert_array_equal(pixels(out[0]), scene.image)
+        assert len(logic.cache) == 1  # prepared again from the session's copy, and cached
+        assert session.scene is logic.cache.get(logic.model, session.key)
+
+    def test_session_holds_no_scene_and_no_full_frame(self, loaded):
+        logic, session, _ = loaded
+        held = {f.name: getattr(session, f.name) for f in dataclasses.fields(session)}
+        assert not any(type(v).__name__ == "Scene" for v in held.values())
+        big = sum(v.nbytes for v in [session.before, *session.views.values()])
+        assert big <= 320 * 240 * (3 + 3 + 3)  # display pictures, maps in one byte a pixel
+        assert (session.folder / "last_full.npy").exists()
+
+    def test_cap_on_live_sessions(self, tiny_model, tmp_path, two_plane_scene):
+        logic = RefocusApp(
+            tiny_model, SceneCache(64 << 20), download_root=tmp_path / "dl", max_sessions=2
+        )
+        args = (str(two_plane_scene.photo), None, "disparity", None, 0.5, BLUR)
+        a = logic.load(*args)[0]
+        b = logic.load(*args)[0]
+        with pytest.raises(gr.Error, match="limit of 2 open photos"):
+            logic.load(*args)
+        # the same user uploading again replaces their own session: no refusal
+        b2 = logic.load(str(two_plane_scene.photo), None, "disparity", b, 0.5, BLUR)[0]
+        assert b.closed and not b2.closed and logic.live_sessions == 2
+        a.close()
+        assert logic.live_sessions == 1
+        assert logic.load(*args)[0] is not None
+
+    def test_idle_sessions_are_closed_with_their_files(self, tiny_model, tmp_path, two_plane_scene):
+        logic = RefocusApp(
+            tiny_model, SceneCache(64 << 20), download_root=tmp_path / "dl", session_idle_s=60
+        )
+        session = logic.load(str(two_plane_scene.photo), None, "disparity", None, 0.5, BLUR)[0]
+        folder = session.folder
+        assert folder.exists() and logic.live_sessions == 1
+        assert logic.expire_idle() == 0
+        session.last_used -= 61
+        assert logic.expire_idle() == 1
+        assert logic.live_sessions == 0 and not folder.exists() and not session.views
+        with pytest.raises(gr.Error, match="upload it again"):
+            logic.render_full(session, 0.3, BLUR)
+
+    def test_closed_tab_ends_its_sessions(self, tiny_model, tmp_path, two_plane_scene):
+        logic = RefocusApp(tiny_model, SceneCache(64 << 20), download_root=tmp_path / "dl")
+
+        class Request:
+            session_hash = "tab-1"
+
+        args = (str(two_plane_scene.photo), None, "disparity", None, 0.5, BLUR)
+        mine = logic.load(*args, request=Request())[0]
+        other = logic.load(*args)[0]
+        assert logic.end_sessions("tab-1") == 1
+        assert mine.closed and not other.closed and logic.live_sessions == 1
 
 
 class TestDownload:
@@ -602,7 +718,7 @@ class TestDownload:
         logic, session, _ = loaded
         png = Path(logic.download(session, "PNG")["value"])
         jpg = Path(logic.download(session, "JPEG")["value"])
-        assert jpg.suffix == ".jpg" and not png.exists()
+        assert jpg.suffix == ".jpg" and png.exists()  # young: Gradio may still copy it
         with Image.open(jpg) as im:
             assert im.format == "JPEG" and im.size == (320, 240)
 

@@ -1,0 +1,140 @@
+"""Every way of setting a slider in the real page ends in the full render, and Download saves
+the value on screen (headless Debian Chromium through Playwright).
+
+Gradio sends a slider's ``release`` (the full render) only on pointer-up and when the number
+box loses focus; the app's page script ends key presses and Enter the same way. Each case
+sets a value, waits for the status line to report a full render of exactly that value, and
+then clicks Download and reads the saved file's name (``..._f<focus>_K<blur>.jpg``).
+"""
+
+from __future__ import annotations
+
+import pytest
+
+pytestmark = [pytest.mark.browser, pytest.mark.slow]
+
+TIMEOUT_MS = 30_000
+#: A full render of the 320x240 test photo takes well under a second; a value that ends in
+#: a preview only never reaches the full render, and the wait fails after this long.
+FULL_RENDER_WAIT_MS = 10_000
+
+STATUS = "(document.querySelector('#info textarea')?.value ?? '')"
+
+
+def number_value(page, elem: str) -> str:
+    return page.locator(f"#{elem} input[data-testid=number-input]").input_value()
+
+
+def wait_full_render(page, focus: str | None = None, blur: str | None = None) -> str:
+    """Wait until the status line reports a full render at these slider values."""
+    parts = []
+    if focus is not None:
+        parts.append(f"focus {float(focus):.3f} |")
+    if blur is not None:
+        parts.append(f"blur {float(blur):g} px | full render")
+    page.wait_for_function(
+        f"(parts) => {{ const s = {STATUS}; return s.includes('full render') "
+        "&& parts.every(p => s.includes(p)); }",
+        arg=parts,
+        timeout=FULL_RENDER_WAIT_MS,
+    )
+    return page.locator("#info textarea").input_value()
+
+
+def saved_name(page) -> str:
+    """Click Download once it is enabled; the name of the file the browser saves."""
+    button = page.locator("button#download, #download button").first
+    page.wait_for_function(
+        "() => { const b = document.querySelector('button#download, #download button');"
+        " return b && !b.disabled; }",
+        timeout=FULL_RENDER_WAIT_MS,
+    )
+    with page.expect_download(timeout=TIMEOUT_MS) as info:
+        button.click()
+    return info.value.suggested_filename
+
+
+def test_every_input_ends_in_the_full_render(
+    app_server, chromium_launch_options, two_plane_scene, tmp_path
+):
+    from playwright.sync_api import sync_playwright
+
+    server = app_server()
+    errors: list[str] = []
+    with sync_playwright() as p:
+        browser = p.chromium.launch(**chromium_launch_options)
+        try:
+            page = browser.new_page(viewport={"width": 1400, "height": 900}, accept_downloads=True)
+            page.on("pageerror", lambda e: errors.append(str(e)))
+            page.set_default_timeout(TIMEOUT_MS)
+            page.goto(server.url)
+            page.wait_for_selector("#focus input[type=range]")
+            page.set_input_files("#input input[type=file]", str(two_plane_scene.photo))
+            page.wait_for_function(f"() => {STATUS}.includes('full render')")
+
+            # 1. a value typed into the blur slider's number box, then Enter
+            box = page.locator("#blur input[data-testid=number-input]")
+            box.click()
+            box.fill("100")
+            box.press("Enter")
+            wait_full_render(page, blur="100")
+            assert box.evaluate("el => el === document.activeElement")  # focus stays
+            assert saved_name(page).endswith("_K100.jpg")
+
+            # 2. arrow keys on the focused focal-plane slider (key-up ends the change)
+            track = page.locator("#focus input[type=range]")
+            track.focus()
+            for _ in range(3):
+                track.press("ArrowRight")
+            focus = number_value(page, "focus")
+            wait_full_render(page, focus=focus, blur="100")
+            assert f"_f{float(focus):.3f}_K100.jpg" in saved_name(page)
+
+            # 3. End on the focused blur slider
+            blur_track = page.locator("#blur input[type=range]")
+            blur_track.focus()
+            blur_track.press("End")
+            wait_full_render(page, blur="300")
+            assert saved_name(page).endswith("_K300.jpg")
+
+            # 4. a click on the blur track (pointer-up: Gradio's own release)
+            bb = blur_track.bounding_box()
+            page.mouse.click(bb["x"] + bb["width"] * 0.25, bb["y"] + bb["height"] / 2)
+            page.wait_for_function(
+                "() => parseFloat(document.querySelector("
+                "'#blur input[data-testid=number-input]').value) < 150"
+            )
+            blur = number_value(page, "blur")
+            wait_full_render(page, blur=blur)
+            assert saved_name(page).endswith(f"_K{float(blur):g}.jpg")
+
+            # 5. a drag released at a value: the full render follows, Download saves it
+            start = bb["x"] + bb["width"] * float(blur) / 300.0
+            y = bb["y"] + bb["height"] / 2
+            page.mouse.move(start, y)
+            page.mouse.down()
+            for k in range(1, 6):
+                page.mouse.move(start + bb["width"] * 0.08 * k, y)
+                page.wait_for_timeout(30)
+            page.mouse.up()
+            blur = number_value(page, "blur")
+            wait_full_render(page, blur=blur)
+            assert saved_name(page).endswith(f"_K{float(blur):g}.jpg")
+
+            # 6. a value typed, then Download clicked at once (the box loses focus): the
+            # button waits for the full render of the value on screen, never the old file
+            box.click()
+            box.fill("60")
+            page.wait_for_function(f"() => {STATUS}.includes('blur 60 px | preview')")
+            button = page.locator("button#download, #download button").first
+            assert button.is_disabled()
+            # a real click on the disabled button: the box loses focus (release), no file
+            bb = button.bounding_box()
+            page.mouse.click(bb["x"] + bb["width"] / 2, bb["y"] + bb["height"] / 2)
+            wait_full_render(page, blur="60")
+            assert saved_name(page).endswith("_K60.jpg")
+        finally:
+            browser.close()
+    assert not errors, errors
+    log = server.log.read_text()
+    assert "Traceback" not in log, log[-3000:]
