@@ -10,8 +10,11 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import statistics
+import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import Callable
 
@@ -19,6 +22,7 @@ import numpy as np
 import torch
 
 from . import rendering
+from ._bench_baseline import rendering as baseline
 from .metrics import psnr
 from .rendering import render
 
@@ -27,6 +31,11 @@ __all__ = ["bench_scene", "machine_speed", "main", "plot_render", "time_call"]
 log = logging.getLogger(__name__)
 
 RENDER_SIZES = ((384, 576), (512, 768), (1024, 1536))
+#: Sections of ``d2f-bench render``: presets by size, a K sweep at 1024x1536, 12 MP with
+#: peak memory, and 2 against 1 thread beside a busy process.
+RENDER_SECTIONS = ("sizes", "ksweep", "12mp", "contention")
+K_SWEEP_PX = (10, 30, 100, 200, 300)
+BASELINE_COMMIT = "00e22a4"
 #: Slider re-render targets (ms) of the default preset, by frame size.
 RENDER_TARGETS_MS = {"384x576": 40.0, "512x768": 120.0}
 #: The least PSNR (dB) against the exact reference a reduced-resolution preset may reach.
@@ -121,10 +130,12 @@ def _bench_render(args: argparse.Namespace) -> int:
     )
     header = (
         f"{'size':>10} {'blur':>5} {'quality':>9} {'ms':>8} {'best ms':>8} {'x authors':>9} "
-        f"{'PSNR vs exact':>13} {'faults':>8}"
+        f"{'PSNR vs exact':>13} {'faults':>8} {'x today':>8}"
     )
-    print(header)
-    for height, width in sizes:
+    print(f"# x today: time over that of the renderer at commit {BASELINE_COMMIT}, per round")
+    if "sizes" in args.sections:
+        print(header)
+    for height, width in sizes if "sizes" in args.sections else ():
         image, disp = bench_scene(height, width)
         blur = args.blur_frac * width
         with torch.no_grad():
@@ -150,11 +161,20 @@ def _bench_render(args: argparse.Namespace) -> int:
             # presets take turns, round by round, so a slow minute of the shared machine
             # falls on all of them alike
             times: dict[str, list[float]] = {q: [] for q in args.quality}
+            today: dict[str, list[float]] = {q: [] for q in args.quality}
             faults = dict.fromkeys(args.quality, 0)
             for quality in args.quality:  # warm-up
                 render(image, disp, args.focus, blur, quality=quality)
+                baseline.render(image, disp, args.focus, blur, quality=quality)
             for _ in range(args.repeat):
                 for quality in args.quality:
+                    today[quality] += time_call(
+                        lambda im=image, d=disp, b=blur, q=quality: baseline.render(
+                            im, d, args.focus, b, quality=q
+                        ),
+                        repeat=1,
+                        warmup=0,
+                    )
                     before = _minor_faults()
                     times[quality] += time_call(
                         lambda im=image, d=disp, b=blur, q=quality: render(
@@ -174,6 +194,10 @@ def _bench_render(args: argparse.Namespace) -> int:
                     "ms": ms,
                     "best_ms": 1000 * min(times[quality]),
                     "authors_ms": base_ms,
+                    "baseline_ms": 1000 * statistics.median(today[quality]),
+                    "x_baseline": statistics.median(
+                        [a / b for a, b in zip(times[quality], today[quality], strict=True)]
+                    ),
                     "speedup": base_ms / ms,
                     "psnr_vs_exact": psnr(out.double(), reference),
                     "page_faults_per_render": faults[quality] / args.repeat,
@@ -183,12 +207,18 @@ def _bench_render(args: argparse.Namespace) -> int:
                 print(
                     f"{row['size']:>10} {blur:5.0f} {quality:>9} {ms:8.1f} {row['best_ms']:8.1f} "
                     f"{row['speedup']:8.1f}x {row['psnr_vs_exact']:10.1f} dB "
-                    f"{row['page_faults_per_render']:8.0f}"
+                    f"{row['page_faults_per_render']:8.0f} {row['x_baseline']:8.2f}"
                 )
             print(
                 f"{'':>10} {'':>5} {'authors':>9} {base_ms:8.1f} {'':>8} {1.0:8.1f}x   "
                 f"(reference: {row['reference']})"
             )
+    if "ksweep" in args.sections:
+        rows += _bench_k_sweep(args)
+    if "12mp" in args.sections:
+        rows += _bench_large(args)
+    if "contention" in args.sections:
+        rows += _bench_contention(args)
     speed_end = machine_speed()
     print(f"# machine at the end: {speed_end[0]:.0f} GFLOP/s, {speed_end[1]:.0f} GB/s")
     for row in rows:
@@ -198,9 +228,239 @@ def _bench_render(args: argparse.Namespace) -> int:
         with open(args.json, "w", encoding="utf-8") as fh:
             json.dump(rows, fh, indent=2)
     if args.chart:
-        plot_render(rows, args.chart)
+        plot_render([r for r in rows if "section" not in r], args.chart)
         print(f"# chart: {args.chart}")
     return 0
+
+
+def _interleaved(calls: dict[str, Callable[[], object]], repeat: int) -> dict[str, list[float]]:
+    """Seconds per call of each entry, one call of each per round (after one warm-up each),
+    so that a slow minute of a shared machine falls on all of them alike."""
+    for fn in calls.values():
+        fn()
+    times: dict[str, list[float]] = {name: [] for name in calls}
+    for _ in range(repeat):
+        for name, fn in calls.items():
+            times[name] += time_call(fn, repeat=1, warmup=0)
+    return times
+
+
+def _ratio(times: dict[str, list[float]], a: str, b: str) -> float:
+    """Median over rounds of the time of ``a`` over that of ``b`` in the same round."""
+    return statistics.median(x / y for x, y in zip(times[a], times[b], strict=True))
+
+
+def _bench_k_sweep(args: argparse.Namespace) -> list[dict]:
+    """The default preset at 1024x1536 for K from 10 to 300 px, against today's renderer
+    and the exact (float32) reference."""
+    height, width = 1024, 1536
+    image, disp = bench_scene(height, width)
+    print(f"\n# K sweep at {height}x{width}, {args.sweep_quality} preset, focus {args.focus}")
+    print(f"{'K px':>6} {'ms':>8} {'today ms':>9} {'x today':>8} {'PSNR vs exact':>13}")
+    rows = []
+    with torch.no_grad():
+        for blur in args.k_sweep:
+            reference = render(image, disp, args.focus, blur, quality="exact")
+            times = _interleaved(
+                {
+                    "new": lambda b=blur: render(
+                        image, disp, args.focus, b, quality=args.sweep_quality
+                    ),
+                    "today": lambda b=blur: baseline.render(
+                        image, disp, args.focus, b, quality=args.sweep_quality
+                    ),
+                },
+                args.sweep_repeat,
+            )
+            out = render(image, disp, args.focus, blur, quality=args.sweep_quality)
+            row = {
+                "section": "ksweep",
+                "size": f"{height}x{width}",
+                "blur": float(blur),
+                "quality": args.sweep_quality,
+                "ms": 1000 * statistics.median(times["new"]),
+                "baseline_ms": 1000 * statistics.median(times["today"]),
+                "x_baseline": _ratio(times, "new", "today"),
+                "psnr_vs_exact": psnr(out, reference),
+            }
+            rows.append(row)
+            print(
+                f"{blur:6.0f} {row['ms']:8.1f} {row['baseline_ms']:9.1f} "
+                f"{row['x_baseline']:8.2f} {row['psnr_vs_exact']:10.1f} dB"
+            )
+    return rows
+
+
+# Run in a child process by _bench_large: one render of a saved scene, its time and the
+# process's peak RSS.
+_CHILD = """
+import json, resource, sys, time
+import numpy as np, torch
+torch.set_num_threads(int(sys.argv[5]))
+if sys.argv[1] == "today":
+    from d2f_core._bench_baseline.rendering import render
+else:
+    from d2f_core.rendering import render
+scene = np.load(sys.argv[2])
+image, disp = torch.from_numpy(scene["image"]), torch.from_numpy(scene["disp"])
+def peak_mb():
+    # VmHWM starts afresh at exec; ru_maxrss keeps the parent's peak from before it
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+before = peak_mb()
+with torch.no_grad():
+    start = time.perf_counter()
+    out = render(image, disp, float(sys.argv[3]), float(sys.argv[4]), quality=sys.argv[6])
+    seconds = time.perf_counter() - start
+if len(sys.argv) > 7:
+    np.save(sys.argv[7], out.numpy())
+print(json.dumps({"s": seconds, "peak_mb": peak_mb(), "before_mb": before}))
+"""
+
+
+def _child_render(
+    which: str, scene: str, focus: float, blur: float, threads: int, quality: str, save=None
+) -> dict:
+    command = [sys.executable, "-c", _CHILD, which, scene, str(focus), str(blur), str(threads)]
+    command += [quality] + ([save] if save else [])
+    done = subprocess.run(command, capture_output=True, text=True, check=False)
+    if done.returncode:
+        raise RuntimeError(f"render child failed: {done.stderr.strip().splitlines()[-1:]}")
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def _bench_large(args: argparse.Namespace) -> list[dict]:
+    """12 MP (3000x4000) at K = blur_frac x width: today's renderer and this one, each
+    render in a fresh process (its peak RSS is the render's), taking turns."""
+    height, width = args.large
+    blur = args.blur_frac * width
+    print(
+        f"\n# {height}x{width} at K = {blur:.0f} px, {args.quality[0]} preset, one render per "
+        "fresh process (peak RSS includes Python, torch and the inputs), taking turns"
+    )
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        image, disp = bench_scene(height, width)
+        scene = os.path.join(tmp, "scene.npz")
+        np.savez(scene, image=image.numpy(), disp=disp.numpy())
+        del image, disp
+        quality = args.quality[0]
+        runs: dict[str, list[dict]] = {"new": [], "today": []}
+        outs = {name: os.path.join(tmp, f"{name}.npy") for name in runs}
+        exact = os.path.join(tmp, "exact.npy")
+        _child_render("today", scene, args.focus, blur, args.threads, "exact", exact)
+        for i in range(args.large_repeat):
+            for name in runs:
+                save = outs[name] if i == 0 else None
+                runs[name].append(
+                    _child_render(name, scene, args.focus, blur, args.threads, quality, save)
+                )
+        reference = torch.from_numpy(np.load(exact))
+        print(
+            f"{'renderer':>9} {'s':>7} {'peak RSS MB':>12} {'inputs MB':>10} {'PSNR vs exact':>13}"
+        )
+        for name, got in runs.items():
+            row = {
+                "section": "12mp",
+                "size": f"{height}x{width}",
+                "blur": blur,
+                "quality": quality,
+                "renderer": name,
+                "s": statistics.median(r["s"] for r in got),
+                "ms_per_mp": 1000 * statistics.median(r["s"] for r in got) / (height * width / 1e6),
+                "peak_rss_mb": max(r["peak_mb"] for r in got),
+                "rss_before_render_mb": max(r["before_mb"] for r in got),
+                "psnr_vs_exact": psnr(torch.from_numpy(np.load(outs[name])), reference),
+            }
+            rows.append(row)
+        times = {name: [r["s"] for r in got] for name, got in runs.items()}
+        ratio = _ratio(times, "new", "today")
+        for row in rows:
+            row["x_baseline"] = ratio if row["renderer"] == "new" else 1.0
+            print(
+                f"{row['renderer']:>9} {row['s']:7.2f} {row['peak_rss_mb']:12.0f} "
+                f"{row['rss_before_render_mb']:10.0f} {row['psnr_vs_exact']:10.1f} dB"
+            )
+        print(f"# new / today: {ratio:.2f} (median of per-round ratios)")
+    return rows
+
+
+_BUSY = "import time\nend = time.monotonic() + {seconds}\nwhile time.monotonic() < end:\n    pass\n"
+
+
+def _bench_contention(args: argparse.Namespace) -> list[dict]:
+    """1 against 2 threads with one busy loop beside the render (a child process on one
+    core, which stops by itself after ``--busy-seconds``), this renderer and today's."""
+    height, width = (int(v) for v in args.contention_size.lower().split("x"))
+    image, disp = bench_scene(height, width)
+    blur = args.blur_frac * width
+    quality = args.quality[0]
+    print(
+        f"\n# contention: {height}x{width}, {quality} preset, one busy loop beside the render "
+        f"(stops by itself after {args.busy_seconds:g} s)"
+    )
+    threads = torch.get_num_threads()
+    busy = subprocess.Popen(
+        [sys.executable, "-c", _BUSY.format(seconds=float(args.busy_seconds))],
+        stdout=subprocess.DEVNULL,
+    )
+    try:
+        if hasattr(os, "sched_setaffinity"):
+            try:
+                os.sched_setaffinity(busy.pid, {min(os.sched_getaffinity(0))})
+            except OSError:
+                pass
+
+        def timed(module, n):
+            def call():
+                torch.set_num_threads(n)
+                module.render(image, disp, args.focus, blur, quality=quality)
+
+            return call
+
+        with torch.no_grad():
+            times = _interleaved(
+                {
+                    "new 1": timed(rendering, 1),
+                    "new 2": timed(rendering, 2),
+                    "today 1": timed(baseline, 1),
+                    "today 2": timed(baseline, 2),
+                },
+                args.contention_repeat,
+            )
+        still_busy = busy.poll() is None
+    finally:
+        busy.kill()
+        busy.wait()
+        torch.set_num_threads(threads)
+    print(f"{'renderer':>9} {'1 thr ms':>9} {'2 thr ms':>9} {'2 / 1':>6}")
+    rows = []
+    for name in ("new", "today"):
+        row = {
+            "section": "contention",
+            "size": f"{height}x{width}",
+            "blur": blur,
+            "quality": quality,
+            "renderer": name,
+            "ms_1_thread": 1000 * statistics.median(times[f"{name} 1"]),
+            "ms_2_threads": 1000 * statistics.median(times[f"{name} 2"]),
+            "two_over_one": _ratio(times, f"{name} 2", f"{name} 1"),
+            "busy_loop_ran_throughout": still_busy,
+        }
+        rows.append(row)
+        print(
+            f"{name:>9} {row['ms_1_thread']:9.1f} {row['ms_2_threads']:9.1f} "
+            f"{row['two_over_one']:6.2f}"
+        )
+    if not still_busy:
+        print("# the busy loop ended before the last round: raise --busy-seconds")
+    return rows
 
 
 def plot_render(rows: list[dict], path: str) -> None:
@@ -298,6 +558,15 @@ def main(argv: list[str] | None = None) -> int:
         default=512 * 768,
         help="larger frames use a float64 FFT reference (direct float64 takes many minutes)",
     )
+    p.add_argument("--sections", nargs="+", choices=RENDER_SECTIONS, default=list(RENDER_SECTIONS))
+    p.add_argument("--k-sweep", type=float, nargs="+", default=list(K_SWEEP_PX))
+    p.add_argument("--sweep-quality", default="balanced")
+    p.add_argument("--sweep-repeat", type=int, default=3)
+    p.add_argument("--large", type=int, nargs=2, default=[3000, 4000], metavar=("H", "W"))
+    p.add_argument("--large-repeat", type=int, default=2)
+    p.add_argument("--contention-size", default="512x768")
+    p.add_argument("--contention-repeat", type=int, default=5)
+    p.add_argument("--busy-seconds", type=float, default=120.0)
     p.add_argument("--json", help="also write the rows to this JSON file")
     p.add_argument("--chart", help="also draw ms against PSNR to this PNG (needs matplotlib)")
     p.set_defaults(func=_bench_render)

@@ -84,7 +84,9 @@ PLACEMENTS = ("nearest", "paper")
 @dataclass(frozen=True)
 class QualityPreset:
     """Reduced-resolution thresholds: kernels of at least ``half`` px (``quarter`` px) are
-    applied at 1/2 (1/4) resolution. ``None`` disables the reduction."""
+    applied at 1/2 (1/4) resolution, and kernels of at least 2 (4) times ``quarter`` px at
+    1/8 (1/16): on every grid the kernel spans at least ``quarter / 4`` cells, the same
+    error budget. ``None`` disables the reduction."""
 
     half: int | None
     quarter: int | None
@@ -96,6 +98,8 @@ QUALITY_PRESETS: dict[str, QualityPreset] = {
     "balanced": QualityPreset(15, 39),
     "fast": QualityPreset(11, 23),
 }
+#: The coarsest grid a layer is blurred on (px of the frame per cell).
+MAX_FACTOR = 16
 
 
 # --------------------------------------------------------------------------------------
@@ -889,9 +893,13 @@ def _support_boxes(
 
 
 def _factor_for(size: int, quality: str) -> int:
+    """Grid (px per cell) a kernel of ``size`` px is applied on with ``quality``."""
     preset = QUALITY_PRESETS[quality]
     if preset.quarter is not None and size >= preset.quarter:
-        return 4
+        factor = 4
+        while factor < MAX_FACTOR and size >= preset.quarter * factor // 2:
+            factor *= 2
+        return factor
     if preset.half is not None and size >= preset.half:
         return 2
     return 1
@@ -1135,6 +1143,275 @@ def _blend_transmit(
     return transmit
 
 
+# --------------------------------------------------------------------------------------
+# large frames: tiles and bands
+# --------------------------------------------------------------------------------------
+
+# Frames of at least this many pixels render by tiles and bands (_render_tiled) when no
+# gradient is needed.
+_TILED_MIN_PIXELS = 3_000_000
+# Tile side (px) of the tiled path: a multiple of MAX_FACTOR.
+_TT = 32
+# Most pixels one masking step of the tiled path works on (bounds its buffers).
+_CHUNK_PIXELS = 1 << 20
+# Pixels per band of the full-resolution passes.
+_BAND_PIXELS = 1_000_000
+
+
+def _tiles(t: torch.Tensor, tile: int) -> torch.Tensor:
+    """``(C, H, W) -> (H / tile, W / tile, C, tile, tile)``, a view."""
+    c, h, w = t.shape
+    return t.view(c, h // tile, tile, w // tile, tile).permute(1, 3, 0, 2, 4)
+
+
+def _tile_mask(ct: torch.Tensor, centre: int, gamma: float, gate: int) -> torch.Tensor:
+    """Soft mask of layer ``centre`` for coordinates ``ct`` (in place on a copy), zero on
+    the other side of focus when ``gate`` (+1 or -1) is set."""
+    m = _layer_mask(ct, centre, gamma, False)
+    if gate > 0:
+        m.masked_fill_(ct <= 0, 0.0)
+    elif gate < 0:
+        m.masked_fill_(ct >= 0, 0.0)
+    return m
+
+
+def _upsample_rows(grid: torch.Tensor, factor: int, y0: int, y1: int, width: int):
+    """Rows ``y0:y1`` (frame px) of the bilinear upsampling of the coarse ``grid``
+    ``(C, gh, gw)`` by ``factor``, columns ``:width``: only the cells those rows read."""
+    if factor == 1:
+        return grid[:, y0:y1, :width]
+    gh = grid.shape[1]
+    a = max(0, y0 // factor - 1)
+    b = min(gh, -(-y1 // factor) + 1)
+    up = _upsample(grid[None, :, a:b], factor, (b - a) * factor, width)[0]
+    return up[:, y0 - a * factor : y1 - a * factor]
+
+
+def _spans(columns: list[int], gap: int = 2) -> list[tuple[int, int]]:
+    """Sorted tile columns as inclusive spans, merged across gaps under ``gap`` tiles:
+    [1, 2, 5, 9] -> [(1, 5), (9, 9)] with ``gap=3``."""
+    spans: list[list[int]] = []
+    for c in columns:
+        if spans and c - spans[-1][1] <= gap:
+            spans[-1][1] = c
+        else:
+            spans.append([c, c])
+    return [(a, b) for a, b in spans]
+
+
+def _render_tiled(
+    image: torch.Tensor,
+    weights: torch.Tensor | None,
+    plan: LayerPlan,
+    spec: KernelSpec,
+    quality: str,
+    threads: _ThreadChoice | None,
+) -> torch.Tensor:
+    """:func:`render` of one large frame without gradients, in bounded memory.
+
+    Where each layer is masked is found per 32-px tile (from the range of the layer
+    coordinate in the tile), so a pixel is masked for the few layers it can reach, not for
+    every layer whose bounding box holds it. Coarse layers (1/2 to 1/16 grids) are masked,
+    summed into their grid and blurred there; the layers behind the focal plane are
+    composited into one accumulator that moves to the next finer grid as their kernels
+    shrink (upsampled once per grid), the layers in front into (colour, transmittance) per
+    grid, folded into one at the end. The full-resolution layers, the merge of both and
+    the normalisation run band by band, so no full-resolution accumulator is built.
+
+    Shape: ``image (1, 3, H, W)``, ``weights (1, Cw, H, W)`` or ``None`` ->
+    ``(1, 3, H, W)``.
+    """
+    _, _, height, width = image.shape
+    t = _TT
+    nty, ntx = -(-height // t), -(-width // t)
+    hp, wp = nty * t, ntx * t
+    dev, dtype = str(image.device), image.dtype
+    # [w I, w] (or I), zero past the frame; the layer is [mask, mask * x]
+    cx = 3 if weights is None else 3 + weights.shape[1]
+    xw = image.new_empty(cx, hp, wp)
+    xw[:, height:].zero_()
+    xw[:, :height, width:].zero_()
+    if weights is None:
+        xw[:, :height, :width] = image[0]
+    else:
+        torch.add(weights[0], 1e-4, out=xw[3:, :height, :width])
+        torch.mul(image[0], xw[3:, :height, :width], out=xw[:3, :height, :width])
+    chans = cx + 1
+    # the layer coordinate, past the frame so far that no mask reaches it; per tile its
+    # range over the frame's pixels
+    cp = F.pad(plan.coord[0], (0, wp - width, 0, hp - height), value=_FAR)
+    ctiles = cp.view(nty, t, ntx, t).permute(0, 2, 1, 3)
+    lo = ctiles.amin(dim=(2, 3))
+    cp[:, height:].fill_(-_FAR)
+    cp[:, :height, width:].fill_(-_FAR)
+    hi = ctiles.amax(dim=(2, 3))
+    xtiles = _tiles(xw, t)
+    reach = 1.0 + _mask_reach(plan.gamma)
+
+    def hits(centre: int) -> torch.Tensor:
+        """Tiles where layer ``centre`` has a mask above _MASK_EPS, ``(nty, ntx)``."""
+        a, b = lo, hi
+        if plan.signed and centre > 0:
+            a = lo.clamp(min=0.0)
+            return (hi > 0) & (b > centre - reach) & (a < centre + reach)
+        if plan.signed and centre < 0:
+            b = hi.clamp(max=0.0)
+            return (lo < 0) & (b > centre - reach) & (a < centre + reach)
+        return (b > centre - reach) & (a < centre + reach)
+
+    def gate(centre: int) -> int:
+        # beyond one reach from 0 the other side's mask is already 0 in float32
+        if not plan.signed or centre == 0 or abs(centre) > reach + 1:
+            return 0
+        return 1 if centre > 0 else -1
+
+    chunk = max(1, _CHUNK_PIXELS // (t * t))
+    back: tuple[int, torch.Tensor] | None = None  # (factor, colour) behind the focus
+    front: list[list] = []  # [factor, colour, transmit] per grid, back to front
+    sharp: list[tuple[int, int, torch.Tensor]] = []  # full-resolution layers
+    phase = 0  # 0: behind the sharp layers, 1: sharp layers, 2: in front of them
+    previous = MAX_FACTOR * 2
+    grid = gtiles = z = pooled = blurred = None
+    for centre, size in plan.order:
+        hit = hits(centre)
+        index = torch.nonzero(hit.flatten()).flatten()
+        if not index.numel():
+            continue
+        if threads is not None:
+            threads.check()
+        factor = 1 if size <= 1 else _factor_for(size, quality)
+        if spec.blades and factor > 2:
+            factor = 2
+        if phase == 0 and (factor == 1 or factor > previous):
+            phase = 1 if factor == 1 else 2
+        elif phase == 1 and factor > 1:
+            phase = 2
+        previous = factor
+        if factor == 1:
+            sharp.append((centre, size, hit))
+            continue
+        # the layer, masked tile by tile and summed into its grid over its tiles' box
+        ty, tx = index // ntx, index % ntx
+        ty0, ty1 = int(ty.min()), int(ty.max()) + 1
+        tx0, tx1 = int(tx.min()), int(tx.max()) + 1
+        cell = t // factor
+        grid = image.new_zeros(chans, (ty1 - ty0) * cell, (tx1 - tx0) * cell)
+        gtiles = _tiles(grid, cell)
+        g = gate(centre)
+        for i in range(0, index.numel(), chunk):
+            a, b = ty[i : i + chunk], tx[i : i + chunk]
+            n = a.numel()
+            m = _tile_mask(ctiles[a, b], centre, plan.gamma, g)  # (n, t, t)
+            z = image.new_empty(n, chans, t, t)
+            z[:, 0] = m
+            torch.mul(xtiles[a, b], m[:, None], out=z[:, 1:])
+            pooled = z.view(n, chans, cell, factor, t).sum(3)
+            pooled = pooled.view(n, chans, cell, cell, factor).sum(4)
+            gtiles[a - ty0, b - tx0] = pooled
+        # cells are summed: the kernel carries the 1 / factor**2 of the mean
+        gh, gw = hp // factor, wp // factor
+        k = _kernel(spec, size, factor, dev, dtype, 1.0 / factor**2)
+        if k.shape[-1] <= _DIRECT_MAX_SIZE:
+            cbox = (ty0 * cell, ty1 * cell, tx0 * cell, tx1 * cell)
+
+            def rows_of(r0, r1, out=None, grid=grid):
+                return grid[None, :, r0:r1] if out is None else out.copy_(grid[None, :, r0:r1])
+
+            blurred, oy, ox = _direct_stacked(rows_of, image, chans, cbox, k, (gh, gw))
+            stacked = True
+        else:
+            blurred = _fft(grid[None], spec, size, factor, 1.0 / factor**2)
+            r = (blurred.shape[-1] - grid.shape[-1]) // 2
+            oy, ox = ty0 * cell - r, tx0 * cell - r
+            stacked = False
+        if phase == 0:
+            if back is None:
+                back = (factor, image.new_zeros(1, chans, gh, gw))
+            elif back[0] != factor:
+                up = _upsample(back[1], back[0] // factor, gh, gw)
+                back = (factor, up.contiguous())
+            if stacked:
+                _blend_stacked(back[1], blurred, oy, ox)
+            else:
+                _blend(back[1], blurred, oy, ox, False)
+            continue
+        if not front or front[-1][0] != factor:
+            front.append([factor, image.new_zeros(1, chans, gh, gw), image.new_ones(1, 1, gh, gw)])
+        if stacked:
+            _blend_stacked(front[-1][1], blurred, oy, ox, transmit=front[-1][2])
+        else:
+            _blend(front[-1][1], blurred, oy, ox, False)
+            _blend_transmit(front[-1][2], blurred[:, :1], oy, ox, False)
+    del grid, gtiles, z, pooled, blurred  # the last coarse layer's buffers
+    # fold the front grids into one: the coarsest is on top
+    fold = None
+    for factor, colour, transmit in reversed(front):
+        if fold is None:
+            fold = (factor, colour, transmit)
+            continue
+        f0, c0, t0 = fold
+        up = _upsample(torch.cat([c0, t0], dim=1), f0 // factor, *colour.shape[-2:])
+        colour = colour.mul_(up[:, -1:]).add_(up[:, :-1])
+        fold = (factor, colour, transmit.mul_(up[:, -1:]))
+    if fold is not None:
+        fold = (fold[0], torch.cat([fold[1], fold[2]], dim=1)[0])
+    front = []
+
+    # full-resolution passes, band by band; the result is an ordinary tensor
+    with torch.inference_mode(False):
+        out = torch.empty_like(image)
+    rows = max(MAX_FACTOR, _BAND_PIXELS // max(width, 1) // MAX_FACTOR * MAX_FACTOR)
+    floor = 1e-6 if weights is None else 1e-8
+    for y0 in range(0, height, rows):
+        y1 = min(height, y0 + rows)
+        if threads is not None:
+            threads.check()
+        if back is None:
+            acc = image.new_zeros(chans, y1 - y0, width)
+        else:
+            acc = _upsample_rows(back[1][0], back[0], y0, y1, width).contiguous()
+        for centre, size, hit in sharp:
+            k = _kernel(spec, size, 1, dev, dtype)
+            r = k.shape[-1] // 2
+            # the layer's tiles whose blur reaches the band, as boxes of nearby columns
+            first = max(0, (y0 - r) // t)
+            band = hit[first : (y1 + r - 1) // t + 1]
+            g = gate(centre)
+            for c0, c1 in _spans(torch.nonzero(band.any(dim=0)).flatten().tolist()):
+                rows_hit = torch.nonzero(band[:, c0 : c1 + 1].any(dim=1)).flatten()
+                ya = max(0, y0 - r, (first + int(rows_hit[0])) * t)
+                yb = min(height, y1 + r, (first + int(rows_hit[-1]) + 1) * t)
+                xa, xb = c0 * t, min(width, (c1 + 1) * t)
+                if yb <= ya:
+                    continue
+
+                def rows_of(r0, r1, out=None, ya=ya, xa=xa, xb=xb, centre=centre, g=g):
+                    if out is None:
+                        out = image.new_empty(1, chans, r1 - r0, xb - xa)
+                    m = _tile_mask(cp[0, ya + r0 : ya + r1, xa:xb], centre, plan.gamma, g)
+                    out[0, 0] = m
+                    torch.mul(xw[:, ya + r0 : ya + r1, xa:xb], m, out=out[0, 1:])
+                    return out
+
+                if size <= 1:
+                    _blend(acc[None], rows_of(0, yb - ya), ya - y0, xa, False)
+                    continue
+                box = (ya - y0, yb - y0, xa, xb)
+                out_s, oy0, ox0 = _direct_stacked(rows_of, image, chans, box, k, (y1 - y0, width))
+                _blend_stacked(acc[None], out_s, oy0, ox0)
+        if fold is not None:
+            up = _upsample_rows(fold[1], fold[0], y0, y1, width)
+            acc.mul_(up[-1:]).add_(up[:-1])
+        norm = acc[:1] if weights is None else acc[4:]
+        covered = norm > 1e-6
+        band_out = out[0, :, y0:y1]
+        torch.div(acc[1:4], norm.clamp_(min=floor), out=band_out)
+        if not bool(covered.all()):
+            band_out.copy_(torch.where(covered, band_out, image[0, :, y0:y1]))
+        band_out.clamp_(0, 1)
+    return out
+
+
 @functools.cache
 def _keep_freed_heap() -> bool:
     """Let glibc keep freed frame-sized blocks for the next render (once per process).
@@ -1285,6 +1562,15 @@ def render(
     # Without gradients, fewer threads while other processes keep the cores busy (see
     # _ThreadChoice); a training step keeps its own.
     threads = None if grad else _ThreadChoice()
+    # a large frame without gradients renders by tiles and bands, in bounded memory
+    tiled = (
+        not grad
+        and not full_frame
+        and not behind
+        and method == "fft"
+        and quality != "exact"
+        and image.shape[-2] * image.shape[-1] >= _TILED_MIN_PIXELS
+    )
     with threads or contextlib.nullcontext():
         # Without gradients the layers run in inference mode: no autograd bookkeeping in a few
         # hundred small tensor operations (about 1 ms per render). The result is divided out of
@@ -1297,7 +1583,9 @@ def render(
             elif radiance is not None:
                 weights = radiance
             # a floor keeps the normalisation defined where every weight is 0 (e.g. pure red)
-            if weights is None:
+            if tiled:
+                x = None  # built band by band by _render_tiled
+            elif weights is None:
                 x = image if grad else _with_ones(image)
             elif grad:
                 weights = weights + 1e-4
@@ -1320,6 +1608,9 @@ def render(
                 gamma=gamma,
                 placement=placement,
             )
+            if tiled and any(size > 1 for _, size in plan.order):
+                spec = KernelSpec(kernel, int(blades), float(rotation))
+                return _render_tiled(image, weights, plan, spec, quality, threads)
             # when nothing is blurred every layer is the identity, so is the composite
             blurred = any(size > 1 for _, size in plan.order)
             if blurred:

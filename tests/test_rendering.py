@@ -780,3 +780,118 @@ class TestBehindFocus:
             (2, 1, 96, 128),
             (2, 3, 96, 128),
         ]
+
+
+class TestLargeFrames:
+    """The tiled, banded path large frames take (forced here on small ones)."""
+
+    @staticmethod
+    def _scene(h=150, w=218, seed=3):
+        # sides that are not multiples of the 32-px tile; a far wall, a slanted floor, a near
+        # box and a few highlights
+        g = torch.Generator().manual_seed(seed)
+        image = torch.rand(1, 3, h, w, generator=g) * 0.9
+        image[..., 20:24, 30:34] = 1.0
+        yy = torch.linspace(0, 1, h).view(1, 1, h, 1).expand(1, 1, h, w)
+        disp = (0.15 + 0.7 * yy).clone()
+        disp[..., : h // 3, :] = 0.1
+        disp[..., 40:90, 120:180] = 0.95
+        return image, disp
+
+    @pytest.mark.parametrize("quality", ["balanced", "fast", "high"])
+    @pytest.mark.parametrize("order", ["depth", "paper"])
+    @pytest.mark.parametrize("boost", [True, False])
+    def test_tiled_path_matches_the_layer_by_layer_path(self, monkeypatch, quality, order, boost):
+        image, disp = self._scene()
+        options = dict(quality=quality, order=order, highlight_boost=boost)
+        plain = render(image, disp, 0.55, 260.0, **options)
+        exact = render(
+            image.double(), disp.double(), 0.55, 260.0, **(options | {"quality": "exact"})
+        )
+        monkeypatch.setattr(rendering, "_TILED_MIN_PIXELS", 0)
+        monkeypatch.setattr(rendering, "_BAND_PIXELS", 40 * 218)  # several bands
+        calls = []
+        tiled_render = rendering._render_tiled
+        monkeypatch.setattr(
+            rendering, "_render_tiled", lambda *a: calls.append(1) or tiled_render(*a)
+        )
+        tiled = render(image, disp, 0.55, 260.0, **options)
+        assert calls and tiled.shape == image.shape and not tiled.is_inference()
+        # the same layers, masks and grids: what differs is where the coarse grids end past
+        # the frame and the order the grids are merged in
+        assert psnr(tiled, plain) >= 50.0
+        assert psnr(tiled, exact) >= 40.0
+
+    def test_constant_image_stays_constant(self, monkeypatch):
+        monkeypatch.setattr(rendering, "_TILED_MIN_PIXELS", 0)
+        _, disp = self._scene()
+        image = torch.tensor([0.2, 0.5, 0.8]).view(1, 3, 1, 1).expand(1, 3, 150, 218).clone()
+        out = render(image, disp, 0.5, 200.0)
+        assert torch.allclose(out, image, atol=1e-5)
+
+    def test_gradients_and_exact_keep_the_layer_by_layer_path(self, monkeypatch):
+        monkeypatch.setattr(rendering, "_TILED_MIN_PIXELS", 0)
+        monkeypatch.setattr(rendering, "_render_tiled", None)  # would raise if called
+        image, disp = self._scene(40, 56)
+        render(image, disp, 0.5, 60.0, quality="exact")
+        render(image.requires_grad_(), disp, 0.5, 60.0)
+        render(image.detach(), disp, 0.5, 60.0, behind=True)
+
+    def test_grid_factors_follow_the_quarter_threshold(self):
+        # on every grid a kernel spans at least quarter / 4 cells
+        f = rendering._factor_for
+        assert [f(s, "balanced") for s in (13, 15, 38, 39, 77, 78, 155, 156, 900)] == [
+            1, 2, 2, 4, 4, 8, 8, 16, 16,
+        ]  # fmt: skip
+        assert f(89, "high") == 4 and f(90, "high") == 8 and f(180, "high") == 16
+        assert f(900, "exact") == 1
+
+    def test_spans(self):
+        assert rendering._spans([1, 2, 5, 9], gap=3) == [(1, 5), (9, 9)]
+        assert rendering._spans([1, 2, 5, 9], gap=1) == [(1, 2), (5, 5), (9, 9)]
+        assert rendering._spans([]) == []
+
+    def test_upsample_rows_matches_whole_upsampling(self):
+        grid = torch.rand(5, 13, 9, generator=torch.Generator().manual_seed(8))
+        whole = rendering._upsample(grid[None], 4, 52, 35)[0]
+        for y0, y1 in ((0, 16), (16, 48), (48, 52), (8, 20)):
+            part = rendering._upsample_rows(grid, 4, y0, y1, 35)
+            torch.testing.assert_close(part, whole[:, y0:y1])
+
+
+class TestThreadChoice:
+    """Fewer torch threads while other processes keep the cores busy."""
+
+    @pytest.fixture
+    def two_threads(self):
+        saved = torch.get_num_threads()
+        torch.set_num_threads(2)
+        yield
+        torch.set_num_threads(saved)
+
+    @pytest.mark.parametrize("others,cores,inside", [(0, 2, 2), (1, 2, 1), (5, 2, 1),
+                                                     (1, 8, 2), (None, 2, 2)])  # fmt: skip
+    def test_threads_inside_and_after(self, monkeypatch, two_threads, others, cores, inside):
+        monkeypatch.setattr(rendering, "_running_elsewhere", lambda: others)
+        monkeypatch.setattr(rendering, "_usable_cores", lambda: cores)
+        with rendering._ThreadChoice():
+            assert torch.get_num_threads() == inside
+        assert torch.get_num_threads() == 2
+
+    def test_render_restores_threads_and_checks_again(self, monkeypatch, two_threads):
+        busy = iter([0, 3, 3, 3] + [3] * 100)
+        seen = []
+        monkeypatch.setattr(rendering, "_running_elsewhere", lambda: next(busy))
+        monkeypatch.setattr(rendering, "_RECHECK_S", 0.0)
+        blend = rendering._blend
+        monkeypatch.setattr(
+            rendering, "_blend", lambda *a: seen.append(torch.get_num_threads()) or blend(*a)
+        )
+        image, disp = TestLargeFrames._scene(48, 64)
+        render(image, disp, 0.5, 40.0)
+        assert seen and seen[-1] == 1  # the machine became busy during the render
+        assert torch.get_num_threads() == 2
+
+    def test_running_elsewhere_reads_proc(self):
+        got = rendering._running_elsewhere()
+        assert got is None or got >= 0
