@@ -708,35 +708,40 @@ def calibrate(
 def run_e2e(
     cases: Sequence[Case],
     *,
-    variants: Sequence[str] = ("lite", "resnext50"),
+    variants: Sequence[str] = ("shipped", "resnext50"),
     scales: Sequence[float] = (0.25, 0.5, 1.0),
     repeat: int = 1,
     weights: str | Path | None = None,
 ) -> tuple[list[dict[str, Any]], dict[str, str]]:
     """Time and score ``D2F.prepare`` + ``D2F.render`` on held-out cases.
 
-    For each defocus variant and low-resolution pass scale the model is loaded from the shipped
-    weights when they exist for that variant, else randomly initialised (seeded); the
-    ``"given disparity"`` series passes the ground-truth disparity to ``prepare`` (no defocus
-    network), which isolates renderer and fusion. Returns rows and the weights used per variant.
+    ``variants`` are defocus networks; ``"shipped"`` stands for the one of ``weights`` (the
+    shipped weights by default). For each variant and low-resolution pass scale the model is
+    loaded from the weights when they hold that variant, else randomly initialised (seeded);
+    the ``"given disparity"`` series passes the ground-truth disparity to ``prepare`` (no
+    defocus network) with the first variant's radiance and fusion networks, which isolates
+    renderer and fusion. Returns rows and the weights used per variant.
     """
     from .pipeline import D2F, D2FConfig, default_weights_path
 
+    path = Path(weights) if weights else default_weights_path()
+    loaded = None
+    if path.is_file():
+        try:
+            loaded = D2F.from_checkpoint(path)
+        except (ValueError, FileNotFoundError) as exc:
+            logger.warning("weights %s not usable: %s", path, exc)
+    shipped = loaded.config.defocus if loaded is not None else "lite"
+    variants = [shipped if v == "shipped" else v for v in variants]
     sources: dict[str, str] = {}
     rows = []
     series = [(v, False) for v in variants] + [(variants[0], True)]
     with torch.no_grad():
         for variant, given in series:
             base_model = None
-            path = Path(weights) if weights else default_weights_path()
-            if path.is_file():
-                try:
-                    loaded = D2F.from_checkpoint(path)
-                    if loaded.config.defocus == variant:
-                        base_model = loaded
-                        sources[variant] = str(path)
-                except (ValueError, FileNotFoundError) as exc:
-                    logger.warning("weights %s not usable: %s", path, exc)
+            if loaded is not None and loaded.config.defocus == variant:
+                base_model = loaded
+                sources[variant] = str(path)
             if base_model is None:
                 torch.manual_seed(0)
                 base_model = D2F.from_config({"defocus": variant})
@@ -785,7 +790,8 @@ def plot_e2e(rows: Sequence[dict[str, Any]], path: Path, title: str) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(7.0, 4.6))
-    colours = {"lite": "tab:blue", "resnext50": "tab:red", "given disparity": "tab:green"}
+    colours = {"lite": "tab:blue", "lite-ctx": "tab:blue", "resnext50": "tab:red"}
+    colours["given disparity"] = "tab:green"
     for series in dict.fromkeys(r["series"] for r in rows):
         pts = []
         for scale in sorted({r["scale"] for r in rows if r["series"] == series}):
@@ -993,7 +999,7 @@ def main(argv: list[str] | None = None) -> int:
         e2e_cases = load_cases(
             [e2e["size"]], e2e["seeds"], [e2e["k_frac"]], samples=e2e["samples"], cache=cache
         )
-        variants = ("lite",) if args.quick else ("lite", "resnext50")
+        variants = ("shipped",) if args.quick else ("shipped", "resnext50")
         scales = (0.5,) if args.quick else (0.25, 0.5, 1.0)
         e2e_rows, sources = run_e2e(
             e2e_cases, variants=variants, scales=scales, weights=args.weights

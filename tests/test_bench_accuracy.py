@@ -266,3 +266,17 @@ class TestPeers:
         dot[18:22, 26:30] = 1.0
         ys, xs = np.nonzero(blender_render(dot, flat_d, 1.0, 16.0).mean(-1) > 0.005)
         assert 11 <= ys.min() <= 14 and 27 <= ys.max() <= 30  # radius 8 around rows 18-21
+
+
+def test_e2e_runs_the_weights_own_defocus_network(tmp_path, tiny_checkpoint):
+    """``"shipped"`` is the defocus network the weights hold, loaded from them; a variant
+    the weights do not hold is randomly initialised and said to be."""
+    from d2f_core.bench_accuracy import run_e2e
+
+    cases = load_cases([(40, 56)], [11], [0.12], samples=16, cache=tmp_path)
+    rows, sources = run_e2e(cases, variants=("shipped",), scales=(0.5,), weights=tiny_checkpoint)
+    assert sources == {"lite": str(tiny_checkpoint)}
+    assert {r["series"] for r in rows} == {"lite", "given disparity"}
+    assert all(np.isfinite(r["psnr"]) for r in rows)
+    _, sources = run_e2e(cases, variants=("lite-ctx",), scales=(0.5,), weights=tiny_checkpoint)
+    assert sources == {"lite-ctx": "random init"}
