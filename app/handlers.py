@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import atexit
 import functools
+import inspect
 import logging
 import os
 import shutil
@@ -23,6 +24,7 @@ import tempfile
 import threading
 import time
 import uuid
+from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -165,6 +167,8 @@ class Session:
         folder: this session's folder for display and download files (removed with it).
         icc_profile, exif: metadata of the upload, written into the download.
         owner: the Gradio session hash of the browser tab or client that loaded it.
+        upload: the session's copy of the uploaded photo (shown again after a failed upload).
+        source_path: the upload's path as Gradio gave it.
         last_used: ``time.monotonic()`` of its latest event.
         closed: True once :meth:`close` ran.
     """
@@ -184,11 +188,14 @@ class Session:
     icc_profile: bytes | None = None
     exif: bytes | None = None
     owner: str | None = None
+    upload: Path | None = None
+    source_path: str | None = None
     last_used: float = field(default_factory=time.monotonic)
     closed: bool = False
     files_written: int = 0
     on_close: Callable[[Session], None] | None = field(default=None, repr=False)
-    lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+    busy: int = 0
+    lock: threading.RLock = field(default_factory=threading.RLock, repr=False)
 
     @property
     def scene(self) -> Any:
@@ -208,14 +215,32 @@ class Session:
             return None
 
     def touch(self) -> None:
-        """Mark the session used now (idle sessions are closed)."""
-        if self.closed:
-            raise SessionClosed
-        self.last_used = time.monotonic()
-
-    def close(self) -> None:
-        """Free the pictures and delete the session's files (display, download, upload)."""
+        """Mark the session used now (idle sessions are closed); raise if it is closed."""
         with self.lock:
+            if self.closed:
+                raise SessionClosed
+            self.last_used = time.monotonic()
+
+    def hold(self) -> None:
+        """An event starts using the session: it is not idle until :meth:`let_go`."""
+        with self.lock:
+            self.busy += 1
+            self.last_used = time.monotonic()
+
+    def let_go(self) -> None:
+        with self.lock:
+            self.busy -= 1
+            self.last_used = time.monotonic()
+
+    def close(self, idle_s: float | None = None) -> bool:
+        """Free the pictures and delete the session's files (display, download, upload).
+
+        With ``idle_s``, only if no event is using it and it was unused that long. Returns
+        whether it was closed (now or before).
+        """
+        with self.lock:
+            if idle_s is not None and (self.busy or time.monotonic() - self.last_used <= idle_s):
+                return False
             self.closed = True
             self.views = {}
             self.before = np.zeros((1, 1, 3), np.uint8)
@@ -225,6 +250,29 @@ class Session:
             shutil.rmtree(folder, ignore_errors=True)
         if self.on_close is not None:
             self.on_close(self)
+        return True
+
+
+def _libc_malloc_trim() -> Callable[[], Any] | None:
+    try:
+        import ctypes
+
+        return ctypes.CDLL("libc.so.6").malloc_trim
+    except (OSError, AttributeError):  # not glibc
+        return None
+
+
+_MALLOC_TRIM = _libc_malloc_trim()
+
+
+def give_back_memory() -> None:
+    """Return the C heap's free pages to the system (glibc ``malloc_trim``).
+
+    Freed pictures and scenes go back to malloc's arenas (one per worker thread), which
+    keep the pages; after sessions close, this gives them back, so the process shrinks.
+    """
+    if _MALLOC_TRIM is not None:
+        _MALLOC_TRIM(0)
 
 
 def _no_scene() -> Any:
@@ -242,7 +290,11 @@ def _prune(folder: Path, keep: int, min_age_s: float = FILE_MIN_AGE_S) -> None:
     up) that are older than ``min_age_s``: a younger file may be an event's output that
     Gradio has not copied into its cache yet."""
     now = time.time()
-    for old in sorted(folder.iterdir())[:-keep] if keep else sorted(folder.iterdir()):
+    try:
+        names = sorted(folder.iterdir())
+    except FileNotFoundError:  # the session was closed meanwhile
+        return
+    for old in names[:-keep] if keep else names:
         try:
             if now - old.stat().st_mtime < min_age_s:
                 continue
@@ -293,6 +345,10 @@ def reported(fn: Callable) -> Callable:
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
+        # the session an event works on is not idle while the event runs
+        held = [a for a in args if isinstance(a, Session)]
+        for session in held:
+            session.hold()
         try:
             return fn(*args, **kwargs)
         except gr.Error:
@@ -312,11 +368,33 @@ def reported(fn: Callable) -> Callable:
             raise user_error(
                 f"Something went wrong ({type(err).__name__}); please retry."
             ) from None
+        finally:
+            for session in held:
+                session.let_go()
 
     return wrapper
 
 
 SKIP4 = (gr.skip(), gr.skip(), gr.skip(), gr.skip())
+
+
+def _remember_load_error(fn: Callable) -> Callable:
+    """Keep a failed upload's message for the tab (``request``) that sent it, so that the
+    chained :meth:`RefocusApp.after_failed_load` can show it in the status line."""
+    signature = inspect.signature(fn)
+
+    @functools.wraps(fn)
+    def wrapper(self, *args, **kwargs):
+        try:
+            return fn(self, *args, **kwargs)
+        except gr.Error as err:
+            request = signature.bind_partial(self, *args, **kwargs).arguments.get("request")
+            self.note_load_error(getattr(request, "session_hash", None), str(err.message))
+            raise
+
+    return wrapper
+
+
 #: The download button while a preview is shown: nothing that matches the screen to save.
 DOWNLOAD_WAIT = {"__type__": "update", "interactive": False}
 
@@ -375,6 +453,8 @@ class RefocusApp:
         self._sessions: dict[int, Session] = {}
         self._sessions_lock = threading.Lock()
         self._sweeper: threading.Thread | None = None
+        # the last failed upload's message per browser tab, for after_failed_load
+        self._load_errors: OrderedDict[str, str] = OrderedDict()
 
     # -------------------------------------------------------------- sessions
     @property
@@ -392,10 +472,14 @@ class RefocusApp:
         now = time.monotonic()
         with self._sessions_lock:
             idle = [s for s in self._sessions.values() if now - s.last_used > self.session_idle_s]
+        closed = 0
         for session in idle:
-            log.info("closing session %s: idle %.0f s", session.name, now - session.last_used)
-            session.close()
-        return len(idle)
+            if session.close(idle_s=self.session_idle_s):  # still idle: not in use since
+                log.info("closed session %s: idle over %.0f s", session.name, self.session_idle_s)
+                closed += 1
+        if closed:
+            give_back_memory()
+        return closed
 
     def end_sessions(self, owner: str | None) -> int:
         """Close every session loaded by ``owner`` (a Gradio session hash); return how many.
@@ -408,6 +492,8 @@ class RefocusApp:
             mine = [s for s in self._sessions.values() if s.owner == owner]
         for session in mine:
             session.close()
+        if mine:
+            give_back_memory()
         return len(mine)
 
     def _sweep_forever(self) -> None:
@@ -443,11 +529,14 @@ class RefocusApp:
 
     # ----------------------------------------------------------------- views
     def _session_dir(self, session: Session, name: str) -> Path:
-        if session.folder is None:
-            session.folder = self.download_root / uuid.uuid4().hex
-        folder = session.folder / name
-        folder.mkdir(parents=True, exist_ok=True)
-        return folder
+        with session.lock:  # never made again for a session being closed
+            if session.closed:
+                raise SessionClosed
+            if session.folder is None:
+                session.folder = self.download_root / uuid.uuid4().hex
+            folder = session.folder / name
+            folder.mkdir(parents=True, exist_ok=True)
+            return folder
 
     @staticmethod
     def _next_name(session: Session, suffix: str) -> str:
@@ -552,6 +641,7 @@ class RefocusApp:
         return text + (f" | {extra}" if extra else "")
 
     # ---------------------------------------------------------------- upload
+    @_remember_load_error
     @reported
     def load(
         self,
@@ -711,6 +801,7 @@ class RefocusApp:
         folder = self._session_dir(session, "upload")
         kept = folder / f"photo{Path(path).suffix.lower()}"
         shutil.copyfile(path, kept)
+        session.upload, session.source_path = kept, path
         kept_depth = None
         if depth_path is not None:
             kept_depth = folder / f"depth{Path(depth_path).suffix.lower()}"
@@ -733,6 +824,48 @@ class RefocusApp:
             return scene
 
         return get_scene
+
+    def note_load_error(self, owner: str | None, message: str) -> None:
+        """Keep the message of a failed upload for :meth:`after_failed_load` (per tab)."""
+        if owner is None:
+            return
+        with self._sessions_lock:
+            self._load_errors[owner] = message
+            while len(self._load_errors) > 1000:
+                self._load_errors.popitem(last=False)
+
+    def after_failed_load(
+        self, session: Session | None, image: Any, request: gr.Request | None = None
+    ) -> tuple:
+        """Bring the page back to one state after an upload failed (chained on failure).
+
+        The photo panel showed the file that could not be read while the result and status
+        showed the previous photo. It shows the photo that is loaded again (or nothing when
+        none is), and the status keeps the error, where it stays after the toast is gone.
+
+        Returns:
+            ``(photo, result, compare, legend, info, download)`` updates.
+        """
+        owner = getattr(request, "session_hash", None)
+        with self._sessions_lock:
+            message = self._load_errors.pop(owner, None) if owner else None
+        message = message or "The upload could not be read."
+        live = isinstance(session, Session) and not session.closed and session.upload
+        if live:
+            # the photo input failed (not the depth map): show the loaded photo again
+            path = _payload_path(image)
+            same = path == session.source_path
+            photo = gr.skip() if same else gr.update(value=str(session.upload))
+            info = f"Error: {message} Still showing {session.name}."
+            return (photo, gr.skip(), gr.skip(), gr.skip(), info, gr.skip())
+        return (
+            gr.update(value=None),
+            gr.update(value=None, visible=True),
+            gr.update(value=None, visible=False),
+            gr.update(visible=False),
+            f"Error: {message}",
+            gr.update(value=None, label="Download", interactive=False),
+        )
 
     # --------------------------------------------------------------- renders
     def _render_full(

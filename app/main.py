@@ -7,6 +7,7 @@ Start it with ``d2f-app`` or ``python -m app`` (http://127.0.0.1:7860). The logi
 from __future__ import annotations
 
 import argparse
+import inspect
 import logging
 import os
 from typing import Any
@@ -240,12 +241,17 @@ def build_demo(
         options = [blades, rotation, highlight, fusion, view, quality]
         shown = [result, compare, legend, info]
 
-        # Gradio passes the request (the tab's session hash) by its annotation
-        def load_ui(request: gr.Request, *values):
-            return holding_download(logic.load(*values, request=request))
+        def load_ui(*values):
+            return holding_download(logic.load(*values))
 
         def render_full_ui(*values):
             return holding_download(logic.render_full(*values))
+
+        # the handlers' parameters name the API's inputs, and Gradio passes the request
+        # (the tab's session hash, for load) by its annotation
+        for ui, fn in ((load_ui, logic.load), (render_full_ui, logic.render_full)):
+            ui.__signature__ = inspect.signature(fn)
+            ui.__annotations__ = {"request": gr.Request}
 
         load_io = {
             "fn": load_ui,
@@ -270,9 +276,20 @@ def build_demo(
         # then race on the same output file
         # a new depth source re-prepares this photo only (.input: the user's choice, not the
         # choices offered again for a new photo)
-        gr.on([photo.upload, photo.clear, depth.change, depth_kind.change, depth_source.input,
-               hub_model.submit], api_name="load",
-              **load_io).success(logic.download, [session, fmt], [download], **chained)  # fmt: skip
+        loading = gr.on([photo.upload, photo.clear, depth.change, depth_kind.change,
+                         depth_source.input, hub_model.submit], api_name="load",
+                        **load_io)  # fmt: skip
+        loading.success(logic.download, [session, fmt], [download], **chained)
+        # a failed upload: the photo panel shows the loaded photo again (or nothing), and the
+        # status line keeps the error after the toast is gone
+        loading.failure(
+            logic.after_failed_load,
+            [session, photo],
+            [photo, *shown, download],
+            preprocess=False,
+            show_progress="hidden",
+            api_visibility="private",
+        )
         # the photo's own depth is offered only when the photo has some
         photo.upload(
             lambda payload: gr.update(

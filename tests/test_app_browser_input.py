@@ -138,3 +138,65 @@ def test_every_input_ends_in_the_full_render(
     assert not errors, errors
     log = server.log.read_text()
     assert "Traceback" not in log, log[-3000:]
+
+
+PHOTO_SIZE = """() => { const img = document.querySelector('#input img');
+    return img && img.complete ? [img.naturalWidth, img.naturalHeight] : null; }"""
+
+
+def test_failed_upload_leaves_one_state(
+    app_server, chromium_launch_options, two_plane_scene, tmp_path
+):
+    """After an upload that cannot be read, the photo panel shows the photo that is loaded
+    (or nothing, on a fresh page), the result is unchanged and the status line keeps the
+    error after the toast has gone."""
+    from playwright.sync_api import sync_playwright
+
+    server = app_server()
+    bad = tmp_path / "notes.jpg"
+    bad.write_text("this is a shopping list, not a photo\n" * 10)
+    with sync_playwright() as p:
+        browser = p.chromium.launch(**chromium_launch_options)
+        try:
+            page = browser.new_page(viewport={"width": 1400, "height": 900})
+            page.set_default_timeout(TIMEOUT_MS)
+            page.goto(server.url)
+            page.wait_for_selector("#focus input[type=range]")
+            page.set_input_files("#input input[type=file]", str(two_plane_scene.photo))
+            page.wait_for_function(f"() => {STATUS}.includes('full render')")
+            result_src = page.evaluate(
+                "() => document.querySelector('#result img')?.getAttribute('src')"
+            )
+            assert page.evaluate(PHOTO_SIZE) == [320, 240]
+
+            page.set_input_files("#input input[type=file]", str(bad))
+            page.locator(".toast-body.error", has_text="notes.jpg").first.wait_for()
+            page.wait_for_function(f"() => {STATUS}.startsWith('Error: notes.jpg')")
+            # the panel shows the loaded photo again, not the broken file
+            page.wait_for_function(f"() => JSON.stringify(({PHOTO_SIZE})()) === '[320,240]'")
+            status = page.locator("#info textarea").input_value()
+            assert "not an image" in status and "Still showing scene" in status
+            assert result_src == page.evaluate(
+                "() => document.querySelector('#result img')?.getAttribute('src')"
+            )
+            page.locator(".toast-body.error").first.wait_for(state="detached", timeout=60_000)
+            assert page.locator("#info textarea").input_value() == status
+            # the photo still renders (the slider drives the session's photo)
+            box = page.locator("#focus input[data-testid=number-input]")
+            box.fill("0.2")
+            box.press("Enter")
+            page.wait_for_function(f"() => {STATUS}.includes('focus 0.200 |')")
+
+            # a fresh page: nothing loaded, so nothing is shown but the error
+            page = browser.new_page(viewport={"width": 1400, "height": 900})
+            page.set_default_timeout(TIMEOUT_MS)
+            page.goto(server.url)
+            page.wait_for_selector("#focus input[type=range]")
+            page.set_input_files("#input input[type=file]", str(bad))
+            page.wait_for_function(f"() => {STATUS}.startsWith('Error: notes.jpg')")
+            page.wait_for_function("() => !document.querySelector('#input img[src]')")
+            assert page.locator("button#download, #download button").first.is_disabled()
+        finally:
+            browser.close()
+    log = server.log.read_text()
+    assert "Traceback" not in log, log[-3000:]
