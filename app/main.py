@@ -28,6 +28,9 @@ DEFAULT_CONCURRENCY = 4
 #: Gradio drops a session's state this long (seconds) after it was last set; the app
 #: closes idle sessions itself, sooner (``D2F_APP_SESSION_IDLE_S``, app/handlers.py).
 SESSION_TTL_S = 3600
+#: Height in px of the photo and result panels: at 1400x900 the photo, the examples and
+#: both sliders fit above the fold.
+PANEL_HEIGHT = 360
 #: Uploads larger than this many MB are refused by Gradio (``D2F_APP_MAX_UPLOAD_MB``).
 DEFAULT_MAX_UPLOAD_MB = 100
 #: Page states (one per browser tab or API client) Gradio keeps, oldest dropped first
@@ -129,8 +132,14 @@ def build_demo(
                     type="filepath",
                     sources=["upload", "clipboard"],
                     elem_id="input",
-                    height=420,
+                    height=PANEL_HEIGHT,
                 )
+                # right under the photo, so that a newcomer sees them without scrolling
+                examples = None
+                if sample_paths():
+                    examples = gr.Examples(
+                        sample_paths(), inputs=[photo], label="Examples", elem_id="examples"
+                    )
                 focus = gr.Slider(
                     0.0,
                     1.0,
@@ -208,9 +217,6 @@ def build_demo(
                         visible=any(v == "transformers" for _, v in depth_choice.choices()),
                         elem_id="hub_model",
                     )
-                examples = None
-                if sample_paths():
-                    examples = gr.Examples(sample_paths(), inputs=[photo], label="Examples")
             with gr.Column(scale=1):
                 view = gr.Radio(list(VIEWS), value=VIEWS[0], label="View", elem_id="view")
                 result = gr.Image(
@@ -218,7 +224,7 @@ def build_demo(
                     format="png",
                     interactive=False,
                     elem_id="result",
-                    height=420,
+                    height=PANEL_HEIGHT,
                     buttons=["fullscreen"],
                 )
                 compare = gr.ImageSlider(
@@ -227,7 +233,7 @@ def build_demo(
                     interactive=False,
                     visible=False,
                     elem_id="compare",
-                    max_height=420,
+                    max_height=PANEL_HEIGHT,
                 )
                 legend = gr.HTML(visible=False, elem_id="legend", label="Legend")
                 info = gr.Textbox(label="Status", interactive=False, elem_id="info")

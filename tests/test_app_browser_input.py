@@ -200,3 +200,33 @@ def test_failed_upload_leaves_one_state(
             browser.close()
     log = server.log.read_text()
     assert "Traceback" not in log, log[-3000:]
+
+
+def test_examples_above_the_fold(app_server, chromium_launch_options):
+    """At 1400x900 a newcomer sees the examples, the photo panel and both sliders without
+    scrolling, and Download is disabled on the empty page."""
+    from playwright.sync_api import sync_playwright
+
+    server = app_server()
+    with sync_playwright() as p:
+        browser = p.chromium.launch(**chromium_launch_options)
+        try:
+            page = browser.new_page(viewport={"width": 1400, "height": 900})
+            page.set_default_timeout(TIMEOUT_MS)
+            page.goto(server.url)
+            page.wait_for_selector("#focus input[type=range]")
+            thumbs = page.locator(".gallery-item, [data-testid=examples] button")
+            thumbs.first.wait_for()
+            boxes = {
+                "first example": thumbs.first.bounding_box(),
+                "photo": page.locator("#input").bounding_box(),
+                "focus slider": page.locator("#focus input[type=range]").bounding_box(),
+                "blur slider": page.locator("#blur input[type=range]").bounding_box(),
+            }
+            below = {
+                k: b["y"] + b["height"] for k, b in boxes.items() if b["y"] + b["height"] > 900
+            }
+            assert not below, f"below the fold at 1400x900: {below}"
+            assert page.locator("button#download, #download button").first.is_disabled()
+        finally:
+            browser.close()
