@@ -48,7 +48,11 @@ def test_sixteen_sessions(app_server, scene_factory, gradio_env, tmp_path, monke
     from gradio_client.exceptions import AppError
 
     # a small scene cache (about 4 of these scenes), so that eviction happens under load
-    server = app_server(env={"D2F_APP_CONCURRENCY": "4", "D2F_APP_CACHE_MB": "8"})
+    # 16 sessions and the warm-up one: over the default cap of 16 live sessions
+    server = app_server(
+        env={"D2F_APP_CONCURRENCY": "4", "D2F_APP_CACHE_MB": "8", "D2F_APP_MAX_SESSIONS": "20"},
+        timeout=180,
+    )
     scenes = [
         scene_factory(width=160 + 8 * i, height=120 + 6 * i, seed=i, stem=f"s{i:02d}")
         for i in range(SESSIONS)
