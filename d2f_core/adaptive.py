@@ -26,7 +26,7 @@ from dataclasses import asdict, dataclass, field
 import torch
 import torch.nn.functional as F
 
-from .rendering import _factor_for, check_focus_blur, layer_plan, render
+from .rendering import check_focus_blur, grid_factor, layer_plan, render
 
 __all__ = [
     "BUDGETS",
@@ -34,6 +34,8 @@ __all__ = [
     "CANDIDATES",
     "RenderSettings",
     "choose_settings",
+    "coc_bin",
+    "predicted_psnr",
     "render_adaptive",
 ]
 
@@ -145,7 +147,9 @@ class RenderSettings:
         return out
 
 
-def _coc_bin(max_coc: float) -> int:
+def coc_bin(max_coc: float) -> int:
+    """Index of the :data:`COC_BINS` interval that holds ``max_coc`` (px): the column of
+    :data:`CALIBRATION` a scene with that largest CoC reads."""
     for i, edge in enumerate(COC_BINS):
         if max_coc < edge:
             return i
@@ -160,7 +164,7 @@ def predicted_psnr(num_layers: int, quality: str, max_coc: float) -> float:
     row = CALIBRATION.get((num_layers, quality))
     if row is None:
         return -math.inf
-    value = row[_coc_bin(max_coc)]
+    value = row[coc_bin(max_coc)]
     if value is None:
         return -math.inf
     return value - (SAFETY_DB if num_layers == 15 else LAYER_SAFETY_DB)
@@ -209,7 +213,7 @@ def _cost(layers: list[tuple[int, int, float]], quality: str) -> float:
         if size <= 1:
             total += 0.1 * share  # masked and composited, not convolved
             continue
-        f = _factor_for(size, quality)
+        f = grid_factor(size, quality)
         # a layer's support box is larger than its pixels, and every layer pays some overhead
         total += (0.05 + min(1.0, 2.0 * share)) / (f * f)
     return total

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from . import rendering
-from ._bench_baseline import rendering as baseline
+from .bench_baseline import rendering as baseline
 from .metrics import psnr
 from .rendering import render
 
@@ -105,14 +105,14 @@ def _minor_faults() -> int:
 def _authors_render(image, disparity, focus: float, blur: float) -> torch.Tensor:
     """The authors' way: every layer over the whole frame at full resolution, one direct
     depthwise convolution per layer (no strips stacked along channels), float32."""
-    lanes = rendering._LANES
-    rendering._LANES = 1
+    lanes = rendering.LANES
+    rendering.LANES = 1
     try:
         return render(
             image, disparity, focus, blur, quality="exact", method="direct", full_frame=True
         )
     finally:
-        rendering._LANES = lanes
+        rendering.LANES = lanes
 
 
 def _bench_render(args: argparse.Namespace) -> int:
@@ -298,7 +298,7 @@ import json, resource, sys, time
 import numpy as np, torch
 torch.set_num_threads(int(sys.argv[5]))
 if sys.argv[1] == "today":
-    from d2f_core._bench_baseline.rendering import render
+    from d2f_core.bench_baseline.rendering import render
 else:
     from d2f_core.rendering import render
 scene = np.load(sys.argv[2])

@@ -668,7 +668,7 @@ def calibrate(
                         max_coc = blur * float((d - focus).abs().max())
                         kw = {"placement": placement}
                         ref = render(image, d, focus, blur, quality="exact", num_layers=15, **kw)
-                        b = adaptive._coc_bin(max_coc)
+                        b = adaptive.coc_bin(max_coc)
                         for cand in adaptive.CANDIDATES:
                             if cand == (15, "exact"):
                                 continue

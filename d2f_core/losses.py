@@ -22,7 +22,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from .errors import InputTypeError
-from .networks import _IMAGENET_MEAN, _IMAGENET_STD, load_local_state_dict
+from .networks import IMAGENET_MEAN, IMAGENET_STD, load_local_state_dict
 
 __all__ = [
     "D2FLoss",
@@ -218,10 +218,8 @@ class VGG19Features(nn.Module):
                 cin = int(item)
         # nothing beyond the deepest tap is ever used
         self.features = nn.Sequential(*modules[: self._taps[-1] + 1])
-        self.register_buffer(
-            "mean", torch.tensor(_IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False
-        )
-        self.register_buffer("std", torch.tensor(_IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
 
     def forward(self, x: Tensor) -> list[Tensor]:
         x = (x - self.mean) / self.std

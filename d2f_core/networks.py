@@ -28,6 +28,8 @@ from .errors import InputTypeError
 __all__ = [
     "DEFOCUS_NETS",
     "FUSION_NETS",
+    "IMAGENET_MEAN",
+    "IMAGENET_STD",
     "RADIANCE_NETS",
     "DefocusNet",
     "FusionNet",
@@ -43,8 +45,9 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-_IMAGENET_MEAN = (0.485, 0.456, 0.406)
-_IMAGENET_STD = (0.229, 0.224, 0.225)
+#: the ImageNet normalisation (RGB mean and standard deviation) of pretrained encoders
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
 
 
 def count_parameters(module: nn.Module, trainable_only: bool = False) -> int:
@@ -336,10 +339,8 @@ class DefocusNet(nn.Module):
             raise ValueError(f"variant must be 'resnext50', 'lite' or 'lite-ctx', got {variant!r}")
         self.variant = variant
         channels = self.encoder.channels
-        self.register_buffer(
-            "mean", torch.tensor(_IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False
-        )
-        self.register_buffer("std", torch.tensor(_IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
         self.project = nn.ModuleList(_conv3x3(c, features, separable, bias=False) for c in channels)
         self.context = GlobalContext(features) if variant == "lite-ctx" else None
         self.refine = nn.ModuleList(

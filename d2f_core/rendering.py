@@ -49,9 +49,10 @@ __all__ = [
     "PLACEMENTS",
     "QUALITY_PRESETS",
     "LayeredRenderer",
+    "LANES",
     "check_focus_blur",
-    "coc_to_defocus",
     "disparity_tensor",
+    "grid_factor",
     "hdr_boost",
     "highlight_mask",
     "image_tensor",
@@ -741,13 +742,15 @@ def _direct_pads(
 # CPU depthwise convolution in channels-last vectorises over channels: a 5-channel layer fills
 # a third of a 16-lane vector. Without gradients, a directly convolved layer is cut into
 # horizontal strips stacked along the channel axis, so one convolution fills the lanes.
-_LANES = 16
+#: Vector lanes a directly convolved layer's stacked strips fill (``d2f-bench render`` sets
+#: it to 1 to time the authors' one-convolution-per-layer way).
+LANES = 16
 
 
 def _strip_count(channels: int, rows: int, r: int, frame_rows: int) -> int:
     """How many strips to stack: each at least ``2 r`` rows (the halo stays at most half the
     input), and all of them fitting in the frame once the rows are rounded up."""
-    s = max(1, _LANES // channels)
+    s = max(1, LANES // channels)
     while s > 1 and (-(-rows // s) < 2 * max(r, 1) or s * -(-rows // s) > frame_rows):
         s -= 1
     return s
@@ -892,8 +895,9 @@ def _support_boxes(
     return boxes
 
 
-def _factor_for(size: int, quality: str) -> int:
-    """Grid (px per cell) a kernel of ``size`` px is applied on with ``quality``."""
+def grid_factor(size: int, quality: str) -> int:
+    """Grid (px of the frame per cell) a kernel of ``size`` px is applied on with the
+    ``quality`` preset (1: full resolution)."""
     preset = QUALITY_PRESETS[quality]
     if preset.quarter is not None and size >= preset.quarter:
         factor = 4
@@ -1010,7 +1014,7 @@ def _composite(
             back = flush(acc)
             acc = x.new_zeros(b, c + 1, height, width)
             blank = True
-        factor = 1 if size <= 1 else _factor_for(size, quality)
+        factor = 1 if size <= 1 else grid_factor(size, quality)
         if spec.blades and factor > 2:
             # a 1/4-resolution grid rounds off a polygon's corners: visible in highlights
             factor = 2
@@ -1279,7 +1283,7 @@ def _render_tiled(
             continue
         if threads is not None:
             threads.check()
-        factor = 1 if size <= 1 else _factor_for(size, quality)
+        factor = 1 if size <= 1 else grid_factor(size, quality)
         if spec.blades and factor > 2:
             factor = 2
         if phase == 0 and (factor == 1 or factor > previous):

@@ -61,6 +61,8 @@ class TestPieces:
         path = tmp_path / "render.json"
         argv = [
             "render",
+            "--sections",  # the size table only (the K sweep and 12 MP runs take minutes)
+            "sizes",
             "--sizes",
             "64x96",
             "--blur-frac",
@@ -100,7 +102,7 @@ class TestPieces:
         with torch.no_grad():
             base = bench._authors_render(image, disp, 0.6, 30.0)
             (c,) = set(calls)  # alpha and colour (and the weight, with highlights)
-            assert c in (4, 5) and rendering._LANES == 16
+            assert c in (4, 5) and rendering.LANES == 16
             calls.clear()
             ours = rendering.render(
                 image, disp, 0.6, 30.0, quality="exact", method="direct", full_frame=True

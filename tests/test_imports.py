@@ -20,23 +20,10 @@ ROOT = Path(__file__).resolve().parents[1]
 #: package name -> its folder (``assets/`` is installed as ``d2f_core.assets``)
 PACKAGES = {"d2f_core": ROOT / "d2f_core", "app": ROOT / "app", "d2f_core.assets": ROOT / "assets"}
 
-#: Private imports that remain in modules being reworked elsewhere, each with its reason.
-#: ``test_known_exceptions_still_exist`` fails once one is gone, so the list only shrinks.
-KNOWN = {
-    # the renderer's preset factor; rendering.py and adaptive.py are being reworked (focus
-    # checks, issue 19), and the factor should get a public name there
-    ("d2f_core.adaptive", "d2f_core.rendering", "_factor_for"),
-    # the bench pins the renderer's lane count; same rework
-    ("d2f_core.bench", "d2f_core.rendering", "_LANES"),
-    # the accuracy calibration bins CoCs as the adaptive renderer does; same rework
-    ("d2f_core.bench_accuracy", "d2f_core.adaptive", "_coc_bin"),
-    # d2f-bench render's frozen copy of the renderer at 00e22a4 (issue 19's); a public
-    # name (d2f_core.bench_baseline) would end it
-    ("d2f_core.bench", "d2f_core._bench_baseline", "(module)"),
-    # the ImageNet normalisation constants; networks.py is frozen while weights train
-    ("d2f_core.losses", "d2f_core.networks", "_IMAGENET_MEAN"),
-    ("d2f_core.losses", "d2f_core.networks", "_IMAGENET_STD"),
-}
+#: Private imports that remain, each with its reason (none now: every shared helper has a
+#: public name in one home). ``test_known_exceptions_still_exist`` fails once one is gone,
+#: so the list only shrinks.
+KNOWN: set[tuple[str, str, str]] = set()
 
 
 @dataclass(frozen=True)

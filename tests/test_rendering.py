@@ -839,7 +839,7 @@ class TestLargeFrames:
 
     def test_grid_factors_follow_the_quarter_threshold(self):
         # on every grid a kernel spans at least quarter / 4 cells
-        f = rendering._factor_for
+        f = rendering.grid_factor
         assert [f(s, "balanced") for s in (13, 15, 38, 39, 77, 78, 155, 156, 900)] == [
             1, 2, 2, 4, 4, 8, 8, 16, 16,
         ]  # fmt: skip
