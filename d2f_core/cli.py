@@ -452,7 +452,8 @@ def render_with_depth_only(
     import torch
     import torch.nn.functional as F
 
-    from .rendering import coc_to_defocus, render
+    from .rendering import render
+    from .schedule import coc_to_defocus
 
     h, w = image.shape[:2]
     scale = min(1.0, _FALLBACK_MAX_SIDE / max(h, w))

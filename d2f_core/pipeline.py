@@ -53,14 +53,8 @@ from .networks import (
     rgb_to_gray,
 )
 from .refine import harden_edges, snap_edges
-
-# the schedule and the size helpers live in their own modules; the short private names
-# keep this module's many call sites as they were
-from .schedule import coc_to_defocus as _coc_to_defocus
-from .schedule import defocus_to_coc as _defocus_to_coc
-from .sizing import resize as _resize
-from .sizing import scaled_size as _scaled_size
-from .sizing import size_ratio as _size_ratio
+from .schedule import coc_to_defocus, defocus_to_coc
+from .sizing import resize, scaled_size, size_ratio
 
 __all__ = [
     "CHECKPOINT_VERSION",
@@ -244,7 +238,7 @@ class Scene:
         if "disparity_full" not in self.cache:
             src = self.given_disparity if self.given_disparity is not None else self.disparity_lr
             with torch.no_grad():
-                self.cache["disparity_full"] = _resize(src, self.size).clamp(0, 1)
+                self.cache["disparity_full"] = resize(src, self.size).clamp(0, 1)
         return self.cache["disparity_full"]
 
     def disparity_tile_range(self, tile: int) -> tuple[Tensor, Tensor]:
@@ -275,7 +269,7 @@ class Result:
         bokeh_lr: ``h x w x 3`` in [0, 1], the low-resolution rendering pass.
         disparity: ``h x w`` in [0, 1], 1 = nearest.
         defocus: ``h x w`` in [0, 1], the paper's normalised defocus of each pixel
-            (``rendering.coc_to_defocus`` of its CoC at the low-res pass).
+            (``schedule.coc_to_defocus`` of its CoC at the low-res pass).
         fusion_mask: ``H x W`` in [0, 1], weight of the sharp input in ``bokeh`` (zeros when
             fusion is off or in preview).
         timings: milliseconds per stage.
@@ -442,15 +436,15 @@ class D2F(nn.Module):
         Shape: (B, 3, h, w) in [0, 1] -> (B, 1, h, w) in [0, 1].
         """
         size = tuple(image.shape[-2:])
-        net_size = _scaled_size(size, 1.0, self.config.network_size)
-        small = _resize(image, net_size)
+        net_size = scaled_size(size, 1.0, self.config.network_size)
+        small = resize(image, net_size)
         if self.config.flip_average:
             both = self.defocus_net(torch.cat([small, small.flip(-1)]))  # [2B,1,hn,wn]
             b = small.shape[0]
             d = 0.5 * (both[:b] + both[b:].flip(-1))
         else:
             d = self.defocus_net(small)
-        d = _resize(d, size)  # [B,1,h,w]
+        d = resize(d, size)  # [B,1,h,w]
         if refine:
             d = self._snap(image, d)
         return d.clamp(0, 1)
@@ -506,7 +500,7 @@ class D2F(nn.Module):
         k = _per_sample(blur, b, image)
         coc = k * (disparity - f).abs()  # [B,1,H,W] full-res px
         prior = ((2.0 * cfg.sharp_coc - coc) / cfg.sharp_coc).clamp(0, 1)
-        defocus = _coc_to_defocus(coc * lr_ratio)
+        defocus = coc_to_defocus(coc * lr_ratio)
         gate = (defocus < cfg.fusion_gate).to(image.dtype)
         m_s = self.fusion_net(1.0 - defocus, rgb_to_gray(image)) * gate
         return torch.maximum(m_s, prior), m_s
@@ -546,7 +540,7 @@ class D2F(nn.Module):
         # CoC range of each tile: distance of [lo, hi] to the focal plane
         coc_lo = blur * torch.clamp(torch.maximum(lo - focus, focus - hi), min=0.0)
         coc_hi = blur * torch.maximum((hi - focus).abs(), (lo - focus).abs())
-        gate_coc = _defocus_to_coc(cfg.fusion_gate) / lr_ratio * 1.01
+        gate_coc = defocus_to_coc(cfg.fusion_gate) / lr_ratio * 1.01
         sharp = cfg.sharp_coc
         all_sharp = coc_hi <= sharp
         needs_net = (coc_lo < gate_coc) & (coc_hi > sharp)
@@ -582,7 +576,7 @@ class D2F(nn.Module):
                 coc = blur * (d_full[..., ya:yb, xa:xb] - focus).abs()  # [1,1,h',w']
                 m = ((2.0 * sharp - coc) / sharp).clamp_(0, 1)
                 if use_net:
-                    defocus = _coc_to_defocus(coc * lr_ratio)
+                    defocus = coc_to_defocus(coc * lr_ratio)
                     m_s = self.fusion_net(
                         (1.0 - defocus).contiguous(memory_format=torch.channels_last),
                         rgb_to_gray(image[..., ya:yb, xa:xb]).contiguous(
@@ -602,7 +596,7 @@ class D2F(nn.Module):
         capped at ``max_render_side``."""
         if given and max(size) <= self.config.full_pass_side:
             return tuple(size)
-        return _scaled_size(size, self.config.render_scale, self.config.max_render_side)
+        return scaled_size(size, self.config.render_scale, self.config.max_render_side)
 
     @torch.no_grad()
     def prepare(
@@ -650,11 +644,11 @@ class D2F(nn.Module):
         given = None if depth is None else rendering.disparity_tensor(depth).to(device)
         size = (int(image_t.shape[-2]), int(image_t.shape[-1]))
         lr_size = self.pass_size(size, given=given is not None)
-        image_lr = _resize(image_t, lr_size).clamp_(0, 1)  # [1,3,h,w]
+        image_lr = resize(image_t, lr_size).clamp_(0, 1)  # [1,3,h,w]
         if given is None:
             disparity_lr = self.predict_disparity(image_lr, refine=refine)  # [1,1,h,w]
         else:
-            disparity_lr = _resize(given, lr_size).clamp_(0, 1)
+            disparity_lr = resize(given, lr_size).clamp_(0, 1)
         if refine:
             disparity_lr = self.refine_disparity(image_lr, disparity_lr)
         radiance_lr = self.radiance_net(image_lr)  # [1,1,h,w]
@@ -671,15 +665,15 @@ class D2F(nn.Module):
         )
 
     def _preview_inputs(self, scene: Scene, max_side: int) -> tuple[Tensor, Tensor, Tensor]:
-        size = _scaled_size(scene.size, 1.0, max_side)
+        size = scaled_size(scene.size, 1.0, max_side)
         key = ("preview", size)
         if key not in scene.cache:
             lr_size = tuple(scene.image_lr.shape[-2:])
             src = scene.image_lr if size[0] <= lr_size[0] else scene.image
             scene.cache[key] = (
-                _resize(src, size).clamp(0, 1),
-                _resize(scene.disparity_lr, size).clamp(0, 1),
-                _resize(scene.radiance_lr, size),
+                resize(src, size).clamp(0, 1),
+                resize(scene.disparity_lr, size).clamp(0, 1),
+                resize(scene.radiance_lr, size),
             )
         return scene.cache[key]
 
@@ -760,10 +754,10 @@ class D2F(nn.Module):
                 scene.radiance_lr,
             )
         lr_size = (int(image_lr.shape[-2]), int(image_lr.shape[-1]))
-        lr_ratio = _size_ratio(lr_size, scene.size)
+        lr_ratio = size_ratio(lr_size, scene.size)
         blur_lr = blur * lr_ratio
         # full-res CoC under which the fusion gate can open (see _fuse_tiled)
-        gate_coc = _defocus_to_coc(self.config.fusion_gate) / lr_ratio * 1.01
+        gate_coc = defocus_to_coc(self.config.fusion_gate) / lr_ratio * 1.01
 
         # 2. adaptive settings, then layered rendering at low resolution (HDR boost inside)
         settings = None
@@ -813,7 +807,7 @@ class D2F(nn.Module):
                 behind=fuse,
                 # foreground layers blurred past the fusion gate: fusion never sharpens
                 # them, and must not paste what lies behind them over their blur
-                front_size=_defocus_to_coc(self.config.fusion_gate),
+                front_size=defocus_to_coc(self.config.fusion_gate),
                 **options,
             )  # [1,3,h,w]
             if fuse:
@@ -823,7 +817,7 @@ class D2F(nn.Module):
                 if bool((share_lr < 1.0 - 1e-4).any()):
                     behind_lr = (share_lr, colour_lr)
         timings["render_lr"] = _ms(t0)
-        defocus_lr = _coc_to_defocus(blur_lr * (disparity_lr - focus).abs())
+        defocus_lr = coc_to_defocus(blur_lr * (disparity_lr - focus).abs())
 
         # 3. upsample + deep Poisson fusion at full resolution
         if max_side is not None:
@@ -834,7 +828,7 @@ class D2F(nn.Module):
             mask = torch.ones((1, 1, *scene.size), device=bokeh.device)
         else:
             t0 = time.perf_counter()
-            bokeh = _resize(bokeh_lr, scene.size)  # [1,3,H,W]
+            bokeh = resize(bokeh_lr, scene.size)  # [1,3,H,W]
             if bokeh is bokeh_lr:
                 bokeh = bokeh.clone()  # fusion writes into it; bokeh_lr is returned too
             timings["upsample"] = _ms(t0)
@@ -842,7 +836,7 @@ class D2F(nn.Module):
                 t0 = time.perf_counter()
                 behind = None
                 if behind_lr is not None:
-                    behind = tuple(_resize(t, scene.size).clamp_(0, 1) for t in behind_lr)
+                    behind = tuple(resize(t, scene.size).clamp_(0, 1) for t in behind_lr)
                 bokeh, mask = self._fuse_tiled(scene, bokeh, focus, blur, lr_ratio, behind)
                 timings["fusion"] = _ms(t0)
             else:
@@ -902,7 +896,7 @@ class D2F(nn.Module):
             kind = type(scene).__name__
             raise InputTypeError(f"scene must be a Scene from prepare(), got {kind}")
         with torch.no_grad():
-            d = _resize(scene.disparity_lr, _scaled_size(scene.size, 1.0, 128))[0, 0]
+            d = resize(scene.disparity_lr, scaled_size(scene.size, 1.0, 128))[0, 0]
         return locate_subject(d.cpu().numpy(), scene.size, lambda x, y: self.focus_at(scene, x, y))
 
     # ---------------------------------------------------------------- training forwards
@@ -977,8 +971,8 @@ class D2F(nn.Module):
         """
         b = image.shape[0]
         size = (int(image.shape[-2]), int(image.shape[-1]))
-        lr_size = _scaled_size(size, self.config.render_scale, None)
-        lr_ratio = _size_ratio(lr_size, size)
+        lr_size = scaled_size(size, self.config.render_scale, None)
+        lr_ratio = size_ratio(lr_size, size)
         k = _per_sample(blur, b, image)
         f = _per_sample(focus, b, image)
         frozen = (self.defocus_net, self.radiance_net)
@@ -987,17 +981,17 @@ class D2F(nn.Module):
             # the stage-1 networks are frozen here: batch statistics must not move
             for m in frozen:
                 m.eval()
-            image_lr = _resize(image, lr_size).clamp(0, 1)
+            image_lr = resize(image, lr_size).clamp(0, 1)
             low = self.forward_stage1(
                 image_lr, f.reshape(-1), (k * lr_ratio).reshape(-1), **options
             )
-            bokeh_up = _resize(low["bokeh_lr"], size)  # [B,3,H,W]
-            disparity = _resize(low["disparity"], size).clamp(0, 1)  # [B,1,H,W]
+            bokeh_up = resize(low["bokeh_lr"], size)  # [B,3,H,W]
+            disparity = resize(low["disparity"], size).clamp(0, 1)  # [B,1,H,W]
             for m, mode in zip(frozen, modes, strict=True):
                 m.train(mode)
         mask, mask_soft = self.fusion_mask(image, disparity, f, k, lr_ratio)
         bokeh = torch.lerp(bokeh_up, image, mask)
-        defocus = _coc_to_defocus(k * lr_ratio * (disparity - f).abs())
+        defocus = coc_to_defocus(k * lr_ratio * (disparity - f).abs())
         return {
             "bokeh": bokeh,
             "bokeh_up": bokeh_up,

@@ -43,7 +43,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .errors import InputTypeError
-from .kernels import PAPER_GROWING_SIZES, coarse_kernel, kernel_sizes
+from .kernels import coarse_kernel, kernel_sizes
 
 __all__ = [
     "PLACEMENTS",
@@ -401,19 +401,6 @@ def _unique_sizes(sizes: list[int]) -> list[int]:
         if not out or s > out[-1]:
             out.append(s)
     return out
-
-
-def coc_to_defocus(coc: torch.Tensor | np.ndarray | float):
-    """The paper's normalised defocus ``D`` in [0, 1] for a CoC diameter in px.
-
-    Inverts the paper's growing schedule: 1 px -> 0, 69 px (or more) -> 1, 23 px -> 0.5.
-    """
-    if isinstance(coc, torch.Tensor):
-        sizes = [float(s) for s in PAPER_GROWING_SIZES]
-        return _interp(coc.clamp(min=1.0), sizes) / (len(sizes) - 1)
-    arr = np.asarray(coc, dtype=np.float64)
-    d = np.interp(np.maximum(arr, 1.0), PAPER_GROWING_SIZES, np.linspace(0, 1, 15))
-    return d.astype(np.float32) if isinstance(coc, np.ndarray) else float(d)
 
 
 def layer_plan(

@@ -13,8 +13,9 @@ import torch
 
 from d2f_core import depth_sources as ds
 from d2f_core.io import Photo
-from d2f_core.pipeline import D2F, _resize
+from d2f_core.pipeline import D2F
 from d2f_core.refine import box_mean
+from d2f_core.sizing import resize
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -150,7 +151,7 @@ class TestLocalSources:
         got = ds.depth_map("d2f", image, model=model)
         scene = model.prepare(image, refine=False)
         assert got.source == "d2f" and got.disparity.shape == (48, 64)
-        expected = _resize(scene.disparity_lr, (48, 64))[0, 0].numpy()
+        expected = resize(scene.disparity_lr, (48, 64))[0, 0].numpy()
         np.testing.assert_allclose(got.disparity, expected, atol=1e-5)
         with pytest.raises(ValueError, match="needs the D2F model"):
             ds.depth_map("d2f", image)
@@ -389,8 +390,8 @@ class TestRefinement:
         image, _, soft = self._step(64, 24)
         photo = image[0].permute(1, 2, 0).numpy()
         lr = model.pass_size((64, 64), given=True)
-        image_lr = _resize(image, lr).clamp(0, 1)
-        expected = model.refine_disparity(image_lr, _resize(soft, lr).clamp(0, 1))
+        image_lr = resize(image, lr).clamp(0, 1)
+        expected = model.refine_disparity(image_lr, resize(soft, lr).clamp(0, 1))
         np.save(tmp_path / "map.npy", soft[0, 0].numpy())
         wrapped = Photo(image=photo, info=None, disparity=soft[0, 0].numpy())
         scenes = {
@@ -403,7 +404,7 @@ class TestRefinement:
             torch.testing.assert_close(scene.disparity_lr, expected, msg=name, atol=1e-5, rtol=0)
         off = model.prepare(photo, depth=soft[0, 0].numpy(), refine=False)
         assert not off.refined
-        torch.testing.assert_close(off.disparity_lr, _resize(soft, lr).clamp(0, 1))
+        torch.testing.assert_close(off.disparity_lr, resize(soft, lr).clamp(0, 1))
         assert scenes["file"].disparity_source == f"file:{tmp_path / 'map.npy'}"
         assert scenes["embedded"].disparity_source == "embedded"
 

@@ -10,7 +10,6 @@ from d2f_core import rendering
 from d2f_core.adaptive import BUDGETS
 from d2f_core.metrics import psnr
 from d2f_core.pipeline import D2F, D2FConfig, Result, Scene
-from d2f_core.schedule import coc_to_defocus
 from d2f_core.synth import linear_to_srgb, make_scene, render_pinhole
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -167,12 +166,6 @@ class TestFusion:
         coc = 10.0 * (disp - 0.5).abs()
         assert torch.all(mask[coc <= 1.0] == 1.0)
         assert torch.all(mask >= soft)
-
-    def test_fast_defocus_matches_renderer(self):
-        coc = torch.linspace(0, 120, 20001)
-        torch.testing.assert_close(
-            coc_to_defocus(coc), rendering.coc_to_defocus(coc), atol=1e-6, rtol=0
-        )
 
 
 class TestFocusAt:

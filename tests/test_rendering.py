@@ -15,7 +15,6 @@ from d2f_core.rendering import (
     _TILE,
     _layer_mask,
     _support_boxes,
-    coc_to_defocus,
     hdr_boost,
     layer_plan,
 )
@@ -616,13 +615,6 @@ print(libc.mallinfo2().hblkhd - before)
             1, 5, 20, 30, dtype=torch.float64, generator=torch.Generator().manual_seed(3)
         )
         torch.testing.assert_close(_fft(4 * z, spec, 23, 2, 0.25), _fft(z, spec, 23, 2))
-
-    def test_coc_to_defocus(self):
-        assert coc_to_defocus(1.0) == 0.0
-        assert coc_to_defocus(69.0) == pytest.approx(1.0)
-        assert coc_to_defocus(23.0) == pytest.approx(0.5)
-        t = coc_to_defocus(torch.tensor([0.0, 23.0, 500.0]))
-        assert torch.allclose(t, torch.tensor([0.0, 0.5, 1.0]))
 
 
 class TestNumpyAPI:
