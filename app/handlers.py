@@ -340,8 +340,18 @@ def user_error(message: str) -> gr.Error:
     return gr.Error(message, print_exception=False)
 
 
+def one_line(message: Any, limit: int = 300) -> str:
+    """A message on one line of at most ``limit`` characters, for the server log."""
+    text = " ".join(str(message).split())
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
 def reported(fn: Callable) -> Callable:
-    """Turn bad-input exceptions into ``gr.Error`` and anything else into a short one."""
+    """Turn bad-input exceptions into ``gr.Error`` and anything else into a short one.
+
+    A refused event (bad input, a closed session) logs one line naming the reason; only an
+    unexpected failure logs its traceback.
+    """
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
@@ -351,14 +361,17 @@ def reported(fn: Callable) -> Callable:
             session.hold()
         try:
             return fn(*args, **kwargs)
-        except gr.Error:
+        except gr.Error as err:
+            log.info("%s refused: %s", fn.__name__, one_line(err.message))
             raise
         except SessionClosed:
+            log.info("%s refused: the session was closed", fn.__name__)
             raise user_error(
                 "This photo was closed to free memory (unused for a while, or the page was "
                 "closed); please upload it again."
             ) from None
         except (ValueError, TypeError) as err:
+            log.info("%s refused: %s", fn.__name__, one_line(err))
             raise user_error(str(err)) from None
         except MemoryError:
             log.exception("out of memory in %s", fn.__name__)
@@ -394,6 +407,9 @@ def _remember_load_error(fn: Callable) -> Callable:
 
     return wrapper
 
+
+#: An event that needs a photo in a session that has none.
+NO_PHOTO = "Upload a photo first: no photo is loaded in this session."
 
 #: The download button while a preview is shown: nothing that matches the screen to save.
 DOWNLOAD_WAIT = {"__type__": "update", "interactive": False}
@@ -682,6 +698,12 @@ class RefocusApp:
         params = RenderParams.from_inputs(
             focus, blur, blades, rotation, highlight_boost, fusion, quality
         )
+        # this event takes raw payloads (Gradio does not check them): the texts are checked here
+        if view not in VIEWS:
+            raise user_error(f"Unknown view {view!r}; expected one of {', '.join(VIEWS)}.")
+        for what, value in (("depth map kind", depth_kind), ("Hugging Face model", hub_model)):
+            if value is not None and not isinstance(value, str):
+                raise user_error(f"The {what} must be text, got {type(value).__name__}.")
         t0 = time.perf_counter()
         photo_name = _payload_name(image, ext=True)
         depth_path = _payload_path(depth)
@@ -917,11 +939,15 @@ class RefocusApp:
     ) -> tuple:
         """Full-resolution render (slider released, option changed).
 
+        Without a photo loaded in the session (a slider released on an empty page, an API
+        call before ``/load`` or from another session) the event is refused with a message;
+        the previews of a drag before that stay silent.
+
         Returns:
             ``(result, compare, legend, info)``.
         """
         if session is None:
-            return SKIP4
+            raise user_error(NO_PHOTO)
         params = RenderParams.from_inputs(
             focus, blur, blades, rotation, highlight_boost, fusion, quality
         )

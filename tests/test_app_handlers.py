@@ -631,7 +631,9 @@ class TestRender:
             assert Path(path).exists()
 
     def test_render_without_session(self, logic):
-        assert all(is_skip(o) for o in logic.render_full(None, 0.5, 10))
+        # the release (or an API call) says what is missing; the drag's previews stay silent
+        with pytest.raises(gr.Error, match="Upload a photo first"):
+            logic.render_full(None, 0.5, 10)
         assert all(is_skip(o) for o in logic.render_preview(None, 0.5, 10))
         assert len(logic.render_preview(None, 0.5, 10)) == 5
 
