@@ -230,6 +230,7 @@ def choose_settings(
     full_scale: float = 1.0,
     fusion_coc: float = FUSION_COC_PX,
     placement: str = "nearest",
+    checked: bool = False,
 ) -> RenderSettings:
     """Cheapest renderer settings whose expected error stays within a PSNR budget.
 
@@ -246,6 +247,9 @@ def choose_settings(
             used for the identity and fusion decisions, which concern the full-size output.
         fusion_coc: full-resolution CoC (px) below which fusion can change a pixel.
         placement: the render's layer placement (``rendering.layer_plan``).
+        checked: ``True`` from a caller that has put ``focus`` and ``blur`` through
+            ``rendering.check_focus_blur`` already (``D2F.render``, :func:`render_adaptive`):
+            they are used as given, not checked again.
 
     Returns:
         :class:`RenderSettings`; ``settings.render_options()`` goes to ``rendering.render``.
@@ -253,7 +257,8 @@ def choose_settings(
     if not isinstance(disparity, torch.Tensor) or disparity.ndim != 4 or disparity.shape[1] != 1:
         shape = tuple(disparity.shape) if isinstance(disparity, torch.Tensor) else None
         raise ValueError(f"disparity must be a (B, 1, H, W) tensor, got {shape}")
-    focus, blur = check_focus_blur(focus, blur)
+    if not checked:
+        focus, blur = check_focus_blur(focus, blur)
     if quality not in BUDGETS:
         raise ValueError(f"quality must be one of {sorted(BUDGETS)}, got {quality!r}")
     budget = BUDGETS[quality] if budget_db is None else float(budget_db)
@@ -312,9 +317,10 @@ def render_adaptive(
         ``(bokeh (B, 3, H, W) in [0, 1], settings)``. On the identity path the input is
         returned (clamped) and no layer is rendered.
     """
-    for key in ("num_layers", "quality"):
+    for key in ("num_layers", "quality", "checked"):
         if key in options:
-            raise ValueError(f"options must not contain {key!r}: render_adaptive picks it")
+            raise ValueError(f"options must not contain {key!r}: render_adaptive sets it")
+    focus, blur = check_focus_blur(focus, blur)
     settings = choose_settings(
         disparity,
         focus,
@@ -323,6 +329,7 @@ def render_adaptive(
         quality=quality,
         schedule=options.get("schedule", "growing"),
         placement=options.get("placement", "nearest"),
+        checked=True,
     )
     if settings.identity and options.get("order", "depth") == "depth":
         if not isinstance(image, torch.Tensor) or image.ndim != 4 or image.shape[1] != 3:
@@ -331,4 +338,5 @@ def render_adaptive(
     if options.get("order", "depth") == "paper":
         # the paper's order stretches its 15 kernels to K: the layer count is the model's
         settings.num_layers = 15
-    return render(image, disparity, focus, blur, **options, **settings.render_options()), settings
+    options |= settings.render_options()
+    return render(image, disparity, focus, blur, checked=True, **options), settings

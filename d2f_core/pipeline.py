@@ -719,6 +719,8 @@ class D2F(nn.Module):
             raise ValueError(f"max_side must be a positive integer or None, got {max_side!r}")
         if "radiance" in render_options:
             raise ValueError("render_options must not contain 'radiance' (it comes from scene)")
+        if "checked" in render_options:
+            raise ValueError("render_options must not contain 'checked' (D2F.render sets it)")
         render_options.setdefault("order", self.config.order)
         render_options.setdefault("placement", self.config.placement)
         named = isinstance(budget, str)
@@ -774,6 +776,7 @@ class D2F(nn.Module):
                 placement=render_options["placement"],
                 full_scale=1.0 / lr_ratio if full else 1.0,
                 fusion_coc=gate_coc,
+                checked=True,  # focus and blur were checked above; blur_lr <= blur
             )
             if full:
                 # decide from the full-resolution map (a given map can hold finer extremes
@@ -808,6 +811,7 @@ class D2F(nn.Module):
                 # foreground layers blurred past the fusion gate: fusion never sharpens
                 # them, and must not paste what lies behind them over their blur
                 front_size=defocus_to_coc(self.config.fusion_gate),
+                checked=True,
                 **options,
             )  # [1,3,h,w]
             if fuse:

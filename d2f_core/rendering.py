@@ -132,33 +132,42 @@ def _extremes(x: torch.Tensor) -> tuple[float, float]:
     return float(lo), float(hi)
 
 
-def _check_scalar(name: str, value: float, low: float, high: float) -> float:
-    try:
-        value = float(value)
-    except (TypeError, ValueError):
-        raise InputTypeError(f"{name} must be a number, got {value!r}") from None
-    if not math.isfinite(value):
-        raise ValueError(f"{name} must be finite, got {value}")
-    if not low <= value <= high:
-        raise ValueError(f"{name} must be in [{low}, {high}], got {value}")
-    return value
-
-
 #: the largest blur ``K`` (CoC diameter in px at ``|d - focus| = 1``) any entry point takes
 MAX_BLUR = 10000.0
 
 
-def check_focus_blur(focus, blur) -> tuple[float, float]:
-    """``(focus, blur)`` as floats: focus in [0, 1], blur (K, px) in [0, :data:`MAX_BLUR`]."""
+def _number(name: str, value) -> float:
     try:
-        f, b = float(focus), float(blur)
+        return float(value)
     except (TypeError, ValueError):
-        raise InputTypeError(f"focus and blur must be numbers, got {focus!r}, {blur!r}") from None
+        raise InputTypeError(f"{name} must be a number, got {value!r}") from None
+
+
+def _check_focus(focus) -> float:
+    f = _number("focus", focus)
     if not math.isfinite(f) or not 0 <= f <= 1:
         raise ValueError(f"focus must be in [0, 1], got {focus!r}")
+    return f
+
+
+def _check_blur(blur) -> float:
+    b = _number("blur", blur)
     if not math.isfinite(b) or not 0 <= b <= MAX_BLUR:
         raise ValueError(f"blur must be a number in [0, {MAX_BLUR:g}] px, got {blur!r}")
-    return f, b
+    return b
+
+
+def check_focus_blur(focus, blur) -> tuple[float, float]:
+    """``(focus, blur)`` as floats: focus in [0, 1], blur (K, px) in [0, :data:`MAX_BLUR`].
+
+    The one check of both. Each public entry that takes them (``D2F.render``,
+    :func:`render`, :func:`render_bokeh`, :class:`LayeredRenderer`,
+    ``adaptive.choose_settings`` and ``adaptive.render_adaptive``) checks them once, here,
+    and passes the floats on with ``checked=True`` so that no layer below checks them again.
+    Raises ``ValueError`` (:class:`~d2f_core.InputTypeError` for a value that is not a number)
+    naming the value.
+    """
+    return _check_focus(focus), _check_blur(blur)
 
 
 def _check_placement(placement: str) -> None:
@@ -166,18 +175,21 @@ def _check_placement(placement: str) -> None:
         raise ValueError(f"placement must be one of {PLACEMENTS}, got {placement!r}")
 
 
-def _focus_tensor(focus, batch: int, ref: torch.Tensor) -> torch.Tensor:
-    if isinstance(focus, torch.Tensor):
-        f = focus.detach().to(device=ref.device, dtype=ref.dtype).reshape(-1)
-        if f.numel() == 1:
-            f = f.expand(batch)
-        if f.numel() != batch:
-            raise ValueError(f"focus must be a scalar or have {batch} values, got {f.numel()}")
-        if not bool(torch.isfinite(f).all()) or bool((f < 0).any()) or bool((f > 1).any()):
-            raise ValueError(f"focus must be finite and in [0, 1], got {f.tolist()}")
-        return f.view(batch, 1, 1, 1)
-    value = _check_scalar("focus", focus, 0.0, 1.0)
-    return torch.full((batch, 1, 1, 1), value, device=ref.device, dtype=ref.dtype)
+def _focus_tensor(focus, batch: int, ref: torch.Tensor, check: bool = True) -> torch.Tensor:
+    """``focus`` (a number or ``batch`` values) as a ``(batch, 1, 1, 1)`` tensor on ``ref``'s
+    device and dtype; checked as :func:`check_focus_blur` does unless ``check`` is False."""
+    if not isinstance(focus, torch.Tensor):
+        value = _check_focus(focus) if check else float(focus)
+        return torch.full((batch, 1, 1, 1), value, device=ref.device, dtype=ref.dtype)
+    f = focus.detach().to(device=ref.device, dtype=ref.dtype).reshape(-1)
+    if f.numel() == 1:
+        f = f.expand(batch)
+    if f.numel() != batch:
+        raise ValueError(f"focus must be a scalar or have {batch} values, got {f.numel()}")
+    if check:
+        for value in _extremes(f):  # NaN when f holds one
+            _check_focus(value)
+    return f.view(batch, 1, 1, 1)
 
 
 # --------------------------------------------------------------------------------------
@@ -1448,6 +1460,7 @@ def render(
     placement: str = "nearest",
     behind: bool = False,
     front_size: float = 0.0,
+    checked: bool = False,
 ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Render bokeh with weighted layered rendering.
 
@@ -1477,6 +1490,9 @@ def render(
         front_size: with ``behind``, the layers in front of the focal plane drawn with a
             kernel under this many px count as behind it (a near subject's own slightly
             defocused rim is for the sharpening step to decide, like the subject).
+        checked: ``True`` from a caller that has put ``focus`` and ``blur`` through
+            :func:`check_focus_blur` already (``D2F.render``, :func:`render_bokeh`,
+            ``adaptive.render_adaptive``): they are used as given, not checked again.
 
     Returns:
         ``(B, 3, H, W)`` in [0, 1]; with ``behind``, ``(image, share, colour)``: ``share``
@@ -1496,7 +1512,6 @@ def render(
             raise ValueError(
                 f"radiance shape {tuple(radiance.shape)} does not match image {tuple(image.shape)}"
             )
-    blur = _check_scalar("blur", blur, 0.0, MAX_BLUR)
     if method not in ("fft", "direct"):
         raise ValueError(f"method must be 'fft' or 'direct', got {method!r}")
     if quality not in QUALITY_PRESETS:
@@ -1506,40 +1521,76 @@ def render(
     _check_placement(placement)
     if int(num_layers) != num_layers or num_layers < 1:
         raise ValueError(f"num_layers must be a positive integer, got {num_layers!r}")
-    f = _focus_tensor(focus, image.shape[0], image)
-    if image.shape[0] > 1:
-        # one layer plan per image: the kernel schedule and the support boxes follow each
-        # image's own CoCs, so a batch renders exactly as its images do one by one
-        options = dict(
-            order=order,
-            num_layers=num_layers,
-            schedule=schedule,
-            kernel=kernel,
-            blades=blades,
-            rotation=rotation,
-            highlight_boost=highlight_boost,
-            method=method,
-            quality=quality,
-            gamma=gamma,
-            full_frame=full_frame,
-            placement=placement,
-            behind=behind,
-            front_size=front_size,
-        )
-        parts = [
-            render(
-                image[i : i + 1],
-                disparity[i : i + 1],
-                f[i],
+    f = _focus_tensor(focus, image.shape[0], image, check=not checked)
+    blur = float(blur) if checked else _check_blur(blur)
+    options = dict(
+        order=order,
+        num_layers=num_layers,
+        schedule=schedule,
+        kernel=kernel,
+        blades=blades,
+        rotation=rotation,
+        highlight_boost=highlight_boost,
+        method=method,
+        quality=quality,
+        gamma=gamma,
+        full_frame=full_frame,
+        placement=placement,
+        behind=behind,
+        front_size=front_size,
+    )
+    if image.shape[0] <= 1:
+        return _render(image, disparity, f, blur, image_max, disparity_range, radiance, **options)
+    # one layer plan per image: the kernel schedule and the support boxes follow each
+    # image's own CoCs, so a batch renders exactly as its images do one by one
+    parts = []
+    for i in range(image.shape[0]):
+        one, disp = image[i : i + 1], disparity[i : i + 1]
+        empty = not one.numel()
+        parts.append(
+            _render(
+                one,
+                disp,
+                f[i : i + 1],
                 blur,
-                radiance=None if radiance is None else radiance[i : i + 1],
+                0.0 if empty else _extremes(one)[1],
+                (0.0, 0.0) if empty else _extremes(disp),
+                None if radiance is None else radiance[i : i + 1],
                 **options,
             )
-            for i in range(image.shape[0])
-        ]
-        if behind:
-            return tuple(torch.cat([p[i] for p in parts]) for i in range(3))
-        return torch.cat(parts)
+        )
+    if behind:
+        return tuple(torch.cat([p[i] for p in parts]) for i in range(3))
+    return torch.cat(parts)
+
+
+def _render(
+    image: torch.Tensor,
+    disparity: torch.Tensor,
+    f: torch.Tensor,
+    blur: float,
+    image_max: float,
+    disparity_range: tuple[float, float],
+    radiance: torch.Tensor | None,
+    *,
+    order: str,
+    num_layers: int,
+    schedule: str,
+    kernel: str,
+    blades: int,
+    rotation: float,
+    highlight_boost: bool,
+    method: str,
+    quality: str,
+    gamma: float,
+    full_frame: bool,
+    placement: str,
+    behind: bool,
+    front_size: float,
+):
+    """:func:`render` of one image whose input it has checked: ``f`` the focal plane as a
+    ``(1, 1, 1, 1)`` tensor, ``blur`` a float, ``image_max`` and ``disparity_range`` the
+    extremes of the image and the disparity."""
     _keep_freed_heap()
     if disparity_range[0] < 0 or disparity_range[1] > 1:
         disparity = disparity.clamp(0, 1)
@@ -1753,9 +1804,9 @@ def render_bokeh(image, disparity, focus: float, blur: float, **options) -> np.n
             f"disparity shape {tuple(disp.shape[-2:])} does not match image shape "
             f"{tuple(img.shape[-2:])}"
         )
-    _check_scalar("focus", focus, 0.0, 1.0)
+    focus, blur = check_focus_blur(focus, blur)
     with torch.no_grad():
-        out = render(img, disp, focus, blur, **options)
+        out = render(img, disp, focus, blur, checked=True, **options)
     return out[0].permute(1, 2, 0).contiguous().numpy()
 
 

@@ -222,6 +222,21 @@ class TestInputChecks:
         with pytest.raises(ValueError, match="disparity must be real numbers"):
             model.prepare(_image(), disparity=torch.zeros(4, 4, dtype=torch.complex64))
 
+    def test_focus_is_checked_once_on_the_way_down(self, model, monkeypatch):
+        # D2F.render checks focus and blur; choose_settings and rendering.render take them
+        # as checked, with the preview, the adaptive settings and fixed settings alike
+        scene = model.prepare(_image())
+        check = rendering._check_focus
+        for kwargs in ({}, {"max_side": 32}, {"budget": None}, {"num_layers": 8}):
+            seen: list[float] = []
+            monkeypatch.setattr(
+                rendering, "_check_focus", lambda v, seen=seen: seen.append(v) or check(v)
+            )
+            model.render(scene, 0.4, 20.0, **kwargs)
+            assert seen == [0.4], kwargs
+        with pytest.raises(ValueError, match="'checked'"):
+            model.render(scene, 0.4, 20.0, checked=False)
+
     def test_bad_focus_blur(self, model):
         scene = model.prepare(_image())
         with pytest.raises(ValueError, match="focus"):

@@ -617,6 +617,76 @@ print(libc.mallinfo2().hblkhd - before)
         torch.testing.assert_close(_fft(4 * z, spec, 23, 2, 0.25), _fft(z, spec, 23, 2))
 
 
+class TestFocusBlurChecks:
+    """``check_focus_blur`` owns the focus and blur rule; each public entry checks them once
+    and passes the floats down (``checked=True``), and ``render`` called directly still checks
+    its own input."""
+
+    @staticmethod
+    def _count(monkeypatch) -> list[float]:
+        seen: list[float] = []
+        check = rendering._check_focus
+        monkeypatch.setattr(rendering, "_check_focus", lambda v: seen.append(v) or check(v))
+        return seen
+
+    @pytest.mark.parametrize(
+        "focus,blur,match",
+        [
+            (1.5, 10.0, r"focus must be in \[0, 1\], got 1\.5"),
+            (float("nan"), 10.0, "focus must be in"),
+            ("near", 10.0, "focus must be a number, got 'near'"),
+            (torch.tensor([0.2, 1.5]), 10.0, r"focus must be in \[0, 1\], got 1\.5"),
+            (torch.tensor([0.2, float("nan")]), 10.0, "focus must be in"),
+            (torch.tensor([0.2, 0.3, 0.4]), 10.0, "focus must be a scalar or have 2 values"),
+            (0.5, -1.0, r"blur must be a number in \[0, 10000\] px, got -1\.0"),
+            (0.5, float("inf"), "blur must be a number in"),
+            (0.5, None, "blur must be a number, got None"),
+        ],
+    )
+    def test_render_called_directly_checks_its_input(self, focus, blur, match):
+        img, disp = _texture().repeat(2, 1, 1, 1), _ramp().repeat(2, 1, 1, 1)
+        with pytest.raises(ValueError, match=match):
+            render(img, disp, focus, blur)
+
+    def test_each_public_entry_checks_focus_once(self, monkeypatch):
+        from d2f_core import adaptive
+
+        img, disp = _texture(24, 32), _ramp(24, 32)
+        calls = {
+            "render": lambda: render(img, disp, 0.4, 12.0),
+            "render_bokeh": lambda: render_bokeh(
+                img[0].permute(1, 2, 0).numpy(), disp[0, 0].numpy(), 0.4, 12.0
+            ),
+            "LayeredRenderer": lambda: LayeredRenderer()(img, disp, 0.4, 12.0),
+            "choose_settings": lambda: adaptive.choose_settings(disp, 0.4, 12.0),
+            "render_adaptive": lambda: adaptive.render_adaptive(img, disp, 0.4, 12.0),
+            # a batch is checked once, then its images render one by one unchecked
+            "render, a batch": lambda: render(
+                img.repeat(3, 1, 1, 1), disp.repeat(3, 1, 1, 1), torch.tensor([0.1, 0.4, 0.9]), 12.0
+            ),
+        }
+        counts = {}
+        for name, call in calls.items():
+            seen = self._count(monkeypatch)
+            call()
+            counts[name] = len(seen)
+        # LayeredRenderer() also checks its options once, by a render of one pixel; the batch
+        # checks the least and the largest focus of its tensor
+        expected = {name: 1 for name in calls} | {"LayeredRenderer": 2, "render, a batch": 2}
+        assert counts == expected
+
+    def test_checked_values_render_the_same(self):
+        img = torch.cat([_texture(seed=1), _texture(seed=2)])
+        disp = torch.cat([_ramp(), 1 - _ramp()])
+        for focus in (0.3, torch.tensor([0.2, 0.7])):
+            torch.testing.assert_close(
+                render(img, disp, focus, 30.0, checked=True),
+                render(img, disp, focus, 30.0),
+                atol=0,
+                rtol=0,
+            )
+
+
 class TestNumpyAPI:
     def test_uint8_and_float_agree(self):
         rng = np.random.default_rng(0)
