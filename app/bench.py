@@ -10,7 +10,8 @@ and without HTTP, next to the core calls they wrap:
 * ``full``: ``D2F.render`` at full resolution (core) and the slider ``.release`` handler.
 * ``click``: the ``.select`` handler (``focus_at`` + full render), and ``focus_at`` alone.
 * ``download``: writing the full-resolution PNG / JPEG.
-* ``display_png``: PNG encoding of the picture the browser gets (Gradio does it per output).
+* ``display``: JPEG encoding of the picture the browser gets (``app.imaging.write_display``);
+  ``display_png``: the same picture as a level-1 PNG, as it was sent before.
 
 The photo is the Middlebury 'motorcycle' pair of ``d2f_core.bench.bench_scene`` resized to
 the asked size; its measured disparity is used unless ``--network-disparity`` is given (a
@@ -147,7 +148,12 @@ def app_latency_benchmark(
         record("download_png", lambda i: download("PNG"), max(1, repeats // 2))
         record("download_jpeg", lambda i: download("JPEG"), max(1, repeats // 2))
         shown = session.views["Bokeh"]
-        record("display_png", lambda i: Image.fromarray(shown).save(io.BytesIO(), "PNG"))
+        jpeg = {"quality": imaging.DISPLAY_QUALITY, "subsampling": 0}
+        record("display", lambda i: Image.fromarray(shown).save(io.BytesIO(), "JPEG", **jpeg))
+        record(
+            "display_png",
+            lambda i: Image.fromarray(shown).save(io.BytesIO(), "PNG", compress_level=1),
+        )
         session.close()
 
     return {

@@ -563,15 +563,16 @@ class RefocusApp:
             return f"{session.files_written:09d}{suffix}"
 
     def _display_file(self, session: Session, image: np.ndarray) -> str:
-        """Write a picture for the browser as a fast PNG and return its path.
+        """Write a picture for the browser as JPEG (:func:`app.imaging.write_display`) and
+        return its path; the download is written apart, at full resolution.
 
-        Gradio would encode arrays itself at PNG level 6 (0.7 s for 1600x1200 here, 0.14 s
-        at level 1); it copies the file into its cache after the event returns, so a file
-        is removed only once it is old (see :func:`_prune`).
+        Gradio would encode arrays itself as PNG at level 6 (0.7 s for 1600x1200 here); it
+        copies the file into its cache after the event returns, so a file is removed only
+        once it is old (see :func:`_prune`).
         """
         folder = self._session_dir(session, "display")
-        path = folder / self._next_name(session, ".png")
-        imaging.write_png(image, path)
+        path = folder / self._next_name(session, ".jpg")
+        imaging.write_display(image, path)
         _prune(folder, DISPLAY_FILES_KEPT)
         return str(path)
 

@@ -300,7 +300,7 @@ def build_demo(
                 view = gr.Radio(list(VIEWS), value=VIEWS[0], label="View", elem_id="view")
                 result = gr.Image(
                     label="Result",
-                    format="png",
+                    format="jpeg",
                     interactive=False,
                     elem_id="result",
                     height=PANEL_HEIGHT,
@@ -308,7 +308,7 @@ def build_demo(
                 )
                 compare = gr.ImageSlider(
                     label="Before / after",
-                    format="png",
+                    format="jpeg",
                     interactive=False,
                     visible=False,
                     elem_id="compare",
