@@ -13,10 +13,10 @@ from __future__ import annotations
 
 import io
 import urllib.request
-from pathlib import Path
 
 import numpy as np
 import pytest
+from _tiny_hub import save_dpt
 from PIL import Image
 
 from d2f_core import depth_sources
@@ -25,39 +25,6 @@ pytestmark = [pytest.mark.browser, pytest.mark.slow]
 
 TIMEOUT_MS = 30_000
 STATUS = "(document.querySelector('#info textarea')?.value ?? '')"
-
-
-def save_tiny_dpt(folder: Path) -> None:
-    """A tiny random DPT depth model and its processor, as a local model folder."""
-    import torch
-    from transformers import DPTConfig, DPTForDepthEstimation, DPTImageProcessor
-
-    config = DPTConfig(
-        hidden_size=32,
-        num_hidden_layers=4,
-        num_attention_heads=2,
-        intermediate_size=64,
-        image_size=32,
-        patch_size=8,
-        backbone_out_indices=[0, 1, 2, 3],
-        neck_hidden_sizes=[8, 8, 16, 16],
-        fusion_hidden_size=16,
-    )
-    torch.manual_seed(0)
-    model = DPTForDepthEstimation(config).eval()
-    # weights large enough that the map varies across the photo (at the library's own
-    # initialisation scale the head's ReLU gives about 0 everywhere)
-    gen = torch.Generator().manual_seed(2)
-    with torch.no_grad():
-        for name, p in model.named_parameters():
-            if p.ndim > 1:
-                p.copy_(torch.randn(p.shape, generator=gen) / np.sqrt(p[0].numel()))
-            elif "bias" in name:
-                p.copy_(0.1 * torch.randn(p.shape, generator=gen).abs())
-    model.save_pretrained(folder)
-    DPTImageProcessor(size={"height": 32, "width": 32}, keep_aspect_ratio=False).save_pretrained(
-        folder
-    )
 
 
 def wait_status(page, *parts: str) -> str:
@@ -117,7 +84,7 @@ def test_depth_source_in_browser(app_server, chromium_launch_options, two_plane_
             assert hub_offered == depth_sources.hub_available()
             if hub_offered:
                 folder = tmp_path / "tiny-dpt"
-                save_tiny_dpt(folder)
+                save_dpt(folder)
                 # the name first: choosing the source loads at once with the box's value
                 page.locator("#hub_model textarea, #hub_model input").first.fill(str(folder))
                 radio.get_by_text("Hugging Face model", exact=False).click()
