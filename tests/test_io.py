@@ -154,7 +154,7 @@ class TestModes:
         assert r > 0.9 and g < 0.1 and b > 0.9  # magenta
         assert info.icc_profile is None or info.icc_profile != srgb
 
-    def test_int32_and_float_tiff(self):
+    def test_int32_and_float_tiff(self, caplog):
         i32 = (np.arange(12, dtype=np.int32).reshape(3, 4) * 5000).astype(np.int32)
         out, info = load_image_with_info(_encode(Image.fromarray(i32), "TIFF"))
         np.testing.assert_allclose(out[..., 0], i32 / 65535.0, atol=1e-6)
@@ -164,8 +164,10 @@ class TestModes:
         out = load_image(_encode(Image.fromarray(f), "TIFF"))
         assert out[0, 0, 0] == 0.0
         np.testing.assert_allclose(out[..., 1].ravel()[1:], f.ravel()[1:], atol=1e-6)
-        _, info = load_image_with_info(_encode(Image.fromarray(f), "TIFF"))
+        with caplog.at_level(logging.WARNING, logger="d2f_core.io.image"):
+            _, info = load_image_with_info(_encode(Image.fromarray(f), "TIFF"))
         assert "1 NaN or infinite pixels set to 0" in info.conversions
+        assert "1 of 12 pixels are NaN or infinite" in caplog.text
         with pytest.raises(ValueError, match="no finite value"):
             load_image(_encode(Image.fromarray(np.full((3, 4), np.nan, np.float32)), "TIFF"))
         big = f * 1000

@@ -406,7 +406,14 @@ def _to_float_rgb(im: Image.Image, conv: list[str]) -> tuple[np.ndarray, bytes |
         if g.size and not finite.any():
             raise ValueError("float image holds no finite value (every pixel is NaN or infinite)")
         if not finite.all():
-            conv.append(f"{int(g.size - finite.sum())} NaN or infinite pixels set to 0")
+            n_bad = int(g.size - finite.sum())
+            conv.append(f"{n_bad} NaN or infinite pixels set to 0")
+            # said where the user sees it (the CLI prints warnings), not only in the info
+            logger.warning(
+                "float image: %d of %d pixels are NaN or infinite and are shown black",
+                n_bad,
+                g.size,
+            )
             g = np.where(finite, g, 0.0)
         hi = float(g.max()) if g.size else 0.0
         if hi > 1.0:
