@@ -1167,6 +1167,69 @@ def _tiles(t: torch.Tensor, tile: int) -> torch.Tensor:
     return t.view(c, h // tile, tile, w // tile, tile).permute(1, 3, 0, 2, 4)
 
 
+class _TileSource:
+    """The ``tile x tile`` tiles of a ``(C, H, W)`` frame whose sides need not be whole
+    tiles, without a padded copy of it: tiles inside the frame are read from it, the partial
+    tiles of the last row and column from two small copies padded with ``fill``."""
+
+    def __init__(self, x: torch.Tensor, tile: int, fill: float) -> None:
+        c, h, w = x.shape
+        self.tile, self.c = tile, c
+        self.fy, self.fx = h // tile, w // tile  # whole tiles down and across
+        self.ny, self.nx = -(-h // tile), -(-w // tile)
+        body = x[:, : self.fy * tile, : self.fx * tile]
+        self.body = body.unflatten(2, (self.fx, tile)).unflatten(1, (self.fy, tile))
+        self.body = self.body.permute(1, 3, 0, 2, 4)  # (fy, fx, C, t, t)
+        self.bottom = self.right = None
+        self._pads: list[tuple[torch.Tensor, slice, slice]] = []
+        if self.fy < self.ny:  # the last row of tiles, corner included
+            b = x.new_empty(c, tile, self.nx * tile)
+            b[:, : h - self.fy * tile, :w] = x[:, self.fy * tile :]
+            self._pads += [
+                (b, slice(h - self.fy * tile, None), slice(None)),
+                (b, slice(None), slice(w, None)),
+            ]
+            self.bottom = b.view(c, tile, self.nx, tile).permute(2, 0, 1, 3)  # (nx, C, t, t)
+        if self.fx < self.nx:  # the last column of tiles above that row
+            r = x.new_empty(c, self.fy * tile, tile)
+            r[:, :, : w - self.fx * tile] = x[:, : self.fy * tile, self.fx * tile :]
+            self._pads.append((r, slice(None), slice(w - self.fx * tile, None)))
+            self.right = r.view(c, self.fy, tile, tile).permute(1, 0, 2, 3)  # (fy, C, t, t)
+        self.refill(fill)
+
+    def refill(self, fill: float) -> None:
+        """Set the padding past the frame to ``fill``."""
+        for buf, rows, cols in self._pads:
+            buf[:, rows, cols] = fill
+
+    def extreme(self, op) -> torch.Tensor:
+        """``op`` (``torch.amin`` or ``torch.amax``) over each tile and channel, padding
+        included, ``(ny, nx)``."""
+        out = self.body.new_empty(self.ny, self.nx)
+        out[: self.fy, : self.fx] = op(self.body, dim=(2, 3, 4))
+        if self.bottom is not None:
+            out[self.fy] = op(self.bottom, dim=(1, 2, 3))
+        if self.right is not None:
+            out[: self.fy, self.fx] = op(self.right, dim=(1, 2, 3))
+        return out
+
+    def gather(self, a: torch.Tensor, b: torch.Tensor, out: torch.Tensor | None = None):
+        """Tiles ``(a[i], b[i])``, ``(n, C, t, t)``, written into ``out`` when given."""
+        inside = (a < self.fy) & (b < self.fx)
+        if bool(inside.all()):
+            return self.body[a, b] if out is None else out.copy_(self.body[a, b])
+        if out is None:
+            out = self.body.new_empty(a.numel(), self.c, self.tile, self.tile)
+        out[inside] = self.body[a[inside], b[inside]]
+        if self.bottom is not None:
+            low = a == self.fy
+            out[low] = self.bottom[b[low]]
+        if self.right is not None:
+            side = (b == self.fx) & (a < self.fy)
+            out[side] = self.right[a[side]]
+        return out
+
+
 def _tile_mask(ct: torch.Tensor, centre: int, gamma: float, gate: int) -> torch.Tensor:
     """Soft mask of layer ``centre`` for coordinates ``ct`` (in place on a copy), zero on
     the other side of focus when ``gate`` (+1 or -1) is set."""
@@ -1188,6 +1251,41 @@ def _upsample_rows(grid: torch.Tensor, factor: int, y0: int, y1: int, width: int
     b = min(gh, -(-y1 // factor) + 1)
     up = _upsample(grid[None, :, a:b], factor, (b - a) * factor, width)[0]
     return up[:, y0 - a * factor : y1 - a * factor]
+
+
+def _blend_fft(
+    acc: torch.Tensor,
+    grid: torch.Tensor,
+    spec: KernelSpec,
+    size: int,
+    factor: int,
+    y0: int,
+    x0: int,
+    transmit: torch.Tensor | None = None,
+) -> None:
+    """:func:`_blend` (and with ``transmit`` :func:`_blend_transmit`) in place of the
+    coarse layer ``grid`` ``(C, h, w)`` (cells summed) blurred by :func:`_fft`, one channel
+    at a time: a spectrum and a blurred channel at a time, not all of them, are held."""
+    gain = 1.0 / factor**2
+    alpha = _fft(grid[None, :1], spec, size, factor, gain)
+    height, width = acc.shape[-2:]
+    by0, bx0 = max(0, -y0), max(0, -x0)
+    ty0, tx0 = y0 + by0, x0 + bx0
+    ty1 = min(height, y0 + alpha.shape[-2])
+    tx1 = min(width, x0 + alpha.shape[-1])
+    if ty1 <= ty0 or tx1 <= tx0:
+        return
+    rows, cols = slice(by0, by0 + ty1 - ty0), slice(bx0, bx0 + tx1 - tx0)
+    alpha = alpha[..., rows, cols]
+    clamped = alpha.clamp(0, 1)
+    for c in range(grid.shape[0]):
+        part = alpha if c == 0 else _fft(grid[None, c : c + 1], spec, size, factor, gain)
+        region = acc[:, c : c + 1, ty0:ty1, tx0:tx1]
+        # acc (1 - alpha) as acc - acc alpha: one pass
+        region.addcmul_(region, clamped, value=-1).add_(part if c == 0 else part[..., rows, cols])
+    if transmit is not None:
+        region = transmit[..., ty0:ty1, tx0:tx1]
+        region.addcmul_(region, clamped, value=-1)
 
 
 def _spans(columns: list[int], gap: int = 2) -> list[tuple[int, int]]:
@@ -1229,27 +1327,42 @@ def _render_tiled(
     nty, ntx = -(-height // t), -(-width // t)
     hp, wp = nty * t, ntx * t
     dev, dtype = str(image.device), image.dtype
-    # [w I, w] (or I), zero past the frame; the layer is [mask, mask * x]
+    # the layer is [mask, mask w I, mask w] (or [mask, mask I]), read tile by tile or row by
+    # row from the image, the weights (plus the floor, added in place by the caller) and the
+    # layer coordinate: no padded or weighted copy of the frame is built
     cx = 3 if weights is None else 3 + weights.shape[1]
-    xw = image.new_empty(cx, hp, wp)
-    xw[:, height:].zero_()
-    xw[:, :height, width:].zero_()
-    if weights is None:
-        xw[:, :height, :width] = image[0]
-    else:
-        torch.add(weights[0], 1e-4, out=xw[3:, :height, :width])
-        torch.mul(image[0], xw[3:, :height, :width], out=xw[:3, :height, :width])
     chans = cx + 1
-    # the layer coordinate, past the frame so far that no mask reaches it; per tile its
-    # range over the frame's pixels
-    cp = F.pad(plan.coord[0], (0, wp - width, 0, hp - height), value=_FAR)
-    ctiles = cp.view(nty, t, ntx, t).permute(0, 2, 1, 3)
-    lo = ctiles.amin(dim=(2, 3))
-    cp[:, height:].fill_(-_FAR)
-    cp[:, :height, width:].fill_(-_FAR)
-    hi = ctiles.amax(dim=(2, 3))
-    xtiles = _tiles(xw, t)
+    coord = plan.coord[0]
+    itiles = _TileSource(image[0], t, 0.0)
+    wtiles = None if weights is None else _TileSource(weights[0], t, 0.0)
+    # the layer coordinate's range per tile; past the frame the coordinate is so far that no
+    # mask reaches it
+    ctiles = _TileSource(coord, t, _FAR)
+    lo = ctiles.extreme(torch.amin)
+    ctiles.refill(-_FAR)
+    hi = ctiles.extreme(torch.amax)
     reach = 1.0 + _mask_reach(plan.gamma)
+
+    def layer_tiles(a: torch.Tensor, b: torch.Tensor, m: torch.Tensor) -> torch.Tensor:
+        """The layer of mask ``m`` on tiles ``(a, b)``, ``(n, chans, t, t)``."""
+        z = image.new_empty(a.numel(), chans, t, t)
+        z[:, 0] = m
+        if wtiles is None:
+            torch.mul(itiles.gather(a, b), m[:, None], out=z[:, 1:])
+        else:
+            torch.mul(wtiles.gather(a, b), m[:, None], out=z[:, 4:])
+            torch.mul(itiles.gather(a, b), z[:, 4:5], out=z[:, 1:4])
+        return z
+
+    def layer_rows(ys: slice, xs: slice, m: torch.Tensor, out: torch.Tensor) -> None:
+        """The layer of mask ``m`` on frame rows ``ys`` and columns ``xs`` into ``out``
+        ``(chans, rows, columns)``."""
+        out[0] = m
+        if weights is None:
+            torch.mul(image[0, :, ys, xs], m, out=out[1:])
+        else:
+            torch.mul(weights[0, :, ys, xs], m, out=out[4:])
+            torch.mul(image[0, :, ys, xs], out[4:5], out=out[1:4])
 
     def hits(centre: int) -> torch.Tensor:
         """Tiles where layer ``centre`` has a mask above _MASK_EPS, ``(nty, ntx)``."""
@@ -1304,10 +1417,8 @@ def _render_tiled(
         for i in range(0, index.numel(), chunk):
             a, b = ty[i : i + chunk], tx[i : i + chunk]
             n = a.numel()
-            m = _tile_mask(ctiles[a, b], centre, plan.gamma, g)  # (n, t, t)
-            z = image.new_empty(n, chans, t, t)
-            z[:, 0] = m
-            torch.mul(xtiles[a, b], m[:, None], out=z[:, 1:])
+            m = _tile_mask(ctiles.gather(a, b)[:, 0], centre, plan.gamma, g)  # (n, t, t)
+            z = layer_tiles(a, b, m)
             pooled = z.view(n, chans, cell, factor, t).sum(3)
             pooled = pooled.view(n, chans, cell, cell, factor).sum(4)
             gtiles[a - ty0, b - tx0] = pooled
@@ -1323,8 +1434,9 @@ def _render_tiled(
             blurred, oy, ox = _direct_stacked(rows_of, image, chans, cbox, k, (gh, gw))
             stacked = True
         else:
-            blurred = _fft(grid[None], spec, size, factor, 1.0 / factor**2)
-            r = (blurred.shape[-1] - grid.shape[-1]) // 2
+            # blurred by FFT and composited one channel at a time (see _blend_fft)
+            blurred = None
+            r = k.shape[-1] // 2
             oy, ox = ty0 * cell - r, tx0 * cell - r
             stacked = False
         if phase == 0:
@@ -1336,15 +1448,16 @@ def _render_tiled(
             if stacked:
                 _blend_stacked(back[1], blurred, oy, ox)
             else:
-                _blend(back[1], blurred, oy, ox, False)
+                _blend_fft(back[1], grid, spec, size, factor, oy, ox)
+            grid = gtiles = blurred = None  # freed before the next layer's
             continue
         if not front or front[-1][0] != factor:
             front.append([factor, image.new_zeros(1, chans, gh, gw), image.new_ones(1, 1, gh, gw)])
         if stacked:
             _blend_stacked(front[-1][1], blurred, oy, ox, transmit=front[-1][2])
         else:
-            _blend(front[-1][1], blurred, oy, ox, False)
-            _blend_transmit(front[-1][2], blurred[:, :1], oy, ox, False)
+            _blend_fft(front[-1][1], grid, spec, size, factor, oy, ox, transmit=front[-1][2])
+        grid = gtiles = blurred = None
     del grid, gtiles, z, pooled, blurred  # the last coarse layer's buffers
     # fold the front grids into one: the coarsest is on top
     fold = None
@@ -1353,11 +1466,14 @@ def _render_tiled(
             fold = (factor, colour, transmit)
             continue
         f0, c0, t0 = fold
-        up = _upsample(torch.cat([c0, t0], dim=1), f0 // factor, *colour.shape[-2:])
-        colour = colour.mul_(up[:, -1:]).add_(up[:, :-1])
-        fold = (factor, colour, transmit.mul_(up[:, -1:]))
+        up = _upsample(t0, f0 // factor, *colour.shape[-2:])
+        colour.mul_(up)
+        transmit.mul_(up)
+        up = None
+        colour.add_(_upsample(c0, f0 // factor, *colour.shape[-2:]))
+        fold = (factor, colour, transmit)
     if fold is not None:
-        fold = (fold[0], torch.cat([fold[1], fold[2]], dim=1)[0])
+        fold = (fold[0], fold[1][0], fold[2][0])
     front = []
 
     # full-resolution passes, band by band; the result is an ordinary tensor
@@ -1391,9 +1507,9 @@ def _render_tiled(
                 def rows_of(r0, r1, out=None, ya=ya, xa=xa, xb=xb, centre=centre, g=g):
                     if out is None:
                         out = image.new_empty(1, chans, r1 - r0, xb - xa)
-                    m = _tile_mask(cp[0, ya + r0 : ya + r1, xa:xb], centre, plan.gamma, g)
-                    out[0, 0] = m
-                    torch.mul(xw[:, ya + r0 : ya + r1, xa:xb], m, out=out[0, 1:])
+                    ys = slice(ya + r0, ya + r1)
+                    m = _tile_mask(coord[0, ys, xa:xb], centre, plan.gamma, g)
+                    layer_rows(ys, slice(xa, xb), m, out[0])
                     return out
 
                 if size <= 1:
@@ -1403,8 +1519,8 @@ def _render_tiled(
                 out_s, oy0, ox0 = _direct_stacked(rows_of, image, chans, box, k, (y1 - y0, width))
                 _blend_stacked(acc[None], out_s, oy0, ox0)
         if fold is not None:
-            up = _upsample_rows(fold[1], fold[0], y0, y1, width)
-            acc.mul_(up[-1:]).add_(up[:-1])
+            acc.mul_(_upsample_rows(fold[2], fold[0], y0, y1, width))
+            acc.add_(_upsample_rows(fold[1], fold[0], y0, y1, width))
         norm = acc[:1] if weights is None else acc[4:]
         covered = norm > 1e-6
         band_out = out[0, :, y0:y1]
@@ -1618,6 +1734,17 @@ def _render(
         # hundred small tensor operations (about 1 ms per render). The result is divided out of
         # it, so callers get an ordinary tensor.
         with contextlib.nullcontext() if grad else torch.inference_mode():
+            # the plan before the weights: the peak of either is then lower
+            plan = layer_plan(
+                disparity,
+                f,
+                blur,
+                order=order,
+                num_layers=int(num_layers),
+                schedule=schedule,
+                gamma=gamma,
+                placement=placement,
+            )
             weights = None
             if highlight_boost:
                 if radiance is not None or image_max >= HDR_THRESHOLD:
@@ -1626,7 +1753,10 @@ def _render(
                 weights = radiance
             # a floor keeps the normalisation defined where every weight is 0 (e.g. pure red)
             if tiled:
-                x = None  # built band by band by _render_tiled
+                x = None  # read tile by tile and band by band by _render_tiled
+                if weights is not None:
+                    # the floor in place (a copy of a caller's radiance)
+                    weights = weights + 1e-4 if weights is radiance else weights.add_(1e-4)
             elif weights is None:
                 x = image if grad else _with_ones(image)
             elif grad:
@@ -1640,16 +1770,6 @@ def _render(
                 torch.add(weights, 1e-4, out=x[:, 4:])
                 torch.mul(image, x[:, 4:], out=x[:, 1:4])
 
-            plan = layer_plan(
-                disparity,
-                f,
-                blur,
-                order=order,
-                num_layers=int(num_layers),
-                schedule=schedule,
-                gamma=gamma,
-                placement=placement,
-            )
             if tiled and any(size > 1 for _, size in plan.order):
                 spec = KernelSpec(kernel, int(blades), float(rotation))
                 return _render_tiled(image, weights, plan, spec, quality, threads)

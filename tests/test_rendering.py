@@ -913,6 +913,41 @@ class TestLargeFrames:
         assert rendering._spans([1, 2, 5, 9], gap=1) == [(1, 2), (5, 5), (9, 9)]
         assert rendering._spans([]) == []
 
+    @pytest.mark.parametrize("h,w", [(64, 96), (70, 96), (64, 101), (75, 101), (20, 25)])
+    def test_tile_source_matches_a_padded_copy(self, h, w):
+        # tiles read from the frame and its two padded edge copies are those of a padded copy
+        x = torch.rand(2, h, w, generator=torch.Generator().manual_seed(h * w))
+        src = rendering._TileSource(x, 32, 7.0)
+        ny, nx = -(-h // 32), -(-w // 32)
+        padded = torch.full((2, ny * 32, nx * 32), 7.0)
+        padded[:, :h, :w] = x
+        tiles = rendering._tiles(padded, 32)
+        a, b = torch.meshgrid(torch.arange(ny), torch.arange(nx), indexing="ij")
+        a, b = a.flatten().flip(0), b.flatten().flip(0)  # edge tiles first, any order works
+        torch.testing.assert_close(src.gather(a, b), tiles[a, b], rtol=0, atol=0)
+        inside = (a < h // 32) & (b < w // 32)
+        if inside.any():
+            out = torch.empty(int(inside.sum()), 2, 32, 32)
+            src.gather(a[inside], b[inside], out=out)
+            torch.testing.assert_close(out, tiles[a[inside], b[inside]], rtol=0, atol=0)
+        torch.testing.assert_close(src.extreme(torch.amax), tiles.amax(dim=(2, 3, 4)))
+        src.refill(-7.0)
+        padded[:, h:] = -7.0
+        padded[:, :, w:] = -7.0
+        torch.testing.assert_close(src.extreme(torch.amin), tiles.amin(dim=(2, 3, 4)))
+        assert torch.equal(x, padded[:, :h, :w])  # the frame itself is only read
+
+    def test_tiled_path_leaves_a_callers_radiance_alone(self, monkeypatch):
+        monkeypatch.setattr(rendering, "_TILED_MIN_PIXELS", 0)
+        image, disp = self._scene()
+        radiance = torch.rand(1, 1, 150, 218, generator=torch.Generator().manual_seed(2))
+        kept = radiance.clone()
+        options = dict(radiance=radiance, highlight_boost=False)
+        tiled = render(image, disp, 0.55, 260.0, **options)
+        assert torch.equal(radiance, kept)
+        monkeypatch.setattr(rendering, "_TILED_MIN_PIXELS", 10**9)
+        assert psnr(tiled, render(image, disp, 0.55, 260.0, **options)) >= 50.0
+
     def test_upsample_rows_matches_whole_upsampling(self):
         grid = torch.rand(5, 13, 9, generator=torch.Generator().manual_seed(8))
         whole = rendering._upsample(grid[None], 4, 52, 35)[0]
