@@ -56,6 +56,9 @@ DEFAULT_SESSION_IDLE_S = 1800.0
 PREVIEW_MAX_SIDE = 512
 FORMATS = ("PNG", "JPEG")
 DEPTH_KINDS = ("disparity (bright = near)", "depth (bright = far)")
+#: File names of the pictures the app puts in the photo panel (:meth:`RefocusApp.photo_panel`):
+#: when the panel sends one back as the photo, the upload it stands for is used.
+PANEL_PREFIX = "d2f-rendered-from-"
 #: Focus values are rounded to the focal slider's step, so that a value the app sets and
 #: the value the slider sends back compare equal.
 FOCUS_DECIMALS = 3
@@ -153,8 +156,8 @@ class Session:
         key: the photo's key in the scene cache (:func:`app.cache.content_key`).
         get_scene: ``() -> Scene`` for :attr:`key` (cache, else prepare again).
         name: file stem of the upload, used for the download's name.
-        shown_size: ``(width, height)`` of the upload as the browser shows it; clicks come
-            in these coordinates.
+        shown_size: ``(width, height)`` of the picture in the photo panel; clicks come in
+            these coordinates (the upload as the browser shows it, or :attr:`panel`).
         size: ``(width, height)`` of the scene (the upload, possibly downscaled).
         before: ``(h, w, 3)`` uint8 input at display size.
         views: the last render at display size: ``"Bokeh"`` ``(h, w, 3)`` uint8, the maps
@@ -168,7 +171,11 @@ class Session:
         icc_profile, exif: metadata of the upload, written into the download.
         owner: the Gradio session hash of the browser tab or client that loaded it.
         upload: the session's copy of the uploaded photo (shown again after a failed upload).
+        upload_name: the user's file name of the upload.
         source_path: the upload's path as Gradio gave it.
+        panel: the picture the app put in the photo panel in place of the upload, or None:
+            for a Lens Blur file, the embedded all-in-focus original that is rendered from,
+            at display size (:meth:`RefocusApp.photo_panel`).
         last_used: ``time.monotonic()`` of its latest event.
         closed: True once :meth:`close` ran.
     """
@@ -189,7 +196,9 @@ class Session:
     exif: bytes | None = None
     owner: str | None = None
     upload: Path | None = None
+    upload_name: str | None = None
     source_path: str | None = None
+    panel: Path | None = None
     last_used: float = field(default_factory=time.monotonic)
     closed: bool = False
     files_written: int = 0
@@ -707,6 +716,9 @@ class RefocusApp:
                 raise user_error(f"The {what} must be text, got {type(value).__name__}.")
         t0 = time.perf_counter()
         photo_name = _payload_name(image, ext=True)
+        behind = self._upload_behind_panel(session, path)
+        if behind is not None:  # the panel shows the app's picture: load what it stands for
+            path, photo_name = behind
         depth_path = _payload_path(depth)
         depth_name = _payload_name(depth, "depth map", ext=True)
         photo, disparity, source, depth_size = self._decode(
@@ -755,12 +767,10 @@ class RefocusApp:
                 new_focus, blur, blades, rotation, highlight_boost, fusion, quality
             )
             subject = f" | focus on the subject at ({sx:.0f}, {sy:.0f})"
-        if session is not None:
-            session.close()
         new = Session(
             key=key,
             get_scene=_no_scene,  # set below, once the upload is kept
-            name=_payload_name(image),
+            name=_payload_name(photo_name),
             shown_size=photo.shown_size,
             size=photo.size,
             before=imaging.fit_display(imaging.to_uint8(photo.image)),
@@ -770,6 +780,12 @@ class RefocusApp:
         )
         new.get_scene = self._scene_source(new, key, path, photo_name, depth_path, depth_kind,
                                            depth_name, chosen)  # fmt: skip
+        # closed once the new session has its own copy of the upload (which may be the old
+        # session's copy, when the panel showed the app's picture)
+        if session is not None:
+            session.close()
+        if photo.from_original:
+            self._write_panel(new)
         self._register(new)
         session = new
         try:
@@ -824,7 +840,7 @@ class RefocusApp:
         folder = self._session_dir(session, "upload")
         kept = folder / f"photo{Path(path).suffix.lower()}"
         shutil.copyfile(path, kept)
-        session.upload, session.source_path = kept, path
+        session.upload, session.source_path, session.upload_name = kept, path, name
         kept_depth = None
         if depth_path is not None:
             kept_depth = folder / f"depth{Path(depth_path).suffix.lower()}"
@@ -847,6 +863,58 @@ class RefocusApp:
             return scene
 
         return get_scene
+
+    def _write_panel(self, session: Session) -> None:
+        """Put the picture the app renders from in the photo panel (:meth:`photo_panel`).
+
+        A Lens Blur file's main picture is the phone's blurred rendering; the app renders
+        from the all-in-focus original embedded in it (``d2f_core.io.load_photo``), which
+        can differ in size. The panel gets that original at display size, and clicks on it
+        are mapped from its size (:attr:`Session.shown_size`).
+        """
+        folder = self._session_dir(session, "panel")
+        stem = Path(session.upload_name or session.name).stem
+        safe = "".join(c if c.isalnum() or c in "-_" else "_" for c in stem)[:60] or "photo"
+        path = folder / f"{PANEL_PREFIX}{uuid.uuid4().hex[:12]}-{safe}.jpg"
+        imaging.write_display(session.before, path)
+        session.panel = path
+        session.shown_size = (session.before.shape[1], session.before.shape[0])
+
+    @staticmethod
+    def photo_panel(session: Session | None) -> Any:
+        """The photo panel after a successful load: the picture the app renders from when
+        it is not the uploaded file's main picture (a Lens Blur file's embedded original),
+        else ``gr.skip()`` (the panel already shows the upload).
+
+        Setting the panel fires the input's ``.change`` only; the app loads on ``.upload``.
+        """
+        if isinstance(session, Session) and session.panel is not None and not session.closed:
+            return gr.update(value=str(session.panel))
+        return gr.skip()
+
+    @staticmethod
+    def _upload_behind_panel(session: Session | None, path: str) -> tuple[str, str] | None:
+        """``(path, name)`` of the upload behind the picture in the photo panel when the
+        photo input sends that picture back (a depth map or depth source was changed after
+        a Lens Blur upload), else None.
+
+        Raises:
+            SessionClosed: the panel's picture belongs to no live session (closed when idle):
+                it holds neither the depth nor the full-size photo, so it is not loaded.
+        """
+        name = Path(path).name
+        if not name.startswith(PANEL_PREFIX):
+            return None
+        live = (
+            isinstance(session, Session)
+            and not session.closed
+            and session.panel is not None
+            and session.upload is not None
+            and session.panel.name == name
+        )
+        if not live:
+            raise SessionClosed
+        return str(session.upload), session.upload_name or session.upload.name
 
     def note_load_error(self, owner: str | None, message: str) -> None:
         """Keep the message of a failed upload for :meth:`after_failed_load` (per tab)."""
@@ -877,8 +945,12 @@ class RefocusApp:
         if live:
             # the photo input failed (not the depth map): show the loaded photo again
             path = _payload_path(image)
-            same = path == session.source_path
-            photo = gr.skip() if same else gr.update(value=str(session.upload))
+            panel = session.panel
+            same = path == session.source_path or (
+                panel is not None and path is not None and Path(path).name == panel.name
+            )
+            shown = panel if panel is not None else session.upload
+            photo = gr.skip() if same else gr.update(value=str(shown))
             info = f"Error: {message} Still showing {session.name}."
             return (photo, gr.skip(), gr.skip(), gr.skip(), info, gr.skip())
         return (

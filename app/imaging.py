@@ -42,6 +42,9 @@ class Photo:
         depth_source: where ``disparity`` came from (for the status line), or None.
         icc_profile: the upload's ICC profile bytes, or None.
         exif: the upload's EXIF bytes (orientation removed), or None.
+        from_original: True when :attr:`image` is not the file's main picture but the
+            all-in-focus original embedded in it (a Google Lens Blur JPEG, whose main
+            picture is the phone's blurred rendering).
     """
 
     image: np.ndarray
@@ -52,6 +55,7 @@ class Photo:
     depth_source: str | None = None
     icc_profile: bytes | None = None
     exif: bytes | None = None
+    from_original: bool = False
 
     @property
     def size(self) -> tuple[int, int]:
@@ -114,9 +118,11 @@ def load_photo(
     source = None
     if loaded.disparity is not None:
         source = str((loaded.depth_info or {}).get("source", "embedded"))
+    from_original = bool((loaded.depth_info or {}).get("used_original_image"))
     return Photo(
-        image, (ow, oh), notice, loaded.disparity, loaded.focus, source, info.icc_profile, info.exif
-    )
+        image, (ow, oh), notice, loaded.disparity, loaded.focus, source, info.icc_profile,
+        info.exif, from_original,
+    )  # fmt: skip
 
 
 def load_depth_map(

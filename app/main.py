@@ -327,7 +327,9 @@ def build_demo(
         shown = [result, compare, legend, info]
 
         def load_ui(*values):
-            return holding_download(logic.load(*values))
+            outputs = logic.load(*values)
+            # a Lens Blur file: the panel shows the embedded original the app renders from
+            return (*holding_download(outputs), logic.photo_panel(outputs[0]))
 
         def render_full_ui(*values):
             return holding_download(logic.render_full(*values))
@@ -351,14 +353,16 @@ def build_demo(
                 depth_source,
                 hub_model,
             ],  # fmt: skip
-            "outputs": [session, focus, *shown, download],
+            # the photo last: the API's outputs before it keep their places
+            "outputs": [session, focus, *shown, download, photo],
             # raw upload payloads: decoding errors are reported by the app, not by Gradio
             "preprocess": False,
             **heavy,
             **quiet,
         }
         # .upload, not .change: an upload fires .change twice in Gradio 6, and the two runs
-        # then race on the same output file
+        # then race on the same output file; and the load sets the photo panel (a Lens Blur
+        # file's original), which fires .change but not .upload
         # a new depth source re-prepares this photo only (.input: the user's choice, not the
         # choices offered again for a new photo)
         loading = gr.on([photo.upload, photo.clear, depth.change, depth_kind.change,

@@ -11,6 +11,7 @@ from pathlib import Path
 import gradio as gr
 import numpy as np
 import pytest
+from _io_writers import apple_mpo, lensblur_jpeg
 from PIL import Image
 
 from app import imaging
@@ -23,6 +24,7 @@ from app.handlers import (
     Session,
     delete_session,
 )
+from d2f_core import io as d2f_io
 
 BLUR = 120.0  # px: both planes far out of focus when the other is focused
 
@@ -653,6 +655,110 @@ class TestRender:
         logic, session, _ = loaded
         with pytest.raises(gr.Error, match="blur"):
             logic.render_full(session, 0.5, 20_000)
+
+
+def write_lensblur(path: Path, scene, main_size: tuple[int, int]) -> np.ndarray:
+    """A Google Lens Blur JPEG at ``path``: the all-in-focus original is ``scene``'s photo,
+    the main picture (``main_size``) its negative, so the two cannot be mistaken; the depth
+    map puts the scene's box at 1 m and the rest at 4 m. Returns the main picture."""
+    w, h = main_size
+    original = scene.image
+    main = 255 - np.asarray(Image.fromarray(original).resize(main_size, Image.Resampling.BILINEAR))
+    sx, sy = w / original.shape[1], h / original.shape[0]
+    x0, y0, x1, y1 = scene.box
+    z = np.full((h, w), 4.0, np.float32)
+    z[round(y0 * sy) : round(y1 * sy), round(x0 * sx) : round(x1 * sx)] = 1.0
+    path.write_bytes(lensblur_jpeg(original, main, z, near=1.0, far=4.0))
+    return main
+
+
+def mean_gap(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.abs(a.astype(np.int16) - b.astype(np.int16)).mean())
+
+
+class TestLensBlurPanel:
+    """A Lens Blur file's main picture is the phone's blurred rendering; the app renders from
+    the all-in-focus original in it, and the photo panel shows that original."""
+
+    def test_panel_shows_the_original_not_the_main_picture(self, logic, two_plane_scene, tmp_path):
+        path = tmp_path / "lensblur.jpg"
+        main = write_lensblur(path, two_plane_scene, (320, 240))
+        out = logic.load(str(path), None, "disparity", None, 0.5, BLUR)
+        session = out[0]
+        assert "depth embedded in the photo" in out[-1]
+        panel = logic.photo_panel(session)
+        assert not is_skip(panel) and Path(panel["value"]) == session.panel
+        shown = pixels(panel)
+        rendered_from = imaging.to_uint8(d2f_io.load_photo(path).image)  # the original
+        assert shown.shape == main.shape == rendered_from.shape
+        assert mean_gap(shown, rendered_from) < 8  # the original, up to the display JPEG
+        assert mean_gap(shown, main) > 60  # not the file's main picture (its negative)
+        assert session.shown_size == session.size == (320, 240)
+
+    def test_click_maps_from_the_panel_picture(self, logic, scene_factory, tmp_path, monkeypatch):
+        # the original is 640x480, the main picture 320x240 (the scene's size), and the
+        # panel is drawn at most 160 px wide: a click on the panel lands on the scene
+        scene = scene_factory(width=640, height=480)
+        path = tmp_path / "lensblur.jpg"
+        write_lensblur(path, scene, (320, 240))
+        fit = imaging.fit_display
+        monkeypatch.setattr(imaging, "fit_display", lambda im, max_side=160: fit(im, 160))
+        session = logic.load(str(path), None, "disparity", None, 0.5, BLUR)[0]
+        assert session.size == (320, 240)
+        assert session.shown_size == (160, 120) == Image.open(session.panel).size
+        near = [v // 4 for v in scene.near_point]
+        far = [v // 4 for v in scene.far_point]
+        assert logic.click(session, near, BLUR)[0] == pytest.approx(1.0, abs=0.02)
+        assert logic.click(session, far, BLUR)[0] == pytest.approx(0.0, abs=0.02)
+
+    def test_panel_picture_sent_back_loads_the_upload(self, logic, two_plane_scene, tmp_path):
+        path = tmp_path / "lensblur.jpg"
+        write_lensblur(path, two_plane_scene, (320, 240))
+        first = logic.load(
+            {"path": str(path), "orig_name": "PXL 1.jpg"}, None, "disparity", None, 0.5, BLUR
+        )[0]
+        # Gradio hands the panel's picture back from its cache, under the same file name
+        cached = tmp_path / "gradio-cache" / first.panel.name
+        cached.parent.mkdir()
+        cached.write_bytes(first.panel.read_bytes())
+        # a new depth source re-loads with the photo input holding the panel's picture
+        out = logic.load({"path": str(cached)}, None, "disparity", first, 0.5, BLUR, 0, 0.0,
+                         True, True, "Bokeh", "balanced", "embedded", "")  # fmt: skip
+        again = out[0]
+        assert first.closed and again.name == "PXL_1" and again.upload_name == "PXL 1.jpg"
+        assert "depth embedded in the photo" in out[-1]  # the file, not the display JPEG
+        assert again.panel is not None and again.panel.name != first.panel.name
+        assert again.scene is first.get_scene()  # same pixels and depth: the cached scene
+        # once the session is closed the panel's picture stands for nothing: a clear refusal
+        again.close()
+        with pytest.raises(gr.Error, match="closed"):
+            logic.load({"path": str(cached)}, None, "disparity", again, 0.5, BLUR)
+
+    def test_failed_upload_shows_the_original_again(self, logic, two_plane_scene, tmp_path):
+        path = tmp_path / "lensblur.jpg"
+        write_lensblur(path, two_plane_scene, (320, 240))
+        session = logic.load(str(path), None, "disparity", None, 0.5, BLUR)[0]
+        bad = tmp_path / "bad.jpg"
+        bad.write_bytes(b"")
+        with pytest.raises(gr.Error):
+            logic.load(str(bad), None, "disparity", session, 0.5, BLUR)
+        photo, _, _, _, info, _ = logic.after_failed_load(session, {"path": str(bad)})
+        assert photo["value"] == str(session.panel)  # the original, not the blurred file
+        assert "Still showing lensblur" in info
+        # a bad depth map: the photo input still holds the panel's picture, left as it is
+        photo = logic.after_failed_load(session, {"path": f"/cache/x/{session.panel.name}"})[0]
+        assert is_skip(photo)
+
+    def test_other_photos_keep_their_upload_in_the_panel(self, loaded, tmp_path):
+        logic, session, scene = loaded
+        assert is_skip(logic.photo_panel(session)) and session.panel is None
+        # an Apple portrait renders from its main picture: nothing to replace either
+        disp = np.full(scene.image.shape[:2], 40, np.uint8)
+        mpo = tmp_path / "portrait.jpg"
+        mpo.write_bytes(apple_mpo(scene.image, disp, float_min=0.2, float_max=2.0))
+        apple = logic.load(str(mpo), None, "disparity", session, 0.5, BLUR)[0]
+        assert is_skip(logic.photo_panel(apple)) and apple.shown_size == (320, 240)
+        assert is_skip(logic.photo_panel(None))
 
 
 class TestSessions:
