@@ -9,7 +9,10 @@ then clicks Download and reads the saved file's name (``..._f<focus>_K<blur>.jpg
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
+from _io_writers import lensblur_jpeg
+from PIL import Image
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
 
@@ -199,6 +202,76 @@ def test_failed_upload_leaves_one_state(
         finally:
             browser.close()
     log = server.log.read_text()
+    assert "Traceback" not in log, log[-3000:]
+
+
+#: Mean red minus mean blue of the photo panel's picture inside a box given as fractions of
+#: its size (read from a canvas): the test photo's subject is warm, its negative cool.
+PANEL_WARMTH = """(box) => { const img = document.querySelector('#input img');
+    const w = img.naturalWidth, h = img.naturalHeight;
+    const c = document.createElement('canvas'); c.width = w; c.height = h;
+    const g = c.getContext('2d'); g.drawImage(img, 0, 0);
+    const x0 = Math.round(box[0] * w), y0 = Math.round(box[1] * h);
+    const d = g.getImageData(x0, y0, Math.round(box[2] * w) - x0, Math.round(box[3] * h) - y0).data;
+    let r = 0, b = 0;
+    for (let i = 0; i < d.length; i += 4) { r += d[i]; b += d[i + 2]; }
+    return (r - b) / (d.length / 4); }"""
+
+
+def test_lens_blur_panel_shows_the_original(
+    app_server, chromium_launch_options, scene_factory, tmp_path
+):
+    """A Google Lens Blur upload: the photo panel changes from the file's main picture (here
+    the negative of the original, 320x240) to the embedded all-in-focus original the app
+    renders from (640x480, rendered at the main picture's 320x240); setting the panel does
+    not load the photo again, and a click on the subject focuses on it."""
+    from playwright.sync_api import sync_playwright
+
+    scene = scene_factory(width=640, height=480)
+    main = 255 - np.asarray(Image.fromarray(scene.image).resize((320, 240)))
+    x0, y0, x1, y1 = scene.box
+    z = np.full((240, 320), 4.0, np.float32)
+    z[y0 // 2 : y1 // 2, x0 // 2 : x1 // 2] = 1.0  # the subject 1 m away, the rest 4 m
+    path = tmp_path / "PXL_lensblur.jpg"
+    path.write_bytes(lensblur_jpeg(scene.image, main, z, near=1.0, far=4.0))
+    box = [x0 / 640, y0 / 480, x1 / 640, y1 / 480]  # the subject, as fractions of the photo
+
+    server = app_server()
+    with sync_playwright() as p:
+        browser = p.chromium.launch(**chromium_launch_options)
+        try:
+            page = browser.new_page(viewport={"width": 1400, "height": 900})
+            page.set_default_timeout(TIMEOUT_MS)
+            page.goto(server.url)
+            page.wait_for_selector("#focus input[type=range]")
+            page.set_input_files("#input input[type=file]", str(path))
+            page.wait_for_function(f"() => {STATUS}.includes('full render')")
+            page.wait_for_function(
+                "() => (document.querySelector('#input img')?.getAttribute('src') ?? '')"
+                ".includes('d2f-rendered-from-')"
+            )
+            page.wait_for_function(f"() => JSON.stringify(({PHOTO_SIZE})()) === '[320,240]'")
+            # the subject is warm in the original and cool in the file's main picture
+            assert page.evaluate(PANEL_WARMTH, box) > 20
+            status = page.locator("#info textarea").input_value()
+            assert "depth embedded in the photo" in status
+
+            # a click on the subject in the panel focuses on it (near = 1)
+            img = page.locator("#input img")
+            rect = img.bounding_box()
+            scale = min(rect["width"] / 320, rect["height"] / 240)
+            left = rect["x"] + (rect["width"] - 320 * scale) / 2
+            top = rect["y"] + (rect["height"] - 240 * scale) / 2
+            nx, ny = scene.near_point
+            page.mouse.click(left + nx / 2 * scale, top + ny / 2 * scale)
+            page.wait_for_function(f"() => {STATUS}.includes('focus_at')")
+            status = page.locator("#info textarea").input_value()
+            focus = float(status.split("focus ")[1].split(" ")[0])
+            assert focus == pytest.approx(1.0, abs=0.02), status
+        finally:
+            browser.close()
+    log = server.log.read_text()
+    assert log.count("loaded PXL_lensblur") == 1, log[-3000:]  # the panel's update loads nothing
     assert "Traceback" not in log, log[-3000:]
 
 
