@@ -9,41 +9,14 @@ tmp dir (``<tmp_path>/screens/NN_<step>.png``).
 
 from __future__ import annotations
 
-import io
-import urllib.request
 from pathlib import Path
 
-import numpy as np
 import pytest
-from PIL import Image
+from _browser import fetch_image, result_src, wait_new_result
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
 
 TIMEOUT_MS = 30_000
-
-
-def result_src(page) -> str | None:
-    return page.evaluate("() => document.querySelector('#result img')?.getAttribute('src')")
-
-
-def wait_new_result(page, old: str | None) -> str:
-    """Wait until ``#result img`` shows a different, fully loaded file; return its src."""
-    page.wait_for_function(
-        """(old) => {
-            const img = document.querySelector('#result img');
-            return img && img.getAttribute('src') && img.getAttribute('src') !== old
-                && img.complete && img.naturalWidth > 0;
-        }""",
-        arg=old,
-        timeout=TIMEOUT_MS,
-    )
-    return result_src(page)
-
-
-def fetch_image(page, src: str) -> np.ndarray:
-    url = src if src.startswith("http") else page.url.rstrip("/") + "/" + src.lstrip("/")
-    with urllib.request.urlopen(url, timeout=10) as r:
-        return np.asarray(Image.open(io.BytesIO(r.read())).convert("RGB"))
 
 
 def click_photo_at(page, x: int, y: int) -> None:

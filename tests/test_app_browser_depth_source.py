@@ -11,13 +11,10 @@ from the scene cache.
 
 from __future__ import annotations
 
-import io
-import urllib.request
-
 import numpy as np
 import pytest
+from _browser import fetch_image, wait_new_result
 from _tiny_hub import save_dpt
-from PIL import Image
 
 from d2f_core import depth_sources
 
@@ -35,25 +32,6 @@ def wait_status(page, *parts: str) -> str:
         arg=list(parts),
     )
     return page.locator("#info textarea").input_value()
-
-
-def wait_new_result(page, old: str | None) -> str:
-    """Wait until ``#result img`` shows a different, fully loaded file; return its src."""
-    page.wait_for_function(
-        """(old) => {
-            const img = document.querySelector('#result img');
-            return img && img.getAttribute('src') && img.getAttribute('src') !== old
-                && img.complete && img.naturalWidth > 0;
-        }""",
-        arg=old,
-    )
-    return page.evaluate("() => document.querySelector('#result img').getAttribute('src')")
-
-
-def fetch_image(page, src: str) -> np.ndarray:
-    url = src if src.startswith("http") else page.url.rstrip("/") + "/" + src.lstrip("/")
-    with urllib.request.urlopen(url, timeout=10) as r:
-        return np.asarray(Image.open(io.BytesIO(r.read())).convert("RGB"), np.int16)
 
 
 def test_depth_source_in_browser(app_server, chromium_launch_options, two_plane_scene, tmp_path):

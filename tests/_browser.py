@@ -1,0 +1,36 @@
+"""Helpers for the browser tests: wait for and read the result picture the real page shows
+(as int16, so that differences of two pictures do not wrap)."""
+
+from __future__ import annotations
+
+import io
+import urllib.request
+
+import numpy as np
+from PIL import Image
+
+TIMEOUT_MS = 30_000
+
+
+def result_src(page) -> str | None:
+    return page.evaluate("() => document.querySelector('#result img')?.getAttribute('src')")
+
+
+def wait_new_result(page, old: str | None) -> str:
+    """Wait until ``#result img`` shows a different, fully loaded file; return its src."""
+    page.wait_for_function(
+        """(old) => {
+            const img = document.querySelector('#result img');
+            return img && img.getAttribute('src') && img.getAttribute('src') !== old
+                && img.complete && img.naturalWidth > 0;
+        }""",
+        arg=old,
+        timeout=TIMEOUT_MS,
+    )
+    return result_src(page)
+
+
+def fetch_image(page, src: str) -> np.ndarray:
+    url = src if src.startswith("http") else page.url.rstrip("/") + "/" + src.lstrip("/")
+    with urllib.request.urlopen(url, timeout=10) as r:
+        return np.asarray(Image.open(io.BytesIO(r.read())).convert("RGB"), np.int16)
