@@ -913,22 +913,35 @@ def grid_factor(size: int, quality: str) -> int:
 # --------------------------------------------------------------------------------------
 
 
+def _overlap(
+    frame: tuple[int, int], y0: int, x0: int, part: tuple[int, int]
+) -> tuple[tuple[slice, slice], tuple[slice, slice]] | None:
+    """Where a ``part`` (h, w) placed at offset (y0, x0) meets a ``frame`` (H, W): the part's
+    (rows, cols) and the frame's (rows, cols), or None when they do not meet."""
+    height, width = frame
+    by0, bx0 = max(0, -y0), max(0, -x0)
+    ty0, tx0 = y0 + by0, x0 + bx0
+    ty1 = min(height, y0 + part[0])
+    tx1 = min(width, x0 + part[1])
+    if ty1 <= ty0 or tx1 <= tx0:
+        return None
+    src = (slice(by0, by0 + ty1 - ty0), slice(bx0, bx0 + tx1 - tx0))
+    return src, (slice(ty0, ty1), slice(tx0, tx1))
+
+
 def _blend(acc: torch.Tensor, part: torch.Tensor, y0: int, x0: int, grad: bool) -> torch.Tensor:
     """Composite ``part`` (alpha in channel 0, premultiplied colour after it) over ``acc``
     at offset (y0, x0), clipped to the frame. Returns the updated accumulator."""
-    height, width = acc.shape[-2:]
-    by0, bx0 = max(0, -y0), max(0, -x0)
-    ty0, tx0 = y0 + by0, x0 + bx0
-    ty1 = min(height, y0 + part.shape[-2])
-    tx1 = min(width, x0 + part.shape[-1])
-    if ty1 <= ty0 or tx1 <= tx0:
+    meet = _overlap(acc.shape[-2:], y0, x0, part.shape[-2:])
+    if meet is None:
         return acc
-    part = part[..., by0 : by0 + ty1 - ty0, bx0 : bx0 + tx1 - tx0]
-    region = acc[..., ty0:ty1, tx0:tx1]
+    (rows, cols), (frows, fcols) = meet
+    part = part[..., rows, cols]
+    region = acc[..., frows, fcols]
     if grad:
         keep = 1 - part[:, :1].clamp(0, 1)
         acc = acc.clone()
-        acc[..., ty0:ty1, tx0:tx1] = region * keep + part
+        acc[..., frows, fcols] = region * keep + part
     else:  # acc (1 - alpha) as acc - acc alpha: one pass
         region.addcmul_(region, part[:, :1].clamp(0, 1), value=-1).add_(part)
     return acc
@@ -1129,20 +1142,17 @@ def _blend_transmit(
     transmit: torch.Tensor, alpha: torch.Tensor, y0: int, x0: int, grad: bool
 ) -> torch.Tensor:
     """Multiply the transmittance by ``1 - alpha`` at offset (y0, x0), clipped to the frame."""
-    height, width = transmit.shape[-2:]
-    by0, bx0 = max(0, -y0), max(0, -x0)
-    ty0, tx0 = y0 + by0, x0 + bx0
-    ty1 = min(height, y0 + alpha.shape[-2])
-    tx1 = min(width, x0 + alpha.shape[-1])
-    if ty1 <= ty0 or tx1 <= tx0:
+    meet = _overlap(transmit.shape[-2:], y0, x0, alpha.shape[-2:])
+    if meet is None:
         return transmit
-    keep = 1 - alpha[..., by0 : by0 + ty1 - ty0, bx0 : bx0 + tx1 - tx0].clamp(0, 1)
+    (rows, cols), (frows, fcols) = meet
+    keep = 1 - alpha[..., rows, cols].clamp(0, 1)
     if grad:
-        updated = transmit[..., ty0:ty1, tx0:tx1] * keep
+        updated = transmit[..., frows, fcols] * keep
         transmit = transmit.clone()
-        transmit[..., ty0:ty1, tx0:tx1] = updated
+        transmit[..., frows, fcols] = updated
     else:
-        transmit[..., ty0:ty1, tx0:tx1].mul_(keep)
+        transmit[..., frows, fcols].mul_(keep)
     return transmit
 
 
@@ -1268,23 +1278,19 @@ def _blend_fft(
     at a time: a spectrum and a blurred channel at a time, not all of them, are held."""
     gain = 1.0 / factor**2
     alpha = _fft(grid[None, :1], spec, size, factor, gain)
-    height, width = acc.shape[-2:]
-    by0, bx0 = max(0, -y0), max(0, -x0)
-    ty0, tx0 = y0 + by0, x0 + bx0
-    ty1 = min(height, y0 + alpha.shape[-2])
-    tx1 = min(width, x0 + alpha.shape[-1])
-    if ty1 <= ty0 or tx1 <= tx0:
+    meet = _overlap(acc.shape[-2:], y0, x0, alpha.shape[-2:])
+    if meet is None:
         return
-    rows, cols = slice(by0, by0 + ty1 - ty0), slice(bx0, bx0 + tx1 - tx0)
+    (rows, cols), (frows, fcols) = meet
     alpha = alpha[..., rows, cols]
     clamped = alpha.clamp(0, 1)
     for c in range(grid.shape[0]):
         part = alpha if c == 0 else _fft(grid[None, c : c + 1], spec, size, factor, gain)
-        region = acc[:, c : c + 1, ty0:ty1, tx0:tx1]
+        region = acc[:, c : c + 1, frows, fcols]
         # acc (1 - alpha) as acc - acc alpha: one pass
         region.addcmul_(region, clamped, value=-1).add_(part if c == 0 else part[..., rows, cols])
     if transmit is not None:
-        region = transmit[..., ty0:ty1, tx0:tx1]
+        region = transmit[..., frows, fcols]
         region.addcmul_(region, clamped, value=-1)
 
 
