@@ -34,3 +34,16 @@ def fetch_image(page, src: str) -> np.ndarray:
     url = src if src.startswith("http") else page.url.rstrip("/") + "/" + src.lstrip("/")
     with urllib.request.urlopen(url, timeout=10) as r:
         return np.asarray(Image.open(io.BytesIO(r.read())).convert("RGB"), np.int16)
+
+
+def open_app(browser, url: str, *, height: int = 900, errors: list | None = None, **options):
+    """A new page, 1400 x ``height``, on the app at ``url`` once its sliders are there; the
+    page's script errors are appended to ``errors`` when given. ``options`` go to
+    ``browser.new_page``."""
+    page = browser.new_page(viewport={"width": 1400, "height": height}, **options)
+    if errors is not None:
+        page.on("pageerror", lambda e: errors.append(str(e)))
+    page.set_default_timeout(TIMEOUT_MS)
+    page.goto(url)
+    page.wait_for_selector("#focus input[type=range]")
+    return page

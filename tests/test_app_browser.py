@@ -12,11 +12,9 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from _browser import fetch_image, result_src, wait_new_result
+from _browser import fetch_image, open_app, result_src, wait_new_result
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
-
-TIMEOUT_MS = 30_000
 
 
 def click_photo_at(page, x: int, y: int) -> None:
@@ -63,11 +61,7 @@ def test_refocus_in_browser(
     with sync_playwright() as p:
         browser = p.chromium.launch(**chromium_launch_options)
         try:
-            page = browser.new_page(viewport={"width": 1400, "height": 1000})
-            page.on("pageerror", lambda e: errors.append(str(e)))
-            page.set_default_timeout(TIMEOUT_MS)
-            page.goto(server.url)
-            page.wait_for_selector("#focus input[type=range]")
+            page = open_app(browser, server.url, height=1000, errors=errors)
             download = page.locator("button#download, #download button").first
             assert download.is_disabled()  # nothing to save before a render
 

@@ -13,14 +13,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from _browser import fetch_image, wait_new_result
+from _browser import fetch_image, open_app, wait_new_result
 from _tiny_hub import save_dpt
 
 from d2f_core import depth_sources
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
 
-TIMEOUT_MS = 30_000
 STATUS = "(document.querySelector('#info textarea')?.value ?? '')"
 
 
@@ -42,11 +41,7 @@ def test_depth_source_in_browser(app_server, chromium_launch_options, two_plane_
     with sync_playwright() as p:
         browser = p.chromium.launch(**chromium_launch_options)
         try:
-            page = browser.new_page(viewport={"width": 1400, "height": 1000})
-            page.on("pageerror", lambda e: errors.append(str(e)))
-            page.set_default_timeout(TIMEOUT_MS)
-            page.goto(server.url)
-            page.wait_for_selector("#focus input[type=range]")
+            page = open_app(browser, server.url, height=1000, errors=errors)
 
             # the photo carries no depth: automatic means the shipped network
             page.set_input_files("#input input[type=file]", str(two_plane_scene.photo))

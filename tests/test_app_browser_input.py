@@ -11,12 +11,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from _browser import TIMEOUT_MS, open_app
 from _io_writers import lensblur_jpeg
 from PIL import Image
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
 
-TIMEOUT_MS = 30_000
 #: A full render of the 320x240 test photo takes well under a second; a value that ends in
 #: a preview only never reaches the full render, and the wait fails after this long.
 FULL_RENDER_WAIT_MS = 10_000
@@ -67,11 +67,7 @@ def test_every_input_ends_in_the_full_render(
     with sync_playwright() as p:
         browser = p.chromium.launch(**chromium_launch_options)
         try:
-            page = browser.new_page(viewport={"width": 1400, "height": 900}, accept_downloads=True)
-            page.on("pageerror", lambda e: errors.append(str(e)))
-            page.set_default_timeout(TIMEOUT_MS)
-            page.goto(server.url)
-            page.wait_for_selector("#focus input[type=range]")
+            page = open_app(browser, server.url, errors=errors, accept_downloads=True)
             page.set_input_files("#input input[type=file]", str(two_plane_scene.photo))
             page.wait_for_function(f"() => {STATUS}.includes('full render')")
 
@@ -161,10 +157,7 @@ def test_failed_upload_leaves_one_state(
     with sync_playwright() as p:
         browser = p.chromium.launch(**chromium_launch_options)
         try:
-            page = browser.new_page(viewport={"width": 1400, "height": 900})
-            page.set_default_timeout(TIMEOUT_MS)
-            page.goto(server.url)
-            page.wait_for_selector("#focus input[type=range]")
+            page = open_app(browser, server.url)
             page.set_input_files("#input input[type=file]", str(two_plane_scene.photo))
             page.wait_for_function(f"() => {STATUS}.includes('full render')")
             result_src = page.evaluate(
@@ -191,10 +184,7 @@ def test_failed_upload_leaves_one_state(
             page.wait_for_function(f"() => {STATUS}.includes('focus 0.200 |')")
 
             # a fresh page: nothing loaded, so nothing is shown but the error
-            page = browser.new_page(viewport={"width": 1400, "height": 900})
-            page.set_default_timeout(TIMEOUT_MS)
-            page.goto(server.url)
-            page.wait_for_selector("#focus input[type=range]")
+            page = open_app(browser, server.url)
             page.set_input_files("#input input[type=file]", str(bad))
             page.wait_for_function(f"() => {STATUS}.startsWith('Error: notes.jpg')")
             page.wait_for_function("() => !document.querySelector('#input img[src]')")
@@ -240,10 +230,7 @@ def test_lens_blur_panel_shows_the_original(
     with sync_playwright() as p:
         browser = p.chromium.launch(**chromium_launch_options)
         try:
-            page = browser.new_page(viewport={"width": 1400, "height": 900})
-            page.set_default_timeout(TIMEOUT_MS)
-            page.goto(server.url)
-            page.wait_for_selector("#focus input[type=range]")
+            page = open_app(browser, server.url)
             page.set_input_files("#input input[type=file]", str(path))
             page.wait_for_function(f"() => {STATUS}.includes('full render')")
             page.wait_for_function(
@@ -284,10 +271,7 @@ def test_examples_above_the_fold(app_server, chromium_launch_options):
     with sync_playwright() as p:
         browser = p.chromium.launch(**chromium_launch_options)
         try:
-            page = browser.new_page(viewport={"width": 1400, "height": 900})
-            page.set_default_timeout(TIMEOUT_MS)
-            page.goto(server.url)
-            page.wait_for_selector("#focus input[type=range]")
+            page = open_app(browser, server.url)
             thumbs = page.locator(".gallery-item, [data-testid=examples] button")
             thumbs.first.wait_for()
             boxes = {
