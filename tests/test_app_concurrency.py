@@ -13,6 +13,7 @@ from __future__ import annotations
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -39,6 +40,27 @@ def rss_mb(pid: int) -> float:
         if line.startswith("VmRSS:"):
             return int(line.split()[1]) / 1024
     raise RuntimeError("no VmRSS")
+
+
+@contextmanager
+def peak_rss(pid: int, start: float):
+    """While the block runs, the RSS of ``pid`` is sampled every 50 ms; yields ``[peak]``,
+    the highest seen in MB (at least ``start``), updated in place."""
+    peak = [start]
+    stop = threading.Event()
+
+    def sample() -> None:
+        while not stop.is_set():
+            peak[0] = max(peak[0], rss_mb(pid))
+            time.sleep(0.05)
+
+    sampler = threading.Thread(target=sample, daemon=True)
+    sampler.start()
+    try:
+        yield peak
+    finally:
+        stop.set()
+        sampler.join()
 
 
 def test_sixteen_sessions(app_server, scene_factory, gradio_env, tmp_path, monkeypatch):
@@ -71,13 +93,6 @@ def test_sixteen_sessions(app_server, scene_factory, gradio_env, tmp_path, monke
     warm.predict(handle_file(str(scenes[0].photo)), None, kind, 0.5, 60, *options,
                  api_name="/load", **SOURCE)  # fmt: skip
     rss_before = rss_mb(server.process.pid)
-    peak = [rss_before]
-    stop = threading.Event()
-
-    def sample_rss():
-        while not stop.is_set():
-            peak[0] = max(peak[0], rss_mb(server.process.pid))
-            time.sleep(0.05)
 
     def check_size(update, size):
         assert Image.open(update["value"]).size == size
@@ -116,9 +131,7 @@ def test_sixteen_sessions(app_server, scene_factory, gradio_env, tmp_path, monke
         move_sliders(client, i, 0)
         return client
 
-    sampler = threading.Thread(target=sample_rss, daemon=True)
-    sampler.start()
-    try:
+    with peak_rss(server.process.pid, rss_before) as peak:
         t0 = time.perf_counter()
         with ThreadPoolExecutor(SESSIONS) as pool:
             clients = list(pool.map(open_session, range(SESSIONS)))
@@ -128,9 +141,6 @@ def test_sixteen_sessions(app_server, scene_factory, gradio_env, tmp_path, monke
         with ThreadPoolExecutor(SESSIONS) as pool:
             list(pool.map(lambda i: move_sliders(clients[i], i, 1), range(SESSIONS)))
         second = time.perf_counter() - t0
-    finally:
-        stop.set()
-        sampler.join()
     rss_second = rss_mb(server.process.pid)
 
     print(
@@ -208,13 +218,6 @@ def test_forty_sessions_bounded_memory(
     warm.predict(None, None, kind, 0.5, 60, *options, api_name="/load", **SOURCE)  # closed
     assert session_folders() == []
     rss_before = rss_mb(server.process.pid)
-    peak = [rss_before]
-    stop = threading.Event()
-
-    def sample_rss():
-        while not stop.is_set():
-            peak[0] = max(peak[0], rss_mb(server.process.pid))
-            time.sleep(0.05)
 
     def open_session(i: int) -> Client:
         scene = scene_factory(*size, seed=i, stem=f"p{i:02d}")
@@ -237,10 +240,8 @@ def test_forty_sessions_bounded_memory(
             time.sleep(0.25)
         assert session_folders() == []
 
-    sampler = threading.Thread(target=sample_rss, daemon=True)
-    sampler.start()
     refused = ""
-    try:
+    with peak_rss(server.process.pid, rss_before) as peak:
         for wave in range(7):
             with ThreadPoolExecutor(WAVE) as pool:
                 clients = list(pool.map(open_session, range(WAVE * wave, WAVE * wave + WAVE)))
@@ -252,9 +253,6 @@ def test_forty_sessions_bounded_memory(
                     open_session(44)
                 refused = str(err.value)
             leave(clients)
-    finally:
-        stop.set()
-        sampler.join()
     rss_after = rss_mb(server.process.pid)
     print(
         f"44 sessions ({size[0]}x{size[1]}, cap {MAX_LIVE}, cache {CACHE_MB} MB): RSS "
