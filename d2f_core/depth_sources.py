@@ -304,10 +304,10 @@ def _fit(disparity: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     """Resize a map to ``size`` bilinearly (antialiased when shrinking), clipped to [0, 1]."""
     if disparity.shape == tuple(size):
         return np.clip(disparity, 0.0, 1.0).astype(np.float32, copy=False)
+    from .sizing import resize
+
     t = torch.from_numpy(np.ascontiguousarray(disparity, dtype=np.float32))[None, None]
-    shrink = size[0] < t.shape[-2] or size[1] < t.shape[-1]
-    t = F.interpolate(t, size=tuple(size), mode="bilinear", align_corners=False, antialias=shrink)
-    return t[0, 0].clamp_(0, 1).numpy()
+    return resize(t, tuple(size))[0, 0].clamp_(0, 1).numpy()
 
 
 def _d2f_map(model: Any, image: np.ndarray) -> np.ndarray:
