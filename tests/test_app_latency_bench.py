@@ -1,0 +1,111 @@
+"""``python -m app.latency_bench``: the browser latency bench of the app.
+
+The browser test runs the bench through ``main`` at the small size (800x600, the shipped
+weights, two repeats, two steps per drag) against the real app in headless Chromium, and
+checks the table and the JSON: every row there with positive, finite times, each action gave
+a new picture (each click a refocused one), the release a full render and the drag steps
+previews. The
+other tests check the size names and the table's target marks on made-up figures. No test
+asserts a time.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+
+import pytest
+
+from app import latency_bench
+from app.latency_bench import FULL_RENDER_RE, ROWS, format_table, parse_size
+
+
+def test_parse_size():
+    assert parse_size("small") == ("small", (800, 600))
+    assert parse_size("12MP") == ("12mp", (4000, 3000))
+    assert parse_size("640x480") == ("640x480", (640, 480))
+    for bad in ("huge", "640", "32x32", "axb"):
+        with pytest.raises(ValueError, match="size must"):
+            parse_size(bad)
+
+
+def test_main_refuses_bad_options(capsys):
+    with pytest.raises(SystemExit) as exc:
+        latency_bench.main(["--sizes", "small,huge"])
+    assert exc.value.code == 2
+    assert "'huge'" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        latency_bench.main(["--repeats", "0"])
+
+
+def _row(median: float) -> dict:
+    return {"median_ms": median, "min_ms": median - 1, "max_ms": median + 1, "n": 3,
+            "server_median_ms": median / 2}  # fmt: skip
+
+
+def test_table_marks_targets_at_12mp_only():
+    rows = {"upload": _row(9000), "click": _row(1400), "release": _row(2100),
+            "drag_step": _row(150)}  # fmt: skip
+    entry = {"rows": rows, "warmup_upload_ms": 9500.0, "file_mb": 1.3}
+    result = {
+        "commit": "abc1234",
+        "chromium": "156",
+        "threads": 1,
+        "repeats": 3,
+        "steps": 5,
+        "loadavg_start": "1.00 0.50 0.25",
+        "loadavg_end": "2.00 1.00 0.50",
+        "targets_ms": dict(latency_bench.TARGETS_MS),
+        "target_pixels": latency_bench.TARGET_PIXELS,
+        "sizes": {"small": {**entry, "size": [800, 600]}, "12mp": {**entry, "size": [4000, 3000]}},
+    }
+    lines = format_table(result).splitlines()
+    big = {line.split(" | ")[1]: line for line in lines if line.startswith("| 12mp 4000x3000 |")}
+    small = [line for line in lines if line.startswith("| small 800x600 |")]
+    assert big[ROWS["click"]].endswith("| <= 1500 ms: ok |")
+    assert big[ROWS["release"]].endswith("| <= 2000 ms: MISSED |")
+    assert big[ROWS["drag_step"]].endswith("| <= 150 ms: ok |")  # at the target is on it
+    assert big[ROWS["upload"]].endswith("| none |")
+    assert len(small) == 4 and not any(": ok" in line or "MISSED" in line for line in small)
+    assert "at start 1.00 0.50 0.25, at end 2.00 1.00 0.50" in lines[1]
+
+
+@pytest.mark.browser
+@pytest.mark.slow
+def test_bench_in_browser_small(chromium_path, tmp_path, capsys):
+    out = tmp_path / "latency.json"
+    argv = ["--sizes", "small", "--repeats", "2", "--steps", "2", "--threads", "1",
+            "--chromium", chromium_path, "--json", str(out)]  # fmt: skip
+    assert latency_bench.main(argv) == 0
+    printed = capsys.readouterr().out
+    result = json.loads(out.read_text())
+
+    assert result["threads"] == 1
+    assert result["server_log_tracebacks"] == 0
+    for key in ("loadavg_start", "loadavg_end"):
+        assert re.fullmatch(r"\d+\.\d+ \d+\.\d+ \d+\.\d+", result[key]), result[key]
+    assert list(result["sizes"]) == ["small"]
+    entry = result["sizes"]["small"]
+    assert entry["size"] == [800, 600]
+    rows = entry["rows"]
+    assert list(rows) == list(ROWS)
+    counts = {"upload": 2, "click": 2, "release": 2, "drag_step": 4}
+    for key, row in rows.items():
+        runs = row["runs_ms"]
+        assert row["n"] == len(runs) == counts[key], key
+        assert all(math.isfinite(v) and v > 0 for v in runs), (key, runs)
+        assert row["min_ms"] <= row["median_ms"] <= row["max_ms"], key
+        assert row["server_median_ms"] > 0, key
+        assert all(row["new_src"]), (key, row["status"])
+    # the clicks refocused: not the same picture again (0.0 when two clicks land at one depth)
+    assert all(d > 0.5 for d in rows["click"]["picture_diff"]), rows["click"]
+    for status in rows["upload"]["status"] + rows["release"]["status"]:
+        assert re.search(FULL_RENDER_RE, status), status
+    for status in rows["drag_step"]["status"]:
+        assert not re.search(FULL_RENDER_RE, status), status  # a preview
+    assert math.isfinite(entry["warmup_upload_ms"]) and entry["warmup_upload_ms"] > 0
+
+    table = [line for line in printed.splitlines() if line.startswith("| small 800x600 |")]
+    assert [line.split(" | ")[1] for line in table] == list(ROWS.values())
+    assert f"at start {result['loadavg_start']}" in printed
