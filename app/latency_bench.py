@@ -18,9 +18,9 @@ document in the capture phase) and of the result image's ``load`` event, so Play
 round trips are not counted. The page is driven by element ids only (``#input``, ``#blur``,
 ``#result``, ``#info``) and by the slider track's own min / max, never by what the slider
 values mean. After the timing, a 64x48 thumbnail of each picture is compared with the one
-before (``picture_diff``), which tells a refocused picture from the same one again. Between actions the bench waits until the app's process is idle (the
-download file written after a full render, for one), so that one action's work does not fall
-on the next one's time.
+before (``picture_diff``), which tells a refocused picture from the same one again. Between
+actions the bench waits until the app's process is idle (the download file written after a
+full render, for one), so that one action's work does not fall on the next one's time.
 
 The photo is the Middlebury 'motorcycle' (bundled with scikit-image) cropped to 4:3 and
 resized to each size, written as JPEG (quality 92) into a temporary folder. The status
