@@ -204,19 +204,26 @@ def _methods(weights: str | Path | None, with_blender: bool) -> dict[str, Callab
 
     model = D2F.from_pretrained(weights)
 
-    def renderer(case: Case) -> np.ndarray:
+    def renderer(case: Case, hidden: bool = True) -> np.ndarray:
         img, disp = case.tensors()
-        return render(img, disp, case.focus, case.blur)[0].permute(1, 2, 0).numpy()
+        out = render(img, disp, case.focus, case.blur, hidden=hidden)
+        return out[0].permute(1, 2, 0).numpy()
 
-    def pipeline(case: Case) -> np.ndarray:
+    def pipeline(case: Case, hidden: bool = True) -> np.ndarray:
         scene = model.prepare(case.image, disparity=case.disparity)
-        return model.render(scene, case.focus, case.blur).bokeh
+        return model.render(scene, case.focus, case.blur, hidden=hidden).bokeh
 
     def gather(case: Case) -> np.ndarray:
         img, disp = case.tensors()
         return gather_render(img, disp, case.focus, case.blur)[0].permute(1, 2, 0).numpy()
 
-    methods = {"d2f renderer": renderer, "d2f pipeline": pipeline, "gather": gather}
+    methods = {
+        "d2f renderer": renderer,
+        "d2f renderer, no hidden surface": lambda c: renderer(c, hidden=False),
+        "d2f pipeline": pipeline,
+        "d2f pipeline, no hidden surface": lambda c: pipeline(c, hidden=False),
+        "gather": gather,
+    }
     if with_blender:
         methods["Blender Defocus"] = lambda c: blender_render(c.image, c.disparity, c.focus, c.blur)
     return methods

@@ -35,6 +35,7 @@ import glob
 import math
 import os
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -491,6 +492,226 @@ def _layer_mask(coord: torch.Tensor, centre: int, gamma: float, grad: bool = Tru
 def _mask_reach(gamma: float) -> float:
     # distance beyond |coord - centre| = 1 where the soft mask drops below _MASK_EPS
     return math.atanh(1 - 2 * _MASK_EPS) / gamma
+
+
+# --------------------------------------------------------------------------------------
+# what lies behind a blurred near edge
+# --------------------------------------------------------------------------------------
+
+# A depth edge is a jump of at least this many layers within 2 px; the hidden surface is drawn
+# only where the pixel is at least this much nearer than it (its masks then barely overlap
+# the pixel's own).
+_HIDDEN_JUMP = 2.5
+# Near sides whose kernel is at most this many px are opaque: nothing is seen past them.
+_HIDDEN_MIN_SIZE = 3
+
+
+@dataclass
+class HiddenSurface:
+    """What a lens sees behind the rim of a blurred near object, which the photo does not
+    show: the far side of each depth edge continued under the near side, within the near
+    side's CoC radius of the edge (:func:`hidden_surface`). It is composited under every
+    layer: what the layers in front leave of it shows.
+
+    Held on coarse grids and drawn window by window (:meth:`window`): ``fill``
+    ``(B, C + 1, h, w)`` is the carried ``[1, x]`` content and, last, its layer coordinate,
+    on a grid of 2 px from frame pixel ``origin``; ``band`` ``(B, 1, h', w')`` marks the
+    cells of ``cell`` px (from the frame's corner) within reach of an edge; ``box`` bounds
+    the band in the frame.
+    """
+
+    box: tuple[int, int, int, int]
+    origin: tuple[int, int]
+    fill: torch.Tensor
+    band: torch.Tensor
+    cell: int
+    jump: float
+
+    def window(self, coord: torch.Tensor, y0: int, y1: int, x0: int, x1: int) -> torch.Tensor:
+        """The surface's ``[1, x]`` premultiplied by its coverage on frame rows ``y0:y1`` and
+        columns ``x0:x1`` (inside :attr:`box`), ``(B, C, y1 - y0, x1 - x0)``; ``coord`` is the
+        plan's layer coordinate of the whole frame."""
+        oy, ox = self.origin
+        filled = _upsample_window(self.fill, 2, y0 - oy, y1 - oy, x0 - ox, x1 - ox)
+        c = self.cell
+        band = self.band[..., y0 // c : -(-y1 // c), x0 // c : -(-x1 // c)]
+        band = band.repeat_interleave(c, -2).repeat_interleave(c, -1)
+        band = band[..., y0 % c : y0 % c + y1 - y0, x0 % c : x0 % c + x1 - x0]
+        # drawn where the pixel is well in front of what is carried under it, fading in over
+        # a layer
+        weight = coord[..., y0:y1, x0:x1] - filled[:, -1:]
+        if weight.requires_grad:
+            return filled[:, :-1] * ((weight - (self.jump - 1)).clamp(0, 1) * band)
+        weight = weight.sub_(self.jump - 1).clamp_(0, 1).mul_(band)
+        return filled[:, :-1].mul_(weight)
+
+
+def _input_window(x: torch.Tensor, grad: bool) -> Callable[[int, int, int, int], torch.Tensor]:
+    """``[1, x]`` on a window, from the renderer's layer input ``x`` (which carries the
+    channel of ones without gradients, and not with them)."""
+
+    def window(a: int, b: int, c: int, d: int) -> torch.Tensor:
+        part = x[..., a:b, c:d]
+        if not grad:
+            return part
+        return torch.cat([torch.ones_like(part[:, :1]), part], dim=1)
+
+    return window
+
+
+def _under(
+    acc: torch.Tensor, hidden: HiddenSurface, coord: torch.Tensor, grad: bool
+) -> torch.Tensor:
+    """Composite ``hidden`` under the accumulator ``acc`` (alpha first):
+    ``acc + (1 - alpha) * hidden`` over its box (in place without gradients). The hidden
+    surface's gradient flows into the colours and layer coordinates it is made of (not
+    into where it is drawn)."""
+    y0, y1, x0, x1 = hidden.box
+    part = hidden.window(coord, y0, y1, x0, x1)
+    region = acc[..., y0:y1, x0:x1]
+    left = 1 - region[:, :1].clamp(0, 1)
+    if not grad:
+        region.addcmul_(part, left)
+        return acc
+    acc = acc.clone()
+    acc[..., y0:y1, x0:x1] = region + part * left
+    return acc
+
+
+def _upsample_window(grid: torch.Tensor, factor: int, y0: int, y1: int, x0: int, x1: int):
+    """Rows ``y0:y1`` and columns ``x0:x1`` (px) of the bilinear upsampling of ``grid``
+    ``(B, C, gh, gw)`` by ``factor`` (:func:`_upsample`): only the cells they read."""
+    gh, gw = grid.shape[-2:]
+    a, b = max(0, y0 // factor - 1), min(gh, -(-y1 // factor) + 1)
+    c, d = max(0, x0 // factor - 1), min(gw, -(-x1 // factor) + 1)
+    up = _upsample(grid[..., a:b, c:d], factor, (b - a) * factor, (d - c) * factor)
+    return up[..., y0 - a * factor : y1 - a * factor, x0 - c * factor : x1 - c * factor]
+
+
+def _window_max(t: torch.Tensor, size: int, dim: int) -> torch.Tensor:
+    """Running maximum over ``size`` samples centred on each (``size`` odd), along ``dim``,
+    the edge values held: ``log2(size)`` elementwise maxima by window doubling."""
+    n = t.shape[dim]
+    r = size // 2
+    if r == 0 or n == 0:
+        return t
+    first, last = t.narrow(dim, 0, 1), t.narrow(dim, n - 1, 1)
+    pad = torch.cat([first.repeat_interleave(r, dim), t, last.repeat_interleave(r, dim)], dim)
+    m, span = pad, 1  # m[i]: the maximum of pad[i : i + span]
+    while 2 * span <= size:
+        k = m.shape[dim] - span
+        m = torch.maximum(m.narrow(dim, 0, k), m.narrow(dim, span, k))
+        span *= 2
+    # a window of `size` is two overlapping windows of `span`
+    return torch.maximum(m.narrow(dim, 0, n), m.narrow(dim, size - span, n))
+
+
+def _max_filter(t: torch.Tensor, size: int) -> torch.Tensor:
+    """Maximum over the ``size x size`` square centred on each pixel (edges held)."""
+    return _window_max(_window_max(t, size, -2), size, -1)
+
+
+def _push_pull(values: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    """Fill ``values`` where ``weight`` is 0 from where it is not, by push-pull over an image
+    pyramid: each level holds the weighted mean of its 2x2 cells, and a cell's value is
+    blended with the bilinear upsampling of the level above by one minus its weight (up to 1).
+
+    Shape: ``values (B, C, H, W)``, ``weight (B, 1, H, W)`` >= 0 -> ``(B, C, H, W)``.
+    """
+    levels = []
+    v, w = values * weight, weight
+    while True:
+        levels.append((v, w))
+        if v.shape[-2] <= 1 and v.shape[-1] <= 1:
+            break
+        # sums over 2x2 cells (the last row or column alone when odd)
+        v = F.avg_pool2d(v, 2, ceil_mode=True, divisor_override=1)
+        w = F.avg_pool2d(w, 2, ceil_mode=True, divisor_override=1)
+    v, w = levels[-1]
+    filled = v / w.clamp(min=1e-12)
+    for v, w in reversed(levels[:-1]):
+        up = _upsample(filled, 2, *v.shape[-2:])
+        own = v / w.clamp(min=1e-12)
+        filled = up.lerp_(own, w.clamp(max=1))
+    return filled
+
+
+# Rows of the frame the hidden surface's full-resolution passes work on at once.
+_HIDDEN_ROWS = 256
+
+
+def hidden_surface(
+    layer_input: Callable[[int, int, int, int], torch.Tensor],
+    plan: LayerPlan,
+    jump: float = _HIDDEN_JUMP,
+) -> HiddenSurface | None:
+    """The surface behind the rims of blurred near objects, for the depth order's plan
+    ``plan`` of one image (no gradients); ``None`` when no blurred near side meets a depth
+    edge. ``layer_input(y0, y1, x0, x1)`` gives the frame's ``[1, x]`` (ones, the weighted
+    colour, the weights) on a window.
+
+    At a depth edge (a jump of at least ``jump`` layers within 2 px) the photo shows only the
+    near side, but where the near side is blurred a lens sees past its rim, up to its CoC
+    radius inside it, to what lies behind: the far side, continued under the near one. The
+    far-side pixels along each edge are the known pixels; their colour and layer coordinate
+    are carried under the near side by push-pull (:func:`_push_pull`) on a grid of 2 px (the
+    fill is smooth), and drawn where the pixel is within the largest blurred near side's CoC
+    radius of an edge and at least ``jump`` layers nearer than what is carried under it.
+    The full-resolution passes run by bands of rows, in bounded memory.
+    """
+    coord = plan.coord.detach()  # where it is drawn: no gradient
+    if coord.shape[0] != 1 or coord.numel() == 0:
+        return None
+    height, width = coord.shape[-2:]
+    cell, step = 4, _HIDDEN_ROWS
+    # near sides of edges, marked on the cell grid, and the largest |coord| among them
+    grid = coord.new_zeros(1, 1, -(-height // cell), -(-width // cell))
+    top = -1.0
+    for y0 in range(0, height, step):
+        y1 = min(height, y0 + step)
+        a, b = max(0, y0 - 2), min(height, y1 + 2)
+        c = coord[..., a:b, :]
+        near = (c + _max_filter(-c, 5))[..., y0 - a : y1 - a, :] >= jump
+        if not bool(near.any()):
+            continue
+        top = max(top, float(torch.where(near, c[..., y0 - a : y1 - a, :].abs(), 0.0).max()))
+        cells = F.max_pool2d(near.to(coord.dtype), cell, cell, ceil_mode=True)
+        grid[..., y0 // cell : y0 // cell + cells.shape[-2], :] = cells
+    if top < 0:
+        return None
+    # kernel sizes grow with |coord| on both sides: the near side's radius
+    sizes = {abs(centre): size for centre, size in plan.order}
+    radius = sizes[min(round(top), max(sizes))] // 2
+    if 2 * radius + 1 < _HIDDEN_MIN_SIZE:
+        return None
+    band = _max_filter(grid, 2 * (-(-radius // cell)) + 1)
+    rows = torch.nonzero(band.amax(dim=(0, 1, 3)) > 0).flatten()
+    cols = torch.nonzero(band.amax(dim=(0, 1, 2)) > 0).flatten()
+    y0, y1 = int(rows[0]) * cell, min(height, (int(rows[-1]) + 1) * cell)
+    x0, x1 = int(cols[0]) * cell, min(width, (int(cols[-1]) + 1) * cell)
+    # the known pixels: the far side of each edge, from a margin around the band, summed
+    # into cells of 2 px by bands of rows
+    m = 2 + radius
+    py0, px0 = max(0, y0 - m) & ~1, max(0, x0 - m) & ~1
+    py1, px1 = min(height, y1 + m), min(width, x1 + m)
+    sums = known = None
+    for r0 in range(py0, py1, step):
+        r1 = min(py1, r0 + step)
+        a, b = max(0, r0 - 2), min(height, r1 + 2)
+        c = coord[..., a:b, px0:px1]
+        far = (_max_filter(c, 5) - c)[..., r0 - a : r1 - a, :].ge_(jump)
+        carried = plan.coord[..., r0:r1, px0:px1]
+        part = torch.cat([layer_input(r0, r1, px0, px1), carried], dim=1) * far
+        part = F.avg_pool2d(part, 2, ceil_mode=True, divisor_override=1)
+        count = F.avg_pool2d(far, 2, ceil_mode=True, divisor_override=1)
+        if sums is None:
+            hh, hw = -(-(py1 - py0) // 2), part.shape[-1]
+            sums = part.new_zeros(1, part.shape[1], hh, hw)
+            known = part.new_zeros(1, 1, hh, hw)
+        sums[..., (r0 - py0) // 2 : (r0 - py0) // 2 + part.shape[-2], :] = part
+        known[..., (r0 - py0) // 2 : (r0 - py0) // 2 + part.shape[-2], :] = count
+    fill = _push_pull(sums / known.clamp(min=1e-12), known)
+    return HiddenSurface((y0, y1, x0, x1), (py0, px0), fill, band, cell, jump)
 
 
 # --------------------------------------------------------------------------------------
@@ -958,8 +1179,12 @@ def _composite(
     front: bool = False,
     front_size: float = 0.0,
     threads: _ThreadChoice | None = None,
+    hidden: HiddenSurface | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, tuple[torch.Tensor, torch.Tensor] | None]:
     """Composite the layers of ``x`` back to front. Returns (acc, alpha, split).
+
+    A ``hidden`` surface (:func:`hidden_surface`, no gradients) is composited under all
+    the layers (under the layers behind the focal plane with ``front``).
 
     With ``front`` (a signed plan), the layers in front of the focal plane are composited
     from zero into their own accumulator, ``(C_f, A_f)``, and merged once,
@@ -996,9 +1221,8 @@ def _composite(
         boxes = {centre: (0, height, 0, width) for centre, _ in plan.order}
     else:
         boxes = _support_boxes(plan, height, width)
-    group: tuple[int, torch.Tensor, torch.Tensor | None] | None = None
-
     blank = True  # nothing composited into acc yet
+    group: tuple[int, torch.Tensor, torch.Tensor | None] | None = None
 
     def flush(acc: torch.Tensor) -> torch.Tensor:
         nonlocal group, blank
@@ -1095,6 +1319,12 @@ def _composite(
             transmit = _blend_transmit(transmit, blurred[:, :1], oy0, ox0, grad)
         group = (factor, colour, transmit)
     acc = flush(acc)
+    if hidden is not None:
+        # under every layer (over is associative): what the layers leave of it shows
+        if back is not None:
+            back = _under(back, hidden, plan.coord, grad)
+        else:
+            acc = _under(acc, hidden, plan.coord, grad)
     split = None
     if back is not None:
         transmit = 1 - acc[:, :1].clamp(0, 1)
@@ -1313,6 +1543,7 @@ def _render_tiled(
     spec: KernelSpec,
     quality: str,
     threads: _ThreadChoice | None,
+    hidden: bool = True,
 ) -> torch.Tensor:
     """:func:`render` of one large frame without gradients, in bounded memory.
 
@@ -1386,6 +1617,18 @@ def _render_tiled(
         if not plan.signed or centre == 0 or abs(centre) > reach + 1:
             return 0
         return 1 if centre > 0 else -1
+
+    under = None
+    if hidden and plan.signed:
+
+        def layer_input(a: int, b: int, c: int, d: int) -> torch.Tensor:
+            ones = image.new_ones(1, 1, b - a, d - c)
+            if weights is None:
+                return torch.cat([ones, image[..., a:b, c:d]], dim=1)
+            w = weights[..., a:b, c:d]
+            return torch.cat([ones, image[..., a:b, c:d] * w[:, :1], w], dim=1)
+
+        under = hidden_surface(layer_input, plan)
 
     chunk = max(1, _CHUNK_PIXELS // (t * t))
     back: tuple[int, torch.Tensor] | None = None  # (factor, colour) behind the focus
@@ -1524,6 +1767,14 @@ def _render_tiled(
                 box = (ya - y0, yb - y0, xa, xb)
                 out_s, oy0, ox0 = _direct_stacked(rows_of, image, chans, box, k, (y1 - y0, width))
                 _blend_stacked(acc[None], out_s, oy0, ox0)
+        if under is not None:
+            # under every layer (over is associative): what the layers leave of it shows
+            hy0, hy1, hx0, hx1 = under.box
+            a, b = max(y0, hy0), min(y1, hy1)
+            if a < b:
+                region = acc[:, a - y0 : b - y0, hx0:hx1]
+                left = 1 - region[:1].clamp(0, 1)
+                region.addcmul_(under.window(plan.coord, a, b, hx0, hx1)[0], left)
         if fold is not None:
             acc.mul_(_upsample_rows(fold[2], fold[0], y0, y1, width))
             acc.add_(_upsample_rows(fold[1], fold[0], y0, y1, width))
@@ -1582,6 +1833,7 @@ def render(
     placement: str = "nearest",
     behind: bool = False,
     front_size: float = 0.0,
+    hidden: bool = True,
     checked: bool = False,
 ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Render bokeh with weighted layered rendering.
@@ -1612,6 +1864,10 @@ def render(
         front_size: with ``behind``, the layers in front of the focal plane drawn with a
             kernel under this many px count as behind it (a near subject's own slightly
             defocused rim is for the sharpening step to decide, like the subject).
+        hidden: depth order: draw what lies behind the rim of a blurred near object
+            (:func:`hidden_surface`), which a real lens sees past it and the photo does not
+            show; ``False`` leaves those pixels to the near object alone. No gradient flows
+            into the hidden surface itself.
         checked: ``True`` from a caller that has put ``focus`` and ``blur`` through
             :func:`check_focus_blur` already (``D2F.render``, :func:`render_bokeh`,
             ``adaptive.render_adaptive``): they are used as given, not checked again.
@@ -1660,6 +1916,7 @@ def render(
         placement=placement,
         behind=behind,
         front_size=front_size,
+        hidden=hidden,
     )
     if image.shape[0] <= 1:
         return _render(image, disparity, f, blur, image_max, disparity_range, radiance, **options)
@@ -1709,6 +1966,7 @@ def _render(
     placement: str,
     behind: bool,
     front_size: float,
+    hidden: bool,
 ):
     """:func:`render` of one image whose input it has checked: ``f`` the focal plane as a
     ``(1, 1, 1, 1)`` tensor, ``blur`` a float, ``image_max`` and ``disparity_range`` the
@@ -1778,11 +2036,14 @@ def _render(
 
             if tiled and any(size > 1 for _, size in plan.order):
                 spec = KernelSpec(kernel, int(blades), float(rotation))
-                return _render_tiled(image, weights, plan, spec, quality, threads)
+                return _render_tiled(image, weights, plan, spec, quality, threads, hidden)
             # when nothing is blurred every layer is the identity, so is the composite
             blurred = any(size > 1 for _, size in plan.order)
             if blurred:
                 spec = KernelSpec(kernel, int(blades), float(rotation))
+                under = None
+                if hidden and plan.signed:
+                    under = hidden_surface(_input_window(x, grad), plan)
                 acc, alpha, split = _composite(
                     x,
                     plan,
@@ -1793,6 +2054,7 @@ def _render(
                     front=behind and plan.signed,
                     front_size=front_size,
                     threads=threads,
+                    hidden=under,
                 )
                 norm, floor = (alpha, 1e-6) if weights is None else (acc[:, 3:], 1e-8)
                 # pixels no layer reached (cannot happen with soft masks, but stay defined) keep

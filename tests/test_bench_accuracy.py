@@ -243,12 +243,18 @@ class TestPeers:
         result = run_peers(cases, repeat=1, blender=False)
         assert "Blender Defocus skipped" in result["notes"][0]
         table = summary(result["rows"])
-        assert set(table) == {"d2f renderer", "d2f pipeline", "gather"}
+        assert set(table) == {
+            "d2f renderer",
+            "d2f renderer, no hidden surface",
+            "d2f pipeline",
+            "d2f pipeline, no hidden surface",
+            "gather",
+        }
         assert table["d2f renderer"]["time ratio"] == pytest.approx(1.0)
         for entry in table.values():
             assert entry["all"] is not None and 5 < entry["all"] < 100
             assert {name for name, _, _ in CATEGORIES} <= set(entry)
-        assert format_table(table).count("\n") == 4
+        assert format_table(table).count("\n") == 6
 
     def test_blender_peer_when_installed(self):
         """Blender's Defocus node as the bench runs it: pixels in = pixels out where nothing

@@ -16,6 +16,7 @@ from d2f_core.rendering import (
     _layer_mask,
     _support_boxes,
     hdr_boost,
+    hidden_surface,
     layer_plan,
 )
 
@@ -376,6 +377,15 @@ class TestImplementations:
             k = aperture_kernel(2 * r + 1, radius=r, dtype=torch.float64)
             blurred = F.conv2d(F.pad(z, (r,) * 4), k.flip(-1, -2).expand(4, 1, -1, -1), groups=4)
             acc = acc * (1 - blurred[:, :1].clamp(0, 1)) + blurred
+        # and under every layer, what lies behind the rims of blurred near objects
+        ones_x = torch.cat([torch.ones_like(x[:, :1]), x], dim=1)
+        hidden = hidden_surface(lambda a, b, c, d: ones_x[..., a:b, c:d], plan)
+        assert hidden is not None
+        y0, y1, x0, x1 = hidden.box
+        under = torch.zeros_like(acc)
+        under[..., y0:y1, x0:x1] = hidden.window(plan.coord, y0, y1, x0, x1)
+        assert under[:, :1].max() > 0.5
+        acc = acc + (1 - acc[:, :1].clamp(0, 1)) * under
         expected = (acc[:, 1:] / acc[:, :1]).clamp(0, 1)
         with torch.no_grad():
             out = render(img, disp, 0.5, 40.0, quality="exact", method=method)
