@@ -511,39 +511,39 @@ class HiddenSurface:
     """What a lens sees behind the rim of a blurred near object, which the photo does not
     show: the far side of each depth edge continued under the near side, within the near
     side's CoC radius of the edge (:func:`hidden_surface`). It is composited under every
-    layer: what the layers in front leave of it shows.
+    layer: what the layers in front leave of it shows, and where they are opaque it does not
+    matter.
 
-    Held on coarse grids and drawn window by window (:meth:`window`): ``fill``
-    ``(B, C + 1, h, w)`` is the carried ``[1, x]`` content and, last, its layer coordinate,
-    on a grid of 2 px from frame pixel ``origin``; ``band`` ``(B, 1, h', w')`` marks the
-    cells of ``cell`` px (from the frame's corner) within reach of an edge; ``box`` bounds
-    the band in the frame.
+    ``x`` ``(B, C, h, w)`` is its ``[1, x]`` content premultiplied by its coverage, on a grid
+    of ``grid`` px whose first cell starts at frame pixel ``origin`` (a multiple of
+    :data:`MAX_FACTOR`); ``box`` bounds it in the frame.
     """
 
     box: tuple[int, int, int, int]
     origin: tuple[int, int]
-    fill: torch.Tensor
-    band: torch.Tensor
-    cell: int
-    jump: float
+    grid: int
+    x: torch.Tensor
 
-    def window(self, coord: torch.Tensor, y0: int, y1: int, x0: int, x1: int) -> torch.Tensor:
-        """The surface's ``[1, x]`` premultiplied by its coverage on frame rows ``y0:y1`` and
-        columns ``x0:x1`` (inside :attr:`box`), ``(B, C, y1 - y0, x1 - x0)``; ``coord`` is the
-        plan's layer coordinate of the whole frame."""
+    def window(self, y0: int, y1: int, x0: int, x1: int) -> torch.Tensor:
+        """The surface on frame rows ``y0:y1`` and columns ``x0:x1`` (inside :attr:`box`),
+        bilinearly upsampled, ``(B, C, y1 - y0, x1 - x0)``."""
         oy, ox = self.origin
-        filled = _upsample_window(self.fill, 2, y0 - oy, y1 - oy, x0 - ox, x1 - ox)
-        c = self.cell
-        band = self.band[..., y0 // c : -(-y1 // c), x0 // c : -(-x1 // c)]
-        band = band.repeat_interleave(c, -2).repeat_interleave(c, -1)
-        band = band[..., y0 % c : y0 % c + y1 - y0, x0 % c : x0 % c + x1 - x0]
-        # drawn where the pixel is well in front of what is carried under it, fading in over
-        # a layer
-        weight = coord[..., y0:y1, x0:x1] - filled[:, -1:]
-        if weight.requires_grad:
-            return filled[:, :-1] * ((weight - (self.jump - 1)).clamp(0, 1) * band)
-        weight = weight.sub_(self.jump - 1).clamp_(0, 1).mul_(band)
-        return filled[:, :-1].mul_(weight)
+        return _upsample_window(self.x, self.grid, y0 - oy, y1 - oy, x0 - ox, x1 - ox)
+
+    def on_grid(self, factor: int, height: int, width: int) -> torch.Tensor:
+        """The surface on the frame's grid of ``factor`` px (``height x width`` cells),
+        zero outside its box."""
+        oy, ox = self.origin
+        out = self.x.new_zeros(*self.x.shape[:2], height, width)
+        if factor >= self.grid:
+            part = F.avg_pool2d(self.x, factor // self.grid, ceil_mode=True)
+        else:
+            n = self.grid // factor
+            part = _upsample(self.x, n, self.x.shape[-2] * n, self.x.shape[-1] * n)
+        y0, x0 = oy // factor, ox // factor
+        h, w = min(part.shape[-2], height - y0), min(part.shape[-1], width - x0)
+        out[..., y0 : y0 + h, x0 : x0 + w] = part[..., :h, :w]
+        return out
 
 
 def _input_window(x: torch.Tensor, grad: bool) -> Callable[[int, int, int, int], torch.Tensor]:
@@ -559,15 +559,13 @@ def _input_window(x: torch.Tensor, grad: bool) -> Callable[[int, int, int, int],
     return window
 
 
-def _under(
-    acc: torch.Tensor, hidden: HiddenSurface, coord: torch.Tensor, grad: bool
-) -> torch.Tensor:
+def _under(acc: torch.Tensor, hidden: HiddenSurface, grad: bool) -> torch.Tensor:
     """Composite ``hidden`` under the accumulator ``acc`` (alpha first):
     ``acc + (1 - alpha) * hidden`` over its box (in place without gradients). The hidden
     surface's gradient flows into the colours and layer coordinates it is made of (not
     into where it is drawn)."""
     y0, y1, x0, x1 = hidden.box
-    part = hidden.window(coord, y0, y1, x0, x1)
+    part = hidden.window(y0, y1, x0, x1)
     region = acc[..., y0:y1, x0:x1]
     left = 1 - region[:, :1].clamp(0, 1)
     if not grad:
@@ -690,11 +688,14 @@ def hidden_surface(
     y0, y1 = int(rows[0]) * cell, min(height, (int(rows[-1]) + 1) * cell)
     x0, x1 = int(cols[0]) * cell, min(width, (int(cols[-1]) + 1) * cell)
     # the known pixels: the far side of each edge, from a margin around the band, summed
-    # into cells of 2 px by bands of rows
+    # into cells of `g` px by bands of rows; a blur of that radius smooths what is seen past
+    # it, so the cells grow with it
+    g = 2 if radius < 16 else 4 if radius < 32 else 8
     m = 2 + radius
-    py0, px0 = max(0, y0 - m) & ~1, max(0, x0 - m) & ~1
+    py0, px0 = max(0, y0 - m) // MAX_FACTOR * MAX_FACTOR, max(0, x0 - m) // MAX_FACTOR * MAX_FACTOR
     py1, px1 = min(height, y1 + m), min(width, x1 + m)
-    sums = known = None
+    hh, hw = -(-(py1 - py0) // g), -(-(px1 - px0) // g)
+    sums = known = nearest = None
     for r0 in range(py0, py1, step):
         r1 = min(py1, r0 + step)
         a, b = max(0, r0 - 2), min(height, r1 + 2)
@@ -702,16 +703,32 @@ def hidden_surface(
         far = (_max_filter(c, 5) - c)[..., r0 - a : r1 - a, :].ge_(jump)
         carried = plan.coord[..., r0:r1, px0:px1]
         part = torch.cat([layer_input(r0, r1, px0, px1), carried], dim=1) * far
-        part = F.avg_pool2d(part, 2, ceil_mode=True, divisor_override=1)
-        count = F.avg_pool2d(far, 2, ceil_mode=True, divisor_override=1)
+        part = F.avg_pool2d(part, g, ceil_mode=True, divisor_override=1)
+        count = F.avg_pool2d(far, g, ceil_mode=True, divisor_override=1)
+        # each cell's nearest pixel: the hidden surface is drawn under the cells that hold a
+        # near side
+        top_c = F.max_pool2d(carried, g, ceil_mode=True)
         if sums is None:
-            hh, hw = -(-(py1 - py0) // 2), part.shape[-1]
             sums = part.new_zeros(1, part.shape[1], hh, hw)
             known = part.new_zeros(1, 1, hh, hw)
-        sums[..., (r0 - py0) // 2 : (r0 - py0) // 2 + part.shape[-2], :] = part
-        known[..., (r0 - py0) // 2 : (r0 - py0) // 2 + part.shape[-2], :] = count
+            nearest = coord.new_zeros(1, 1, hh, hw)
+        rows_g = slice((r0 - py0) // g, (r0 - py0) // g + part.shape[-2])
+        sums[..., rows_g, :] = part
+        known[..., rows_g, :] = count
+        nearest[..., rows_g, :] = top_c
     fill = _push_pull(sums / known.clamp(min=1e-12), known)
-    return HiddenSurface((y0, y1, x0, x1), (py0, px0), fill, band, cell, jump)
+    # drawn where the cell holds a pixel well in front of what is carried under it (fading
+    # in over a layer), within reach of an edge
+    if g > cell:
+        band = F.max_pool2d(band, g // cell, ceil_mode=True)
+    elif g < cell:
+        band = band.repeat_interleave(cell // g, -2).repeat_interleave(cell // g, -1)
+    band = band[..., py0 // g : py0 // g + hh, px0 // g : px0 // g + hw]
+    band = F.pad(band, (0, hw - band.shape[-1], 0, hh - band.shape[-2]))
+    weight = (nearest - fill[:, -1:]).sub_(jump - 1).clamp_(0, 1).mul_(band)
+    if not bool(weight.any()):
+        return None
+    return HiddenSurface((py0, py1, px0, px1), (py0, px0), g, fill[:, :-1] * weight)
 
 
 # --------------------------------------------------------------------------------------
@@ -1322,9 +1339,9 @@ def _composite(
     if hidden is not None:
         # under every layer (over is associative): what the layers leave of it shows
         if back is not None:
-            back = _under(back, hidden, plan.coord, grad)
+            back = _under(back, hidden, grad)
         else:
-            acc = _under(acc, hidden, plan.coord, grad)
+            acc = _under(acc, hidden, grad)
     split = None
     if back is not None:
         transmit = 1 - acc[:, :1].clamp(0, 1)
@@ -1725,6 +1742,16 @@ def _render_tiled(
         fold = (fold[0], fold[1][0], fold[2][0])
     front = []
 
+    if under is not None:
+        # under every layer (over is associative), on the grid of the layers behind the
+        # focal plane: what the layers leave of it shows
+        factor = under.grid if back is None else back[0]
+        if back is None:
+            back = (factor, image.new_zeros(1, chans, hp // factor, wp // factor))
+        grid = back[1]
+        grid.addcmul_(under.on_grid(factor, *grid.shape[-2:]), 1 - grid[:, :1].clamp(0, 1))
+        grid = under = None
+
     # full-resolution passes, band by band; the result is an ordinary tensor
     with torch.inference_mode(False):
         out = torch.empty_like(image)
@@ -1767,14 +1794,6 @@ def _render_tiled(
                 box = (ya - y0, yb - y0, xa, xb)
                 out_s, oy0, ox0 = _direct_stacked(rows_of, image, chans, box, k, (y1 - y0, width))
                 _blend_stacked(acc[None], out_s, oy0, ox0)
-        if under is not None:
-            # under every layer (over is associative): what the layers leave of it shows
-            hy0, hy1, hx0, hx1 = under.box
-            a, b = max(y0, hy0), min(y1, hy1)
-            if a < b:
-                region = acc[:, a - y0 : b - y0, hx0:hx1]
-                left = 1 - region[:1].clamp(0, 1)
-                region.addcmul_(under.window(plan.coord, a, b, hx0, hx1)[0], left)
         if fold is not None:
             acc.mul_(_upsample_rows(fold[2], fold[0], y0, y1, width))
             acc.add_(_upsample_rows(fold[1], fold[0], y0, y1, width))

@@ -383,7 +383,7 @@ class TestImplementations:
         assert hidden is not None
         y0, y1, x0, x1 = hidden.box
         under = torch.zeros_like(acc)
-        under[..., y0:y1, x0:x1] = hidden.window(plan.coord, y0, y1, x0, x1)
+        under[..., y0:y1, x0:x1] = hidden.window(y0, y1, x0, x1)
         assert under[:, :1].max() > 0.5
         acc = acc + (1 - acc[:, :1].clamp(0, 1)) * under
         expected = (acc[:, 1:] / acc[:, :1]).clamp(0, 1)
