@@ -16,7 +16,14 @@ def resize(x: Tensor, size: tuple[int, int]) -> Tensor:
     if tuple(x.shape[-2:]) == tuple(size):
         return x
     shrink = size[0] < x.shape[-2] or size[1] < x.shape[-1]
-    return F.interpolate(x, size=size, mode="bilinear", align_corners=False, antialias=shrink)
+    if shrink or x.dim() != 4:
+        return F.interpolate(x, size=size, mode="bilinear", align_corners=False, antialias=shrink)
+    # Enlarged one channel at a time (as a batch of one-channel images): on the CPU a
+    # three-channel image takes another kernel, three times slower (a 600x800 colour picture
+    # to 12 MP: 281 against 93 ms, 1 thread, torch 2.13); same values to 2e-7.
+    b, c, h, w = x.shape
+    flat = F.interpolate(x.reshape(b * c, 1, h, w), size=size, mode="bilinear", align_corners=False)
+    return flat.view(b, c, *size)
 
 
 def scaled_size(size: tuple[int, int], scale: float, max_side: int | None) -> tuple[int, int]:
