@@ -454,6 +454,7 @@ def render_with_depth_only(
 
     from .rendering import render
     from .schedule import coc_to_defocus
+    from .sizing import resize
 
     h, w = image.shape[:2]
     scale = min(1.0, _FALLBACK_MAX_SIDE / max(h, w))
@@ -471,7 +472,7 @@ def render_with_depth_only(
         bokeh_lr = render(img_lr, disp_lr, focus, blur * ratio, **render_options)  # [1,3,h,w]
         bokeh = bokeh_lr
         if lr != (h, w):
-            bokeh = F.interpolate(bokeh_lr, (h, w), mode="bilinear", align_corners=False)
+            bokeh = resize(bokeh_lr, (h, w))
         coc = blur * (disp - focus).abs()  # [1,1,H,W] px at full resolution
         mask = ((2.0 * _SHARP_COC_PX - coc) / _SHARP_COC_PX).clamp(0, 1)
         if fusion:
