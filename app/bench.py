@@ -37,7 +37,7 @@ from PIL import Image
 
 from app import imaging
 from app.cache import SceneCache
-from app.handlers import PREVIEW_MAX_SIDE, RefocusApp
+from app.handlers import PREVIEW_MAX_SIDE, RefocusApp, f_number_for
 
 #: Targets on the project's 2-core CPU, in ms (see the issue).
 TARGETS_MS = {"preview_core": 60.0, "full_core": 1500.0, "prepare": 3000.0}
@@ -94,6 +94,9 @@ def app_latency_benchmark(
         model_name = type(model).__name__
     height, width = size
     k = float(blur) if blur is not None else 0.02 * max(height, width)
+    # the handlers take the aperture slider's f-number; this one gives K = k (to 0.1 px,
+    # capped at 300 px by the handlers)
+    n = f_number_for(k, max(height, width))
     image_t, disp_t = bench_scene(height, width)
     image = (image_t[0].permute(1, 2, 0).numpy() * 255.0 + 0.5).astype(np.uint8)  # HxWx3
     disparity = None if network_disparity else disp_t[0, 0].numpy()
@@ -123,7 +126,7 @@ def app_latency_benchmark(
         # each load gets a fresh cache, so that it prepares instead of hitting the cache
         def load(i: int) -> Any:
             logic = RefocusApp(model, SceneCache(4 << 30), download_root=Path(tmp) / "dl")
-            return logic, logic.load(str(photo_path), depth_arg, "disparity", None, 0.5, k)
+            return logic, logic.load(str(photo_path), depth_arg, "disparity", None, 0.5, n)
 
         record("load", load, max(1, repeats // 2))
         logic, out = load(0)
@@ -133,13 +136,13 @@ def app_latency_benchmark(
 
         model.render(scene, 0.41, k, max_side=PREVIEW_MAX_SIDE)  # warm-up
         record("preview_core", lambda i: model.render(scene, 0.3 + 0.01 * i, k, max_side=512))
-        record("preview", lambda i: logic.render_preview(session, 0.5 + 0.01 * i, k))
+        record("preview", lambda i: logic.render_preview(session, 0.5 + 0.01 * i, n))
         model.render(scene, 0.42, k)  # warm-up
         record("full_core", lambda i: model.render(scene, 0.3 + 0.011 * i, k))
-        record("full", lambda i: logic.render_full(session, 0.55 + 0.011 * i, k))
+        record("full", lambda i: logic.render_full(session, 0.55 + 0.011 * i, n))
         points = [(w * (0.2 + 0.15 * j), h * (0.3 + 0.1 * j)) for j in range(repeats)]
         record("focus_at", lambda i: model.focus_at(scene, *points[i]))
-        record("click", lambda i: logic.click(session, list(points[i]), k))
+        record("click", lambda i: logic.click(session, list(points[i]), n))
 
         def download(fmt: str) -> Any:
             session.download_file = None  # write the file each time (not the one kept)

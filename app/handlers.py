@@ -15,6 +15,7 @@ has made this one obsolete.
 from __future__ import annotations
 
 import atexit
+import dataclasses
 import functools
 import inspect
 import logging
@@ -59,9 +60,61 @@ DEPTH_KINDS = ("disparity (bright = near)", "depth (bright = far)")
 #: File names of the pictures the app puts in the photo panel (:meth:`RefocusApp.photo_panel`):
 #: when the panel sends one back as the photo, the upload it stands for is used.
 PANEL_PREFIX = "d2f-rendered-from-"
-#: Focus values are rounded to the focal slider's step, so that a value the app sets and
+#: Focus values are rounded to the focus slider's step, so that a value the app sets and
 #: the value the slider sends back compare equal.
 FOCUS_DECIMALS = 3
+
+# The controls speak a photographer's language; the library keeps its own units. The focus
+# slider reads near (0, left) to far (1, right); the library's focal plane is a disparity,
+# 1 = near: disparity = 1 - slider. The disparity map is relative (normalised per photo,
+# not metres), so no distance scale is invented: the slider stays linear in disparity, where
+# the blur of a point grows linearly with its distance |d - f| from the focal plane, and
+# equal steps of the slider change the blur by equal amounts.
+#
+# The blur control is the f-number N of a virtual lens. With the disparity read as
+# d = z_near / z (1 at the nearest point, 0 at infinity), the thin-lens blur circle on the
+# sensor is about F^2 / N * |1/z - 1/z_f| = F^2 / (N z_near) * |d - d_f|, so the library's K
+# (blur circle diameter in px at full resolution for |d - f| = 1) is
+#     K = F^2 / (N z_near) * (long side in px / sensor width).
+#: The virtual lens: focal length F (mm) on a full-frame sensor (its 36 mm width spans the
+#: photo's long side), with the nearest point of the photo this far away (m).
+LENS_FOCAL_MM = 50.0
+SENSOR_WIDTH_MM = 36.0
+NEAREST_M = 1.0
+#: K per pixel of the photo's long side at f/1: F^2 / (z_near * sensor width) = 0.0694.
+BLUR_PER_PX_AT_F1 = LENS_FOCAL_MM**2 / (NEAREST_M * 1000.0 * SENSOR_WIDTH_MM)
+#: The aperture slider's range and default: f/1 (most blur) to f/22.
+F_NUMBER_RANGE = (1.0, 22.0)
+DEFAULT_F_NUMBER = 2.8
+#: K is capped here (the old px slider's top, and the range the renderer is timed for):
+#: f/1 reaches it on a long side of 4320 px and more (12 MP at 3:2), 278 px at 4000 px.
+MAX_BLUR_PX = 300.0
+#: The photo size the blur note under the aperture slider describes before an upload.
+REFERENCE_SIZE = (4000, 3000)
+
+
+def disparity_of(position: float) -> float:
+    """The library's focal plane (disparity, 1 = near) for a focus slider position (0 =
+    nearest, 1 = farthest)."""
+    return round(1.0 - float(position), FOCUS_DECIMALS)
+
+
+def position_of(disparity: float) -> float:
+    """The focus slider position (0 = nearest, 1 = farthest) of a disparity (1 = near)."""
+    return round(1.0 - float(disparity), FOCUS_DECIMALS)
+
+
+def blur_px(f_number: float, long_side: int) -> float:
+    """K (px at full resolution, for |d - f| = 1) of the virtual lens at ``f_number`` on a
+    photo whose long side is ``long_side`` px, capped at :data:`MAX_BLUR_PX`, to 0.1 px."""
+    return round(min(MAX_BLUR_PX, BLUR_PER_PX_AT_F1 * long_side / float(f_number)), 1)
+
+
+def f_number_for(blur: float, long_side: int) -> float:
+    """The f-number whose K is ``blur`` px on a photo with this long side (inverse of
+    :func:`blur_px` below the cap), to 3 decimals."""
+    return round(BLUR_PER_PX_AT_F1 * long_side / float(blur), 3)
+
 
 #: The CoC (px at the render pass) that the defocus map draws as 1 (the paper's schedule).
 MAX_DEFOCUS_COC = max(PAPER_GROWING_SIZES)
@@ -85,7 +138,11 @@ _LEGENDS = {
 
 @dataclass(frozen=True)
 class RenderParams:
-    """What a render depends on besides the scene; equal params give equal pictures."""
+    """What a render depends on besides the scene; equal params give equal pictures.
+
+    ``focus`` and ``blur`` are the library's (disparity, 1 = near; K in px at full
+    resolution); ``f_number`` is the aperture chosen (None: blur off, ``blur`` is 0).
+    """
 
     focus: float
     blur: float
@@ -94,39 +151,70 @@ class RenderParams:
     highlight_boost: bool = True
     fusion: bool = True
     quality: str = "balanced"
+    f_number: float | None = None
 
     @classmethod
     def from_inputs(
         cls,
         focus: Any,
-        blur: Any,
+        f_number: Any,
         blades: Any = 0,
         rotation: Any = 0.0,
         highlight_boost: Any = True,
         fusion: Any = True,
         quality: Any = "balanced",
+        blur_on: Any = True,
+        *,
+        size: tuple[int, int] | None,
     ) -> RenderParams:
-        """Validate raw widget values (numbers may arrive as str/None from API callers)."""
+        """Validate raw widget values (numbers may arrive as str/None from API callers).
+
+        Args:
+            focus: focus slider position, 0 = nearest .. 1 = farthest.
+            f_number: aperture of the virtual lens (:func:`blur_px`).
+            blur_on: False renders no blur (the photo as it is).
+            size: ``(width, height)`` of the photo K is computed for; None gives K = 0 (to
+                check the inputs before the photo is known; :meth:`sized` sets it).
+        """
         try:
-            f = round(float(focus), FOCUS_DECIMALS)
-            k = round(float(blur), 3)
-            n = int(float(blades or 0))
+            position = round(float(focus), FOCUS_DECIMALS)
+            n = round(float(f_number), 3)
+            blades_n = int(float(blades or 0))
             r = round(float(rotation or 0.0), 3)
         except (TypeError, ValueError):
             raise user_error(
-                f"Invalid slider values: focus={focus!r}, blur={blur!r}, blades={blades!r}, "
-                f"rotation={rotation!r}."
+                f"Invalid slider values: focus={focus!r}, f-number={f_number!r}, "
+                f"blades={blades!r}, rotation={rotation!r}."
             ) from None
-        if not 0.0 <= f <= 1.0:
-            raise user_error(f"focus must be in [0, 1], got {f}.")
-        if not 0.0 <= k <= 10000.0:
-            raise user_error(f"blur must be in [0, 10000] px, got {k}.")
-        if n < 0 or n in (1, 2):
-            raise user_error(f"blades must be 0 (round) or at least 3, got {n}.")
+        if not 0.0 <= position <= 1.0:
+            raise user_error(f"focus must be in [0, 1] (0 = near, 1 = far), got {position}.")
+        if not 0.5 <= n <= 1000.0:
+            raise user_error(f"The f-number must be in [0.5, 1000], got {n:g}.")
+        if blades_n < 0 or blades_n in (1, 2):
+            raise user_error(f"blades must be 0 (round) or at least 3, got {blades_n}.")
         quality = "balanced" if quality in (None, "") else str(quality)
         if quality not in QUALITIES:
             raise user_error(f"quality must be one of {', '.join(QUALITIES)}, got {quality!r}.")
-        return cls(f, k, n, r, bool(highlight_boost), bool(fusion), quality)
+        on = blur_on not in (False, None, 0, "false", "False")
+        params = cls(disparity_of(position), 0.0, blades_n, r, bool(highlight_boost),
+                     bool(fusion), quality, n if on else None)  # fmt: skip
+        return params.sized(size)
+
+    def sized(self, size: tuple[int, int] | None) -> RenderParams:
+        """These params with K for a photo of ``size = (width, height)`` (0 for None)."""
+        k = 0.0 if self.f_number is None or not size else blur_px(self.f_number, max(size))
+        return dataclasses.replace(self, blur=k)
+
+    @property
+    def position(self) -> float:
+        """The focus slider position of :attr:`focus` (0 = nearest, 1 = farthest)."""
+        return position_of(self.focus)
+
+    def blur_text(self) -> str:
+        """The aperture and the blur it gives, for the status line."""
+        if self.f_number is None:
+            return "no blur"
+        return f"f/{self.f_number:g}, blur {self.blur:g} px"
 
     def render_options(self) -> dict[str, Any]:
         """Keyword options for ``D2F.render`` (and on to ``rendering.render``)."""
@@ -661,10 +749,44 @@ class RefocusApp:
     def _info(session: Session, params: RenderParams, kind: str, ms: float, extra: str = "") -> str:
         w, h = session.size
         text = (
-            f"{w}x{h} px | focus {params.focus:.3f} | blur {params.blur:g} px | "
-            f"{kind} render {ms:.0f} ms"
+            f"{w}x{h} px | focus {params.position:.3f} (0 = near, 1 = far; disparity "
+            f"{params.focus:.3f}) | {params.blur_text()} | {kind} render {ms:.0f} ms"
         )
         return text + (f" | {extra}" if extra else "")
+
+    @staticmethod
+    def _file_params(params: RenderParams) -> str:
+        """The settings part of a download's name: the focus slider's position, the
+        f-number and K (``focus0.310_f2.8_K14.9``), or ``focus0.310_noblur``."""
+        if params.f_number is None:
+            return f"focus{params.position:.3f}_noblur"
+        return f"focus{params.position:.3f}_f{params.f_number:g}_K{params.blur:g}"
+
+    @staticmethod
+    def blur_note(session: Session | None, f_number: Any, blur_on: Any = True) -> str:
+        """The aperture slider's info line: the virtual lens, and the blur ``f_number``
+        gives this photo (K, px at full resolution), or a 4000x3000 photo's before an upload.
+
+        Never raises: it only describes the controls (a render refuses bad values).
+        """
+        lens = (
+            f"{LENS_FOCAL_MM:g} mm lens on full frame ({SENSOR_WIDTH_MM:g} mm wide), nearest "
+            f"thing {NEAREST_M:g} m away"
+        )
+        if blur_on in (False, None, 0, "false", "False"):
+            return f"Blur is off: the photo as it is ({lens})"
+        try:
+            n = round(float(f_number), 3)
+            if not n > 0:
+                raise ValueError
+        except (TypeError, ValueError):
+            return lens
+        live = isinstance(session, Session) and not session.closed
+        w, h = session.size if live else REFERENCE_SIZE
+        k = blur_px(n, max(w, h))
+        capped = " (the most the app renders)" if k >= MAX_BLUR_PX else ""
+        where = f"this {w}x{h} photo" if live else f"a {w}x{h} photo"
+        return f"f/{n:g}: blur K = {k:g} px{capped} on {where} ({lens})"
 
     # ---------------------------------------------------------------- upload
     @_remember_load_error
@@ -676,7 +798,7 @@ class RefocusApp:
         depth_kind: str,
         session: Session | None,
         focus: Any,
-        blur: Any,
+        f_number: Any,
         blades: Any = 0,
         rotation: Any = 0.0,
         highlight_boost: Any = True,
@@ -685,19 +807,24 @@ class RefocusApp:
         quality: Any = "balanced",
         depth_source: Any = sources.AUTO,
         hub_model: Any = "",
+        blur_on: Any = True,
         request: gr.Request | None = None,
     ) -> tuple:
         """Decode an upload (and optional depth map), prepare it (cached), render it.
 
-        The new session replaces ``session``; past :attr:`max_sessions` other live
-        sessions the upload is refused with a message. ``request`` (given by Gradio) names
-        the browser tab, whose sessions are closed when it is closed.
+        ``focus`` is the focus slider's position (0 = nearest, 1 = farthest), ``f_number``
+        the aperture (K follows from the photo's long side, :func:`blur_px`), ``blur_on``
+        False renders no blur. The new session replaces ``session``; past
+        :attr:`max_sessions` other live sessions the upload is refused with a message.
+        ``request`` (given by Gradio) names the browser tab, whose sessions are closed when
+        it is closed.
 
         Returns:
-            ``(session, focus, result, compare, legend, info)``; ``focus`` is the focal plane
-            the photo's camera used when it carries one, the subject the network found when
-            the photo comes with no depth (:meth:`D2F.subject_focus`), and skipped otherwise
-            (a depth map given without a focal plane keeps the slider's focus).
+            ``(session, focus, result, compare, legend, info)``; ``focus`` is the slider
+            position of the focal plane the photo's camera used when it carries one, of the
+            subject the network found when the photo comes with no depth
+            (:meth:`D2F.subject_focus`), and skipped otherwise (a depth map given without a
+            focal plane keeps the slider's focus).
         """
         path = _payload_path(image)
         if path is None:  # the input was cleared
@@ -706,8 +833,9 @@ class RefocusApp:
             cleared = (gr.update(value=None), gr.update(value=None), gr.update(visible=False))
             return (None, gr.skip(), *cleared, "")
         params = RenderParams.from_inputs(
-            focus, blur, blades, rotation, highlight_boost, fusion, quality
-        )
+            focus, f_number, blades, rotation, highlight_boost, fusion, quality, blur_on,
+            size=None,
+        )  # fmt: skip
         # this event takes raw payloads (Gradio does not check them): the texts are checked here
         if view not in VIEWS:
             raise user_error(f"Unknown view {view!r}; expected one of {', '.join(VIEWS)}.")
@@ -746,10 +874,9 @@ class RefocusApp:
         elif disparity is not None:
             gr.Info(f"Using the {source}.")
             if photo.focus is not None:
-                new_focus = round(float(photo.focus), FOCUS_DECIMALS)
-                params = RenderParams.from_inputs(
-                    new_focus, blur, blades, rotation, highlight_boost, fusion, quality
-                )
+                new_focus = position_of(photo.focus)
+                params = dataclasses.replace(params, focus=disparity_of(new_focus))
+        params = params.sized(photo.size)
         t_decode = time.perf_counter()
         self._admit(session)
         key = sources.scene_key(content_key(photo.image, disparity), chosen)
@@ -762,10 +889,8 @@ class RefocusApp:
         if disparity is None:
             # no depth and no focal plane from the camera: focus on the subject the network found
             focus_found, (sx, sy) = self.model.subject_focus(scene)
-            new_focus = round(float(focus_found), FOCUS_DECIMALS)
-            params = RenderParams.from_inputs(
-                new_focus, blur, blades, rotation, highlight_boost, fusion, quality
-            )
+            new_focus = position_of(focus_found)
+            params = dataclasses.replace(params, focus=disparity_of(new_focus))
             subject = f" | focus on the subject at ({sx:.0f}, {sy:.0f})"
         new = Session(
             key=key,
@@ -1002,15 +1127,19 @@ class RefocusApp:
         self,
         session: Session | None,
         focus: Any,
-        blur: Any,
+        f_number: Any,
         blades: Any = 0,
         rotation: Any = 0.0,
         highlight_boost: Any = True,
         fusion: Any = True,
         view: str = "Bokeh",
         quality: Any = "balanced",
+        blur_on: Any = True,
     ) -> tuple:
         """Full-resolution render (slider released, option changed).
+
+        ``focus`` is the focus slider's position (0 = nearest, 1 = farthest), ``f_number``
+        the aperture, ``blur_on`` False renders no blur (see :meth:`RenderParams.from_inputs`).
 
         Without a photo loaded in the session (a slider released on an empty page, an API
         call before ``/load`` or from another session) the event is refused with a message;
@@ -1022,8 +1151,9 @@ class RefocusApp:
         if session is None:
             raise user_error(NO_PHOTO)
         params = RenderParams.from_inputs(
-            focus, blur, blades, rotation, highlight_boost, fusion, quality
-        )
+            focus, f_number, blades, rotation, highlight_boost, fusion, quality, blur_on,
+            size=session.size,
+        )  # fmt: skip
         session.touch()
         with session.lock:
             if params == session.full_params:
@@ -1035,13 +1165,14 @@ class RefocusApp:
         self,
         session: Session | None,
         focus: Any,
-        blur: Any,
+        f_number: Any,
         blades: Any = 0,
         rotation: Any = 0.0,
         highlight_boost: Any = True,
         fusion: Any = True,
         view: str = "Bokeh",
         quality: Any = "balanced",
+        blur_on: Any = True,
     ) -> tuple:
         """Reduced-resolution render while a slider moves.
 
@@ -1057,8 +1188,9 @@ class RefocusApp:
         if session is None:
             return (*SKIP4, gr.skip())
         params = RenderParams.from_inputs(
-            focus, blur, blades, rotation, highlight_boost, fusion, quality
-        )
+            focus, f_number, blades, rotation, highlight_boost, fusion, quality, blur_on,
+            size=session.size,
+        )  # fmt: skip
         session.touch()
         with session.lock:
             if params == session.full_params:
@@ -1089,18 +1221,20 @@ class RefocusApp:
         self,
         session: Session | None,
         index: Any,
-        blur: Any,
+        f_number: Any,
         blades: Any = 0,
         rotation: Any = 0.0,
         highlight_boost: Any = True,
         fusion: Any = True,
         view: str = "Bokeh",
         quality: Any = "balanced",
+        blur_on: Any = True,
     ) -> tuple:
         """Focus on the clicked point: ``index = [x, y]`` in the shown photo's pixels.
 
         Returns:
-            ``(focus, result, compare, legend, info)``; the focal slider moves to ``focus``.
+            ``(focus, result, compare, legend, info)``; the focus slider moves to ``focus``,
+            the position (0 = nearest, 1 = farthest) of the clicked point's disparity.
         """
         if session is None:
             gr.Warning("Upload a photo first.")
@@ -1116,15 +1250,16 @@ class RefocusApp:
         xs = min(max((x + 0.5) * w / sw - 0.5, 0.0), w - 1.0)
         ys = min(max((y + 0.5) * h / sh - 0.5, 0.0), h - 1.0)
         t0 = time.perf_counter()
-        focus = round(float(self.model.focus_at(session.scene, xs, ys)), FOCUS_DECIMALS)
+        focus = position_of(self.model.focus_at(session.scene, xs, ys))
         ms_focus = 1000 * (time.perf_counter() - t0)
         params = RenderParams.from_inputs(
-            focus, blur, blades, rotation, highlight_boost, fusion, quality
-        )
+            focus, f_number, blades, rotation, highlight_boost, fusion, quality, blur_on,
+            size=session.size,
+        )  # fmt: skip
         outputs = self._render_full(session, params, view)
         if outputs is SKIP4:
             return (focus, *SKIP4)
-        info = outputs[3] + f" | focus_at ({xs:.0f}, {ys:.0f}) {ms_focus:.0f} ms"
+        info = outputs[3] + f" | focused on the click at ({xs:.0f}, {ys:.0f}) in {ms_focus:.0f} ms"
         return (focus, *outputs[:3], info)
 
     @reported
@@ -1174,7 +1309,7 @@ class RefocusApp:
         folder = root / self._next_name(session, "")
         folder.mkdir()
         ext = "png" if fmt == "PNG" else "jpg"
-        name = f"{session.name}_bokeh_f{params.focus:.3f}_K{params.blur:g}.{ext}"
+        name = f"{session.name}_bokeh_{self._file_params(params)}.{ext}"
         path = imaging.save_image(
             image, folder / name, icc_profile=session.icc_profile, exif=session.exif
         )

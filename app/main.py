@@ -18,7 +18,9 @@ from gradio.route_utils import FnIndexInferError
 from app import sources as depth_choice
 from app.cache import SceneCache
 from app.handlers import (
+    DEFAULT_F_NUMBER,
     DEPTH_KINDS,
+    F_NUMBER_RANGE,
     FORMATS,
     QUALITIES,
     VIEWS,
@@ -74,7 +76,7 @@ RELEASE_JS = """
 """
 
 INTRO = """# D2F refocus
-Upload a photo, then **click where it should be sharp** or move the focal-plane slider.
+Upload a photo, then **click where it should be sharp**, or set focus and aperture below.
 Dragging a slider shows a quick preview; releasing it renders at full resolution.
 """
 
@@ -219,21 +221,27 @@ def build_demo(
                     examples = gr.Examples(
                         sample_paths(), inputs=[photo], label="Examples", elem_id="examples"
                     )
+                # 0 = the nearest thing in the photo, 1 = the farthest (disparity = 1 - value)
                 focus = gr.Slider(
                     0.0,
                     1.0,
                     value=0.5,
                     step=0.001,
-                    label="Focal plane (disparity, 1 = near)",
+                    label="Focus: near ← → far",
                     elem_id="focus",
                 )
+                # the f-number of a virtual lens; K in px follows from the photo's long side,
+                # and the slider's info line says what it is for this photo
                 blur = gr.Slider(
-                    0.0,
-                    300.0,
-                    value=40.0,
-                    step=1.0,
-                    label="Blur amount K (CoC diameter in px at full resolution for |d - f| = 1)",
+                    *F_NUMBER_RANGE,
+                    value=DEFAULT_F_NUMBER,
+                    step=0.1,
+                    label="Aperture: f-number (smaller = more blur)",
+                    info=RefocusApp.blur_note(None, DEFAULT_F_NUMBER),
                     elem_id="blur",
+                )
+                blur_on = gr.Checkbox(
+                    value=True, label="Blur (untick for the photo as it is)", elem_id="blur_on"
                 )
                 with gr.Accordion("Advanced", open=False):
                     blades = gr.Dropdown(
@@ -246,7 +254,7 @@ def build_demo(
                             ("9 blades", 9),
                         ],
                         value=0,
-                        label="Aperture",
+                        label="Aperture shape (blades)",
                         elem_id="blades",
                     )
                     rotation = gr.Slider(
@@ -352,6 +360,7 @@ def build_demo(
                 *options,
                 depth_source,
                 hub_model,
+                blur_on,
             ],  # fmt: skip
             # the photo last: the API's outputs before it keep their places
             "outputs": [session, focus, *shown, download, photo],
@@ -369,6 +378,22 @@ def build_demo(
                          depth_source.input, hub_model.submit], api_name="load",
                         **load_io)  # fmt: skip
         loading.success(logic.download, [session, fmt], [download], **chained)
+
+        # the aperture slider's info line: the blur in px that it gives the photo
+        def blur_note_ui(state, f_number, on):
+            # the info line only: an update without a value sets no value (and fires no
+            # .change or .release of the slider)
+            return gr.update(info=logic.blur_note(state, f_number, on))
+
+        note_io = {
+            "fn": blur_note_ui,
+            "inputs": [session, blur, blur_on],
+            "outputs": [blur],
+            "show_progress": "hidden",
+            "api_visibility": "private",
+            "queue": False,
+        }
+        loading.success(**note_io)
         # a failed upload: the photo panel shows the loaded photo again (or nothing), and the
         # status line keeps the error after the toast is gone
         loading.failure(
@@ -391,11 +416,12 @@ def build_demo(
             show_progress="hidden",
         )
         if examples is not None:
-            examples.load_input_event.then(api_visibility="private", **load_io).success(
-                logic.download, [session, fmt], [download], **chained
-            )
+            example_load = examples.load_input_event.then(api_visibility="private", **load_io)
+            example_load.success(logic.download, [session, fmt], [download], **chained)
+            example_load.success(**note_io)
 
-        render_inputs = [session, focus, blur, *options]
+        # blur_on last: the API's inputs before it keep their places
+        render_inputs = [session, focus, blur, *options, blur_on]
         # .change only (never .input as well: two concurrent runs break the image); .change
         # also follows values set by click-to-focus, whose preview is then skipped
         for slider in (focus, blur, rotation):
@@ -417,7 +443,7 @@ def build_demo(
                 **quiet,
             ).success(logic.download, [session, fmt], [download], **chained)
         gr.on(
-            [blades.change, highlight.change, fusion.change, quality.change],
+            [blades.change, highlight.change, fusion.change, quality.change, blur_on.change],
             render_full_ui,
             render_inputs,
             [*shown, download],
@@ -425,6 +451,7 @@ def build_demo(
             **heavy,
             **quiet,
         ).success(logic.download, [session, fmt], [download], **chained)
+        gr.on([blur.change, blur_on.change], trigger_mode="always_last", **note_io)
 
         # Gradio finds the event data by the annotation of a named positional parameter
         def on_select(
@@ -436,6 +463,7 @@ def build_demo(
             fusion_v,
             view_v,
             quality_v,
+            blur_on_v,
             evt: gr.SelectData,
         ):
             return holding_download(
@@ -449,12 +477,13 @@ def build_demo(
                     fusion_v,
                     view_v,
                     quality_v,
+                    blur_on_v,
                 )  # fmt: skip
             )
 
         photo.select(
             on_select,
-            [session, blur, *options],
+            [session, blur, *options, blur_on],
             [focus, *shown, download],
             api_visibility="private",
             **heavy,

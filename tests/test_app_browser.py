@@ -2,8 +2,9 @@
 
 Starts ``python -m app`` on a free localhost port with a tiny random-init checkpoint,
 uploads a generated photo whose near subject and far background are known (with its
-disparity map), clicks the subject and then the background, drags the blur slider, switches
-to the defocus view, and uploads a file that is not an image. Screenshots go to the test's
+disparity map), opens the aperture to f/1, clicks the subject and then the background (the
+focus slider moves to its near end, then to its far end), drags the aperture slider to f/22,
+switches to the defocus view, and uploads a file that is not an image. Screenshots go to the test's
 tmp dir (``<tmp_path>/screens/NN_<step>.png``).
 """
 
@@ -38,7 +39,7 @@ def focus_value(page) -> float:
 
 
 def test_refocus_in_browser(
-    app_server, chromium_launch_options, two_plane_scene, sharpness, tmp_path
+    app_server, chromium_launch_options, scene_factory, sharpness, tmp_path
 ):
     from playwright.sync_api import sync_playwright
 
@@ -52,7 +53,9 @@ def test_refocus_in_browser(
         page.screenshot(path=str(path), full_page=True)
         shots.append(path)
 
-    scene = two_plane_scene
+    # 960 px wide: f/1 blurs it by K = 66.7 px (0.0694 px per px of the long side), enough
+    # for the tiny random model, whose fusion keeps much of the sharp input under ~30 px
+    scene = scene_factory(width=960, height=720)
     x0, y0, x1, y1 = scene.box
     subject = (x0 + 12, y0 + 12, x1 - 12, y1 - 12)
     background = (x1 + 12, 12, scene.image.shape[1] - 4, scene.image.shape[0] - 4)
@@ -96,22 +99,34 @@ def test_refocus_in_browser(
             shot(page, "uploaded")
             start_focus = focus_value(page)
 
-            # 2. click the near subject: focus -> 1, the subject becomes sharp
+            # the widest aperture, typed: f/1 and its blur in px on this photo
+            box = page.locator("#blur input[data-testid=number-input]")
+            box.fill("1")
+            box.press("Enter")
+            page.wait_for_function(
+                "() => document.querySelector('#info textarea').value.includes("
+                "'f/1, blur 66.7 px | full render')"
+            )
+            src = wait_new_result(page, src)
+
+            # 2. click the near subject: the focus slider goes to its near end (0), the
+            # subject becomes sharp
             click_photo_at(page, *scene.near_point)
             page.wait_for_function(
                 "() => parseFloat(document.querySelector("
-                "'#focus input[data-testid=number-input]').value) > 0.95"
+                "'#focus input[data-testid=number-input]').value) < 0.05"
             )
             src = wait_new_result(page, src)
             near = fetch_image(page, src)
             near_focus = focus_value(page)
             shot(page, "focused_near")
 
-            # 3. click the far background: focus -> 0, the background becomes sharp
+            # 3. click the far background: the slider goes to its far end (1), the
+            # background becomes sharp
             click_photo_at(page, *scene.far_point)
             page.wait_for_function(
                 "() => parseFloat(document.querySelector("
-                "'#focus input[data-testid=number-input]').value) < 0.05"
+                "'#focus input[data-testid=number-input]').value) > 0.95"
             )
             src = wait_new_result(page, src)
             far = fetch_image(page, src)
@@ -121,18 +136,36 @@ def test_refocus_in_browser(
             # a depth map without a focal plane keeps the slider where it was
             assert start_focus == pytest.approx(photo_focus)
             assert "cached scene" not in page.locator("#info textarea").input_value()
-            assert near_focus == pytest.approx(1.0, abs=0.02)
-            assert far_focus == pytest.approx(0.0, abs=0.02)
+            assert near_focus == pytest.approx(0.0, abs=0.02)  # the slider's left: near
+            assert far_focus == pytest.approx(1.0, abs=0.02)
             assert near.shape == far.shape == scene.image.shape
             assert sharpness(near, subject) > 2 * sharpness(far, subject)
             assert sharpness(far, background) > 2 * sharpness(near, background)
             assert sharpness(far, background) > 0.8 * sharpness(scene.image, background)
 
-            # 4. drag the blur slider to the right end: the subject gets blurrier still
-            blur_before = float(page.locator("#blur input[data-testid=number-input]").input_value())
+            # 4. the defocus map with its colour legend (focused far, f/1)
+            page.locator("#view").get_by_text("Defocus", exact=True).click()
+            src = wait_new_result(page, src)
+            page.wait_for_selector("#legend >> text=in focus")
+            defocus = fetch_image(page, src)
+            # background in focus: dark end of magma; the subject far from it (66.7 px across
+            # at full resolution): about halfway up the scale
+            dark = defocus[background[1] : background[3], background[0] : background[2]].mean()
+            assert dark < 40
+            assert defocus[subject[1] : subject[3], subject[0] : subject[2]].mean() > dark + 60
+            top = page.locator("#legend").inner_text()
+            assert "px or more across" in top and "render pass" not in top
+            shot(page, "defocus_view")
+
+            page.locator("#view").get_by_text("Bokeh", exact=True).click()
+            src = wait_new_result(page, src)
+
+            # 5. drag the aperture slider to its right end (f/22): the out-of-focus subject
+            # gets sharper (K = 0.0694 * 960 / 22 = 3 px)
+            f_before = float(page.locator("#blur input[data-testid=number-input]").input_value())
             track = page.locator("#blur input[type=range]").bounding_box()
             ymid = track["y"] + track["height"] / 2
-            start_x = track["x"] + track["width"] * blur_before / 300.0
+            start_x = track["x"] + track["width"] * (f_before - 1.0) / 21.0
             page.mouse.move(start_x, ymid)
             page.mouse.down()
             for k in range(1, 11):
@@ -141,29 +174,19 @@ def test_refocus_in_browser(
             page.mouse.up()
             page.wait_for_function(
                 "() => parseFloat(document.querySelector("
-                "'#blur input[data-testid=number-input]').value) > 250"
+                "'#blur input[data-testid=number-input]').value) > 20"
             )
             page.wait_for_function(
                 "() => document.querySelector('#info textarea').value.includes('full render')"
-                " && /blur (2[5-9][0-9]|300) px/.test("
+                " && /f\\/2[0-2](\\.\\d)?, blur [0-9.]+ px/.test("
                 "document.querySelector('#info textarea').value)"
             )
             src = wait_new_result(page, src) if result_src(page) == src else result_src(page)
             dragged = fetch_image(page, src)
-            blur_after = float(page.locator("#blur input[data-testid=number-input]").input_value())
-            assert blur_after > blur_before
-            assert sharpness(dragged, subject) < sharpness(far, subject)
-            shot(page, "blur_dragged")
-
-            # 5. the defocus map with its colour legend
-            page.locator("#view").get_by_text("Defocus", exact=True).click()
-            src = wait_new_result(page, src)
-            page.wait_for_selector("#legend >> text=in focus")
-            defocus = fetch_image(page, src)
-            # background in focus: dark end of magma; the subject far from it: bright
-            assert defocus[background[1] : background[3], background[0] : background[2]].mean() < 40
-            assert defocus[subject[1] : subject[3], subject[0] : subject[2]].mean() > 150
-            shot(page, "defocus_view")
+            f_after = float(page.locator("#blur input[data-testid=number-input]").input_value())
+            assert f_before == 1.0 and f_after > 20
+            assert sharpness(dragged, subject) > 2 * sharpness(far, subject)
+            shot(page, "aperture_dragged")
 
             # 6. a file that is not an image gets a clear error, not a traceback
             bad = tmp_path / "notes.jpg"
@@ -176,11 +199,15 @@ def test_refocus_in_browser(
             assert "notes.jpg" in text and "not an image" in text
             assert "Traceback" not in text
 
-            # 7. the session's photo survived: the focal slider still renders it
+            # 7. the session's photo survived: the focus slider still renders it
             number = page.locator("#focus input[data-testid=number-input]")
             number.fill("0.5")
             number.press("Enter")
-            src = wait_new_result(page, src)
+            page.wait_for_function(
+                "() => document.querySelector('#info textarea').value.includes("
+                "'focus 0.500 (0 = near, 1 = far; disparity 0.500) | f/22, blur 3 px | full')"
+            )
+            src = wait_new_result(page, src) if result_src(page) == src else result_src(page)
             assert fetch_image(page, src).shape[:2] == scene.image.shape[:2]
         finally:
             browser.close()

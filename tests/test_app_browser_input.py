@@ -4,7 +4,8 @@ the value on screen (headless Debian Chromium through Playwright).
 Gradio sends a slider's ``release`` (the full render) only on pointer-up and when the number
 box loses focus; the app's page script ends key presses and Enter the same way. Each case
 sets a value, waits for the status line to report a full render of exactly that value, and
-then clicks Download and reads the saved file's name (``..._f<focus>_K<blur>.jpg``).
+then clicks Download and reads the saved file's name
+(``..._focus<position>_f<f-number>_K<blur px>.jpg``).
 """
 
 from __future__ import annotations
@@ -14,6 +15,8 @@ import pytest
 from _browser import TIMEOUT_MS, open_app
 from _io_writers import lensblur_jpeg
 from PIL import Image
+
+from app.handlers import blur_px
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
 
@@ -28,13 +31,20 @@ def number_value(page, elem: str) -> str:
     return page.locator(f"#{elem} input[data-testid=number-input]").input_value()
 
 
+def aperture_name(f_number: str | float, width: int = 320) -> str:
+    """The end of a download's name at this f-number on a photo of this long side."""
+    n = float(f_number)
+    return f"_f{n:g}_K{blur_px(n, width):g}.jpg"
+
+
 def wait_full_render(page, focus: str | None = None, blur: str | None = None) -> str:
-    """Wait until the status line reports a full render at these slider values."""
+    """Wait until the status line reports a full render at these slider values (the focus
+    slider's position, the f-number)."""
     parts = []
     if focus is not None:
-        parts.append(f"focus {float(focus):.3f} |")
+        parts.append(f"focus {float(focus):.3f} (0 = near")
     if blur is not None:
-        parts.append(f"blur {float(blur):g} px | full render")
+        parts.append(f"f/{float(blur):g}, blur {blur_px(float(blur), 320):g} px | full render")
     page.wait_for_function(
         f"(parts) => {{ const s = {STATUS}; return s.includes('full render') "
         "&& parts.every(p => s.includes(p)); }",
@@ -71,44 +81,44 @@ def test_every_input_ends_in_the_full_render(
             page.set_input_files("#input input[type=file]", str(two_plane_scene.photo))
             page.wait_for_function(f"() => {STATUS}.includes('full render')")
 
-            # 1. a value typed into the blur slider's number box, then Enter
+            # 1. an f-number typed into the aperture slider's number box, then Enter
             box = page.locator("#blur input[data-testid=number-input]")
             box.click()
-            box.fill("100")
+            box.fill("4")
             box.press("Enter")
-            wait_full_render(page, blur="100")
+            wait_full_render(page, blur="4")
             assert box.evaluate("el => el === document.activeElement")  # focus stays
-            assert saved_name(page).endswith("_K100.jpg")
+            assert saved_name(page).endswith(aperture_name(4))  # _f4_K5.6.jpg
 
-            # 2. arrow keys on the focused focal-plane slider (key-up ends the change)
+            # 2. arrow keys on the focused focus slider (key-up ends the change)
             track = page.locator("#focus input[type=range]")
             track.focus()
             for _ in range(3):
                 track.press("ArrowRight")
             focus = number_value(page, "focus")
-            wait_full_render(page, focus=focus, blur="100")
-            assert f"_f{float(focus):.3f}_K100.jpg" in saved_name(page)
+            wait_full_render(page, focus=focus, blur="4")
+            assert f"_focus{float(focus):.3f}{aperture_name(4)}" in saved_name(page)
 
-            # 3. End on the focused blur slider
+            # 3. End on the focused aperture slider: f/22
             blur_track = page.locator("#blur input[type=range]")
             blur_track.focus()
             blur_track.press("End")
-            wait_full_render(page, blur="300")
-            assert saved_name(page).endswith("_K300.jpg")
+            wait_full_render(page, blur="22")
+            assert saved_name(page).endswith(aperture_name(22))
 
-            # 4. a click on the blur track (pointer-up: Gradio's own release)
+            # 4. a click on the aperture track (pointer-up: Gradio's own release)
             bb = blur_track.bounding_box()
             page.mouse.click(bb["x"] + bb["width"] * 0.25, bb["y"] + bb["height"] / 2)
             page.wait_for_function(
                 "() => parseFloat(document.querySelector("
-                "'#blur input[data-testid=number-input]').value) < 150"
+                "'#blur input[data-testid=number-input]').value) < 11"
             )
             blur = number_value(page, "blur")
             wait_full_render(page, blur=blur)
-            assert saved_name(page).endswith(f"_K{float(blur):g}.jpg")
+            assert saved_name(page).endswith(aperture_name(blur))
 
             # 5. a drag released at a value: the full render follows, Download saves it
-            start = bb["x"] + bb["width"] * float(blur) / 300.0
+            start = bb["x"] + bb["width"] * (float(blur) - 1.0) / 21.0
             y = bb["y"] + bb["height"] / 2
             page.mouse.move(start, y)
             page.mouse.down()
@@ -118,20 +128,20 @@ def test_every_input_ends_in_the_full_render(
             page.mouse.up()
             blur = number_value(page, "blur")
             wait_full_render(page, blur=blur)
-            assert saved_name(page).endswith(f"_K{float(blur):g}.jpg")
+            assert saved_name(page).endswith(aperture_name(blur))
 
             # 6. a value typed, then Download clicked at once (the box loses focus): the
             # button waits for the full render of the value on screen, never the old file
             box.click()
-            box.fill("60")
-            page.wait_for_function(f"() => {STATUS}.includes('blur 60 px | preview')")
+            box.fill("2")
+            page.wait_for_function(f"() => {STATUS}.includes('f/2, blur 11.1 px | preview')")
             button = page.locator("button#download, #download button").first
             assert button.is_disabled()
             # a real click on the disabled button: the box loses focus (release), no file
             bb = button.bounding_box()
             page.mouse.click(bb["x"] + bb["width"] / 2, bb["y"] + bb["height"] / 2)
-            wait_full_render(page, blur="60")
-            assert saved_name(page).endswith("_K60.jpg")
+            wait_full_render(page, blur="2")
+            assert saved_name(page).endswith(aperture_name(2))  # _f2_K11.1.jpg
         finally:
             browser.close()
     assert not errors, errors
@@ -181,7 +191,7 @@ def test_failed_upload_leaves_one_state(
             box = page.locator("#focus input[data-testid=number-input]")
             box.fill("0.2")
             box.press("Enter")
-            page.wait_for_function(f"() => {STATUS}.includes('focus 0.200 |')")
+            page.wait_for_function(f"() => {STATUS}.includes('focus 0.200 (0 = near')")
 
             # a fresh page: nothing loaded, so nothing is shown but the error
             page = open_app(browser, server.url)
@@ -243,7 +253,7 @@ def test_lens_blur_panel_shows_the_original(
             status = page.locator("#info textarea").input_value()
             assert "depth embedded in the photo" in status
 
-            # a click on the subject in the panel focuses on it (near = 1)
+            # a click on the subject in the panel focuses on it: the focus slider's near end
             img = page.locator("#input img")
             rect = img.bounding_box()
             scale = min(rect["width"] / 320, rect["height"] / 240)
@@ -251,10 +261,13 @@ def test_lens_blur_panel_shows_the_original(
             top = rect["y"] + (rect["height"] - 240 * scale) / 2
             nx, ny = scene.near_point
             page.mouse.click(left + nx / 2 * scale, top + ny / 2 * scale)
-            page.wait_for_function(f"() => {STATUS}.includes('focus_at')")
+            page.wait_for_function(f"() => {STATUS}.includes('focused on the click')")
             status = page.locator("#info textarea").input_value()
             focus = float(status.split("focus ")[1].split(" ")[0])
-            assert focus == pytest.approx(1.0, abs=0.02), status
+            assert focus == pytest.approx(0.0, abs=0.02), status
+            assert float(page.locator("#focus input[data-testid=number-input]").input_value()) == (
+                pytest.approx(0.0, abs=0.02)
+            )
         finally:
             browser.close()
     log = server.log.read_text()

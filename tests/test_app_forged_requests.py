@@ -21,9 +21,10 @@ import pytest
 pytestmark = pytest.mark.slow
 
 KIND = "disparity (bright = near)"
-#: The inputs of /load after the photo and the depth map (depth_kind ... hub_model).
-REST = [KIND, 0.5, 40.0, 0, 0.0, True, True, "Bokeh", "balanced", "auto", ""]
-RENDER = [0.5, 40.0, 0, 0.0, True, True, "Bokeh", "balanced"]
+#: The inputs of /load after the photo and the depth map (depth_kind ... blur_on): focus
+#: 0.5 (near 0, far 1), f/2.8.
+REST = [KIND, 0.5, 2.8, 0, 0.0, True, True, "Bokeh", "balanced", "auto", "", True]
+RENDER = [0.5, 2.8, 0, 0.0, True, True, "Bokeh", "balanced", True]
 
 
 def file_data(path: str, name: str = "photo.jpg") -> dict:
@@ -97,7 +98,7 @@ def test_forged_requests_get_one_log_line(app_server, gradio_env, two_plane_scen
         ("load", [file_data(photo), file_data("/etc/shadow", "d.png"), *REST], "/etc/shadow"),
         ("load", [file_data(f"{cache}/gone.jpg", "gone.jpg"), None, *REST], "could not be found"),
         ("load", ["/etc/hostname", None, *REST], "(got str)"),
-        ("load", [file_data(photo)], "needed: 14, got: 1"),
+        ("load", [file_data(photo)], "needed: 15, got: 1"),
         ("load", [file_data(photo), None, KIND, "near", *REST[2:]], "focus='near'"),
         ("load", [file_data(photo), None, *REST[:7], 3, *REST[8:]], "Unknown view 3"),
         ("render_focus", ["x", *RENDER[1:]], "Expected a float"),

@@ -17,16 +17,25 @@ from PIL import Image
 from app import imaging
 from app.cache import SceneCache, content_key, scene_nbytes
 from app.handlers import (
+    DEFAULT_F_NUMBER,
     PREVIEW_MAX_SIDE,
     VIEWS,
     RefocusApp,
     RenderParams,
     Session,
+    blur_px,
     delete_session,
+    disparity_of,
+    f_number_for,
+    position_of,
 )
 from d2f_core import io as d2f_io
 
-BLUR = 120.0  # px: both planes far out of focus when the other is focused
+#: f/0.5, the widest aperture the handlers take (the page's slider starts at f/1): K = 44.4 px
+#: on the 320 px wide test photo (app.handlers.blur_px), both planes far out of focus when
+#: the other is focused. (The tiny random model's fusion keeps much of the sharp input where
+#: a blur is under about 30 px: at f/1, 22 px, the far plane kept 60 % of its sharpness.)
+APERTURE = 0.5
 
 
 def pixels(update) -> np.ndarray:
@@ -56,7 +65,7 @@ def logic(tiny_model, tmp_path):
 def loaded(logic, two_plane_scene):
     """(logic, session, scene) after uploading the two-plane photo with its disparity map."""
     out = logic.load(
-        str(two_plane_scene.photo), str(two_plane_scene.disparity), "disparity", None, 0.5, BLUR
+        str(two_plane_scene.photo), str(two_plane_scene.disparity), "disparity", None, 0.5, APERTURE
     )
     return logic, out[0], two_plane_scene
 
@@ -307,8 +316,10 @@ class TestSceneCache:
 
 class TestRenderParams:
     def test_rounding_and_types(self):
-        p = RenderParams.from_inputs("0.43721", 40, "6", 30, 1, 0)
-        assert p == RenderParams(0.437, 40.0, 6, 30.0, True, False)
+        p = RenderParams.from_inputs("0.43721", "2.8", "6", 30, 1, 0, size=(4000, 3000))
+        # the focus slider's 0.437 (near 0, far 1) is the library's disparity 0.563
+        assert p == RenderParams(0.563, 99.2, 6, 30.0, True, False, f_number=2.8)
+        assert p.position == 0.437
         assert p.render_options() == {
             "fusion": False,
             "blades": 6,
@@ -316,25 +327,70 @@ class TestRenderParams:
             "highlight_boost": True,
             "budget": "balanced",
         }
-        fast = RenderParams.from_inputs(0.5, 10, quality="fast")
+        fast = RenderParams.from_inputs(0.5, 10, quality="fast", size=(320, 240))
         assert fast.render_options()["budget"] == "fast"
 
+    def test_focus_slider_reads_near_to_far(self):
+        near = RenderParams.from_inputs(0.0, 2.8, size=(320, 240))
+        far = RenderParams.from_inputs(1.0, 2.8, size=(320, 240))
+        assert (near.focus, far.focus) == (1.0, 0.0)  # the library's disparity, 1 = near
+        # every slider value comes back from its disparity unchanged (3 decimals)
+        for k in range(1001):
+            assert position_of(disparity_of(k / 1000)) == round(k / 1000, 3)
+
     @pytest.mark.parametrize(
-        "args", [(1.5, 10), (-0.1, 10), (0.5, -1), (0.5, 10, 2), ("x", 10), (None, 10)]
+        ("f_number", "size", "k"),
+        [
+            # K = 50^2 / (1000 * 36) * long side / N (a 50 mm lens, full frame, nearest 1 m)
+            (1.4, (4000, 3000), 198.4),
+            (16, (4000, 3000), 17.4),
+            (2.8, (4000, 3000), 99.2),
+            (22, (4000, 3000), 12.6),
+            (1.0, (4000, 3000), 277.8),
+            (2.8, (3000, 4000), 99.2),  # portrait: the long side spans the 36 mm
+            (1.4, (320, 240), 15.9),
+            (1.0, (6000, 2000), 300.0),  # capped
+        ],
     )
+    def test_f_number_to_blur_px(self, f_number, size, k):
+        assert blur_px(f_number, max(size)) == k
+        p = RenderParams.from_inputs(0.5, f_number, size=size)
+        assert p.blur == k and p.f_number == f_number
+        assert p.blur_text() == f"f/{f_number:g}, blur {k:g} px"
+        if k < 300:  # the f-number that gives K px gives it back (app.bench uses it)
+            assert blur_px(f_number_for(k, max(size)), max(size)) == k
+
+    def test_blur_off_and_size_later(self):
+        off = RenderParams.from_inputs(0.5, 2.8, 0, 0, True, True, "balanced", False, size=(40, 30))
+        assert off.blur == 0.0 and off.f_number is None and off.blur_text() == "no blur"
+        early = RenderParams.from_inputs(0.5, 2.8, size=None)  # checked before the photo
+        assert early.blur == 0.0 and early.sized((4000, 3000)).blur == 99.2
+
+    @pytest.mark.parametrize(
+        "args",
+        [(1.5, 10), (-0.1, 10), (0.5, 0.2), (0.5, 2000), (0.5, "nan"), (0.5, 10, 2),
+         ("x", 10), (None, 10), (0.5, None)],
+    )  # fmt: skip
     def test_invalid(self, args):
         with pytest.raises(gr.Error):
-            RenderParams.from_inputs(*args)
+            RenderParams.from_inputs(*args, size=(320, 240))
 
 
 class TestLoad:
-    def test_upload_with_disparity(self, loaded, sharpness):
-        logic, session, scene = loaded
+    def test_upload_with_disparity(self, logic, two_plane_scene, sharpness, monkeypatch):
+        from app import handlers
+
+        # a lens whose f/1 blurs the 320 px photo by K = 120 px
+        monkeypatch.setattr(handlers, "BLUR_PER_PX_AT_F1", 120 / 320)
+        scene = two_plane_scene
+        out = logic.load(str(scene.photo), str(scene.disparity), "disparity", None, 0.5, 1.0)
+        session = out[0]
         assert isinstance(session, Session)
         assert session.size == session.shown_size == (320, 240)
         assert session.name == "scene"
         assert session.last_full.shape == (240, 320, 3)
-        # focus 0.5 with K = 120 px: both planes are |d - f| ~ 0.4 away, both blurred
+        assert "f/1, blur 120 px" in out[-1]
+        # focus 0.5 with K = 120 px: both planes are |d - f| = 0.5 away, both blurred
         assert sharpness(session.last_full) < 0.5 * sharpness(scene.image)
 
     def test_outputs_and_info(self, logic, two_plane_scene):
@@ -344,7 +400,7 @@ class TestLoad:
             "disparity (bright = near)",
             None,
             0.5,
-            BLUR,
+            APERTURE,
         )
         session, focus, result, compare, legend, info = out
         assert session.name == "my_photo"
@@ -354,26 +410,28 @@ class TestLoad:
         assert "320x240 px" in info and "prepare" in info and "your disparity map" in info
 
     def test_no_depth_focuses_on_the_subject(self, logic, tiny_model, two_plane_scene):
-        out = logic.load(str(two_plane_scene.photo), None, "disparity", None, 0.5, BLUR)
+        out = logic.load(str(two_plane_scene.photo), None, "disparity", None, 0.5, APERTURE)
         session, focus, *_, info = out
         expected, (x, y) = tiny_model.subject_focus(session.scene)
-        assert not is_skip(focus) and focus == round(expected, 3)
+        # the slider reads near (0) to far (1): the subject's disparity d is at 1 - d
+        assert not is_skip(focus) and focus == round(1.0 - expected, 3)
+        assert session.full_params.focus == round(expected, 3)
         assert f"focus on the subject at ({x:.0f}, {y:.0f})" in info
         assert f"focus {focus:.3f}" in info  # the image was rendered at that focus
         # with a depth map but no focal plane from the camera, the slider keeps its value
         given = logic.load(
             str(two_plane_scene.photo), str(two_plane_scene.disparity), "disparity", None, 0.5,
-            BLUR,
+            APERTURE,
         )  # fmt: skip
         assert is_skip(given[1])
 
     def test_same_pixels_hit_the_cache(self, logic, two_plane_scene):
-        args = (str(two_plane_scene.disparity), "disparity", None, 0.5, BLUR)
+        args = (str(two_plane_scene.disparity), "disparity", None, 0.5, APERTURE)
         first = logic.load(str(two_plane_scene.photo), *args)
         again = logic.load(str(two_plane_scene.photo), *args)
         assert "cached scene" in again[-1] and "cached scene" not in first[-1]
         assert again[0].scene is first[0].scene
-        other = logic.load(str(two_plane_scene.photo), None, "disparity", None, 0.5, BLUR)
+        other = logic.load(str(two_plane_scene.photo), None, "disparity", None, 0.5, APERTURE)
         assert other[0].scene is not first[0].scene  # network map: a different key
 
     def test_depth_resize_notice(self, logic, two_plane_scene, tmp_path, capsys):
@@ -381,13 +439,13 @@ class TestLoad:
         Image.open(two_plane_scene.disparity).resize((160, 120), Image.Resampling.NEAREST).save(
             small
         )
-        logic.load(str(two_plane_scene.photo), str(small), "disparity", None, 0.5, BLUR)
+        logic.load(str(two_plane_scene.photo), str(small), "disparity", None, 0.5, APERTURE)
         assert "160x120" in capsys.readouterr().out  # gr.Info outside a request prints
 
     def test_depth_kind(self, logic, two_plane_scene):
         out = logic.load(
             str(two_plane_scene.photo), str(two_plane_scene.disparity), "depth (bright = far)",
-            None, 0.5, BLUR,
+            None, 0.5, APERTURE,
         )  # fmt: skip
         x, y = two_plane_scene.near_point
         # read as depth, the bright box is now the far plane
@@ -406,9 +464,9 @@ class TestLoad:
         bad = tmp_path / "bad.jpg"
         bad.write_bytes(content)
         with pytest.raises(gr.Error, match=message):
-            logic.load(str(bad), None, "disparity", session, 0.5, BLUR)
+            logic.load(str(bad), None, "disparity", session, 0.5, APERTURE)
         # the previous photo still renders
-        out = logic.render_full(session, 0.9, BLUR)
+        out = logic.render_full(session, 0.9, APERTURE)
         assert pixels(out[0]).shape == (240, 320, 3)
 
     def test_bad_depth_is_gr_error(self, logic, two_plane_scene, tmp_path):
@@ -417,14 +475,14 @@ class TestLoad:
         with pytest.raises(gr.Error, match="depth.txt"):
             logic.load(
                 str(two_plane_scene.photo), {"path": str(text), "orig_name": "depth.txt"},
-                "disparity", None, 0.5, BLUR,
+                "disparity", None, 0.5, APERTURE,
             )  # fmt: skip
 
     def test_cleared_input(self, loaded):
         logic, session, _ = loaded
         folder = session.folder
         assert folder is not None and folder.exists()
-        out = logic.load(None, None, "disparity", session, 0.5, BLUR)
+        out = logic.load(None, None, "disparity", session, 0.5, APERTURE)
         assert out[0] is None and out[-1] == ""
         assert not folder.exists()
 
@@ -433,22 +491,25 @@ class TestLoad:
         stored = np.rot90(scene.image, k=1)  # displayed after a 90 degree CW turn
         path = tmp_path / "rotated.jpg"
         write_exif_rotated(path, np.ascontiguousarray(stored), orientation=6)
-        out = logic.load(str(path), str(scene.disparity), "disparity", None, 0.5, BLUR)
+        out = logic.load(str(path), str(scene.disparity), "disparity", None, 0.5, APERTURE)
         session = out[0]
         assert session.size == session.shown_size == (200, 120)
-        focus = logic.click(session, list(scene.near_point), BLUR)[0]
-        assert focus == pytest.approx(1.0, abs=0.02)
+        focus = logic.click(session, list(scene.near_point), APERTURE)[0]
+        assert focus == pytest.approx(0.0, abs=0.02)  # the slider's near end
 
 
 class TestRender:
     def test_click_near_then_far(self, loaded, sharpness):
         logic, session, scene = loaded
-        near = logic.click(session, list(scene.near_point), BLUR)
-        # the map is min-max normalised: the near box is 1, the background 0
-        assert near[0] == pytest.approx(1.0, abs=0.01)
+        near = logic.click(session, list(scene.near_point), APERTURE)
+        # the map is min-max normalised: the near box is disparity 1, the background 0; the
+        # focus slider reads near (0) to far (1)
+        assert near[0] == pytest.approx(0.0, abs=0.01)
+        assert session.full_params.focus == pytest.approx(1.0, abs=0.01)
         img_near = session.last_full.copy()
-        far = logic.click(session, list(scene.far_point), BLUR)
-        assert far[0] == pytest.approx(0.0, abs=0.01)
+        far = logic.click(session, list(scene.far_point), APERTURE)
+        assert far[0] == pytest.approx(1.0, abs=0.01)
+        assert session.full_params.focus == pytest.approx(0.0, abs=0.01)
         img_far = session.last_full
         x0, y0, x1, y1 = scene.box
         inner = (x0 + 12, y0 + 12, x1 - 12, y1 - 12)
@@ -461,34 +522,35 @@ class TestRender:
             scene.image[inner[1] : inner[3], inner[0] : inner[2]].astype(int),
             atol=2,
         )
-        assert "focus_at" in far[-1]
+        assert "focused on the click at" in far[-1]
+        assert f"focus {far[0]:.3f} (0 = near, 1 = far; disparity " in far[-1]
 
     def test_click_coordinates_scale_to_a_downscaled_scene(self, loaded):
         logic, session, scene = loaded
         session.shown_size = (640, 480)  # as if the upload had been twice as large
         x, y = scene.near_point
-        assert logic.click(session, [2 * x, 2 * y], BLUR)[0] == pytest.approx(1.0, abs=0.01)
-        # clicks past the edge clamp into the photo
-        assert logic.click(session, [10_000, 10_000], BLUR)[0] == pytest.approx(0.0, abs=0.01)
+        assert logic.click(session, [2 * x, 2 * y], APERTURE)[0] == pytest.approx(0.0, abs=0.01)
+        # clicks past the edge clamp into the photo (the far background)
+        assert logic.click(session, [10_000, 10_000], APERTURE)[0] == pytest.approx(1.0, abs=0.01)
 
     def test_click_without_photo_and_bad_index(self, logic, loaded):
         with pytest.warns(UserWarning, match="Upload a photo"):
-            out = logic.click(None, [1, 2], BLUR)
+            out = logic.click(None, [1, 2], APERTURE)
         assert all(is_skip(o) for o in out)
         _, session, _ = loaded
         with pytest.raises(gr.Error, match="Click position"):
-            logic.click(session, "middle", BLUR)
+            logic.click(session, "middle", APERTURE)
 
     def test_preview_is_small_and_skipped_after_full(self, loaded):
         logic, session, _ = loaded
-        out = logic.render_preview(session, 0.3, BLUR)
+        out = logic.render_preview(session, 0.3, APERTURE)
         assert max(pixels(out[0]).shape[:2]) <= PREVIEW_MAX_SIDE
         assert "preview" in out[3]
-        logic.render_full(session, 0.3, BLUR)
-        assert all(is_skip(o) for o in logic.render_preview(session, 0.3, BLUR))
+        logic.render_full(session, 0.3, APERTURE)
+        assert all(is_skip(o) for o in logic.render_preview(session, 0.3, APERTURE))
         # the same params again at full resolution: nothing new to do
-        assert all(is_skip(o) for o in logic.render_full(session, 0.3, BLUR))
-        assert not is_skip(logic.render_preview(session, 0.31, BLUR)[0])
+        assert all(is_skip(o) for o in logic.render_full(session, 0.3, APERTURE))
+        assert not is_skip(logic.render_preview(session, 0.31, APERTURE)[0])
 
     def test_download_follows_what_is_shown(self, loaded):
         """A preview disables Download (it would save another picture); the full render of
@@ -496,46 +558,51 @@ class TestRender:
         value of the last full render."""
         logic, session, _ = loaded
         first = logic.download(session, "JPEG")
-        assert first["interactive"] is True and "_f0.500_K120.jpg" in first["value"]
+        assert first["interactive"] is True and "_focus0.500_f0.5_K44.4.jpg" in first["value"]
         # asked again (each render event asks): the same file, not written again
         assert logic.download(session, "JPEG")["value"] == first["value"]
-        out = logic.render_preview(session, 0.7, 100.0)
+        out = logic.render_preview(session, 0.7, 2.0)
         assert out[4] == {"__type__": "update", "interactive": False}
         assert is_skip(logic.download(session, "JPEG"))  # nothing full to save yet
         # the slider comes back to the full render's value and is released there: the
         # preview on screen is replaced by the full render again, and Download saves it
-        back = logic.render_full(session, 0.5, BLUR)
+        back = logic.render_full(session, 0.5, APERTURE)
         assert not is_skip(back[0]) and "full render" in back[3]
         again = logic.download(session, "JPEG")
-        assert again["interactive"] is True and "_f0.500_K120.jpg" in again["value"]
-        logic.render_preview(session, 0.7, 100.0)
-        logic.render_full(session, 0.7, 100.0)
+        assert again["interactive"] is True and "_focus0.500_f0.5_K44.4.jpg" in again["value"]
+        logic.render_preview(session, 0.7, 2.0)
+        logic.render_full(session, 0.7, 2.0)
         saved = logic.download(session, "PNG")
-        assert "_f0.700_K100.png" in saved["value"]
+        assert "_focus0.700_f2_K11.1.png" in saved["value"]
         np.testing.assert_array_equal(np.asarray(Image.open(saved["value"])), session.last_full)
 
     def test_info_names_the_adaptive_settings(self, loaded):
         logic, session, scene = loaded
-        out = logic.render_full(session, 0.5, 0.0)
+        out = logic.render_full(session, 0.5, APERTURE, blur_on=False)
         assert "balanced quality: every blur under 1 px" in out[-1]
         np.testing.assert_array_equal(session.last_full, np.asarray(Image.open(scene.photo)))
         assert_shows(out[0], np.asarray(Image.open(scene.photo)))
-        out = logic.render_full(session, 0.5, BLUR)
+        out = logic.render_full(session, 0.5, APERTURE)
         # the user's word for the setting, not the renderer's preset name
         assert "balanced quality: 15 blur layers" in out[-1] and "preset" not in out[-1]
-        assert "layers" in logic.render_preview(session, 0.45, BLUR)[3]
+        assert "layers" in logic.render_preview(session, 0.45, APERTURE)[3]
 
-    def test_quality_option_sets_the_budget(self, loaded):
+    def test_quality_option_sets_the_budget(self, loaded, monkeypatch):
+        from app import handlers
+
         logic, session, _ = loaded
+        # a lens whose f/1 reaches the 300 px cap on the 320 px photo
+        monkeypatch.setattr(handlers, "BLUR_PER_PX_AT_F1", 1.0)
         info = {}
         for quality in ("high", "fast"):
-            info[quality] = logic.render_full(session, 1.0, 3000.0, quality=quality)[-1]
+            info[quality] = logic.render_full(session, 0.0, 1.0, quality=quality)[-1]
+        assert "f/1, blur 300 px" in info["high"]
         # CoCs far over 64 px: only the 30 dB budget affords fewer than 15 layers
         assert "high quality: 15 blur layers" in info["high"]
         assert info["fast"].split(" | ")[-1].startswith("fast quality: ")
         assert "15 blur layers" not in info["fast"] and " blur layers" in info["fast"]
         with pytest.raises(gr.Error, match="quality"):
-            logic.render_full(session, 0.5, BLUR, quality="ultra")
+            logic.render_full(session, 0.5, APERTURE, quality="ultra")
 
     def test_preview_dropped_when_full_render_overtakes_it(self, loaded):
         logic, session, _ = loaded
@@ -557,28 +624,28 @@ class TestRender:
         logic.model = SlowPreview()
         box = {}
         t = threading.Thread(
-            target=lambda: box.setdefault("out", logic.render_preview(session, 0.2, BLUR))
+            target=lambda: box.setdefault("out", logic.render_preview(session, 0.2, APERTURE))
         )
         t.start()
         assert started.wait(10)
-        full = logic.render_full(session, 0.25, BLUR)
+        full = logic.render_full(session, 0.25, APERTURE)
         release.set()
         t.join(10)
         assert not is_skip(full[0])
         assert all(is_skip(o) for o in box["out"])
-        assert "full" in full[-1] and session.full_params.focus == 0.25
+        assert "full" in full[-1] and session.full_params.position == 0.25
 
     def test_advanced_options_change_the_picture(self, loaded):
         logic, session, _ = loaded
-        base = pixels(logic.render_full(session, 0.0, BLUR)[0])
+        base = pixels(logic.render_full(session, 0.0, APERTURE)[0])
         for kwargs in (
             {"blades": 6, "rotation": 20},
             {"highlight_boost": False},
             {"fusion": False},
         ):
-            out = logic.render_full(session, 0.0, BLUR, **kwargs)
+            out = logic.render_full(session, 0.0, APERTURE, **kwargs)
             assert pixels(out[0]).shape == base.shape
-        no_blur = logic.render_full(session, 0.0, 0.0)[0]
+        no_blur = logic.render_full(session, 0.0, APERTURE, blur_on=False)[0]
         np.testing.assert_allclose(
             session.last_full.astype(int), session.before.astype(int), atol=1
         )
@@ -616,14 +683,14 @@ class TestRender:
         from app.handlers import DISPLAY_FILES_KEPT, FILE_MIN_AGE_S
 
         logic, session, _ = loaded
-        sent = [logic.render_preview(session, 0.1 + 0.01 * k, BLUR)[0]["value"]
+        sent = [logic.render_preview(session, 0.1 + 0.01 * k, APERTURE)[0]["value"]
                 for k in range(DISPLAY_FILES_KEPT + 4)]  # fmt: skip
         assert all(Path(p).exists() for p in sent)
         folder = session.folder / "display"
         old = time.time() - FILE_MIN_AGE_S - 5
         for f in folder.iterdir():
             os.utime(f, (old, old))
-        newest = logic.render_preview(session, 0.9, BLUR)[0]["value"]
+        newest = logic.render_preview(session, 0.9, APERTURE)[0]["value"]
         kept = sorted(folder.iterdir())
         assert len(kept) == DISPLAY_FILES_KEPT and Path(newest) == kept[-1]
 
@@ -639,9 +706,9 @@ class TestRender:
         clock = iter(ticks)
         monkeypatch.setattr(handlers.time, "monotonic_ns", lambda: next(clock))
         for k in range(10):  # 12-digit times
-            logic.render_preview(session, 0.1 + 0.01 * k, BLUR)
+            logic.render_preview(session, 0.1 + 0.01 * k, APERTURE)
         for k in range(3):  # the clock has rolled over to 13 digits
-            path = logic.render_preview(session, 0.6 + 0.01 * k, BLUR)[0]["value"]
+            path = logic.render_preview(session, 0.6 + 0.01 * k, APERTURE)[0]["value"]
             assert Path(path).exists()
 
     def test_render_without_session(self, logic):
@@ -651,9 +718,23 @@ class TestRender:
         assert all(is_skip(o) for o in logic.render_preview(None, 0.5, 10))
         assert len(logic.render_preview(None, 0.5, 10)) == 5
 
+    def test_blur_note_under_the_slider(self, loaded):
+        """The aperture slider's info line: K in px at full resolution for the f-number on
+        this photo (50 mm full frame, nearest 1 m: 0.0694 px per px of the long side at
+        f/1), a 4000x3000 photo's before an upload."""
+        logic, session, _ = loaded
+        assert "f/1.4: blur K = 15.9 px on this 320x240 photo" in logic.blur_note(session, 1.4)
+        assert "K = 15.9 px" in logic.blur_note(session, "1.4")
+        assert "K = 198.4 px on a 4000x3000 photo" in logic.blur_note(None, 1.4)
+        assert "K = 17.4 px" in logic.blur_note(None, 16)
+        assert "50 mm lens on full frame" in logic.blur_note(None, 16)
+        assert "300 px (the most the app renders)" in logic.blur_note(None, 0.9)
+        assert "Blur is off" in logic.blur_note(session, 1.4, False)
+        assert "px" not in logic.blur_note(session, "x") + logic.blur_note(session, -2)
+
     def test_core_value_error_becomes_gr_error(self, loaded):
         logic, session, _ = loaded
-        with pytest.raises(gr.Error, match="blur"):
+        with pytest.raises(gr.Error, match="f-number"):
             logic.render_full(session, 0.5, 20_000)
 
 
@@ -683,7 +764,7 @@ class TestLensBlurPanel:
     def test_panel_shows_the_original_not_the_main_picture(self, logic, two_plane_scene, tmp_path):
         path = tmp_path / "lensblur.jpg"
         main = write_lensblur(path, two_plane_scene, (320, 240))
-        out = logic.load(str(path), None, "disparity", None, 0.5, BLUR)
+        out = logic.load(str(path), None, "disparity", None, 0.5, APERTURE)
         session = out[0]
         assert "depth embedded in the photo" in out[-1]
         panel = logic.photo_panel(session)
@@ -703,26 +784,26 @@ class TestLensBlurPanel:
         write_lensblur(path, scene, (320, 240))
         fit = imaging.fit_display
         monkeypatch.setattr(imaging, "fit_display", lambda im, max_side=160: fit(im, 160))
-        session = logic.load(str(path), None, "disparity", None, 0.5, BLUR)[0]
+        session = logic.load(str(path), None, "disparity", None, 0.5, APERTURE)[0]
         assert session.size == (320, 240)
         assert session.shown_size == (160, 120) == Image.open(session.panel).size
         near = [v // 4 for v in scene.near_point]
         far = [v // 4 for v in scene.far_point]
-        assert logic.click(session, near, BLUR)[0] == pytest.approx(1.0, abs=0.02)
-        assert logic.click(session, far, BLUR)[0] == pytest.approx(0.0, abs=0.02)
+        assert logic.click(session, near, APERTURE)[0] == pytest.approx(0.0, abs=0.02)
+        assert logic.click(session, far, APERTURE)[0] == pytest.approx(1.0, abs=0.02)
 
     def test_panel_picture_sent_back_loads_the_upload(self, logic, two_plane_scene, tmp_path):
         path = tmp_path / "lensblur.jpg"
         write_lensblur(path, two_plane_scene, (320, 240))
         first = logic.load(
-            {"path": str(path), "orig_name": "PXL 1.jpg"}, None, "disparity", None, 0.5, BLUR
+            {"path": str(path), "orig_name": "PXL 1.jpg"}, None, "disparity", None, 0.5, APERTURE
         )[0]
         # Gradio hands the panel's picture back from its cache, under the same file name
         cached = tmp_path / "gradio-cache" / first.panel.name
         cached.parent.mkdir()
         cached.write_bytes(first.panel.read_bytes())
         # a new depth source re-loads with the photo input holding the panel's picture
-        out = logic.load({"path": str(cached)}, None, "disparity", first, 0.5, BLUR, 0, 0.0,
+        out = logic.load({"path": str(cached)}, None, "disparity", first, 0.5, APERTURE, 0, 0.0,
                          True, True, "Bokeh", "balanced", "embedded", "")  # fmt: skip
         again = out[0]
         assert first.closed and again.name == "PXL_1" and again.upload_name == "PXL 1.jpg"
@@ -732,16 +813,16 @@ class TestLensBlurPanel:
         # once the session is closed the panel's picture stands for nothing: a clear refusal
         again.close()
         with pytest.raises(gr.Error, match="closed"):
-            logic.load({"path": str(cached)}, None, "disparity", again, 0.5, BLUR)
+            logic.load({"path": str(cached)}, None, "disparity", again, 0.5, APERTURE)
 
     def test_failed_upload_shows_the_original_again(self, logic, two_plane_scene, tmp_path):
         path = tmp_path / "lensblur.jpg"
         write_lensblur(path, two_plane_scene, (320, 240))
-        session = logic.load(str(path), None, "disparity", None, 0.5, BLUR)[0]
+        session = logic.load(str(path), None, "disparity", None, 0.5, APERTURE)[0]
         bad = tmp_path / "bad.jpg"
         bad.write_bytes(b"")
         with pytest.raises(gr.Error):
-            logic.load(str(bad), None, "disparity", session, 0.5, BLUR)
+            logic.load(str(bad), None, "disparity", session, 0.5, APERTURE)
         photo, _, _, _, info, _ = logic.after_failed_load(session, {"path": str(bad)})
         assert photo["value"] == str(session.panel)  # the original, not the blurred file
         assert "Still showing lensblur" in info
@@ -756,7 +837,7 @@ class TestLensBlurPanel:
         disp = np.full(scene.image.shape[:2], 40, np.uint8)
         mpo = tmp_path / "portrait.jpg"
         mpo.write_bytes(apple_mpo(scene.image, disp, float_min=0.2, float_max=2.0))
-        apple = logic.load(str(mpo), None, "disparity", session, 0.5, BLUR)[0]
+        apple = logic.load(str(mpo), None, "disparity", session, 0.5, APERTURE)[0]
         assert is_skip(logic.photo_panel(apple)) and apple.shown_size == (320, 240)
         assert is_skip(logic.photo_panel(None))
 
@@ -768,7 +849,7 @@ class TestSessions:
     def test_scene_dropped_from_the_cache_is_prepared_again(self, loaded):
         logic, session, scene = loaded
         logic.cache.clear()
-        out = logic.render_full(session, 0.5, 0.0)  # zero blur: the photo itself
+        out = logic.render_full(session, 0.5, APERTURE, blur_on=False)  # the photo itself
         np.testing.assert_array_equal(session.last_full, scene.image)
         assert_shows(out[0], scene.image)
         assert len(logic.cache) == 1  # prepared again from the session's copy, and cached
@@ -786,13 +867,13 @@ class TestSessions:
         logic = RefocusApp(
             tiny_model, SceneCache(64 << 20), download_root=tmp_path / "dl", max_sessions=2
         )
-        args = (str(two_plane_scene.photo), None, "disparity", None, 0.5, BLUR)
+        args = (str(two_plane_scene.photo), None, "disparity", None, 0.5, APERTURE)
         a = logic.load(*args)[0]
         b = logic.load(*args)[0]
         with pytest.raises(gr.Error, match="limit of 2 open photos"):
             logic.load(*args)
         # the same user uploading again replaces their own session: no refusal
-        b2 = logic.load(str(two_plane_scene.photo), None, "disparity", b, 0.5, BLUR)[0]
+        b2 = logic.load(str(two_plane_scene.photo), None, "disparity", b, 0.5, APERTURE)[0]
         assert b.closed and not b2.closed and logic.live_sessions == 2
         a.close()
         assert logic.live_sessions == 1
@@ -802,7 +883,7 @@ class TestSessions:
         logic = RefocusApp(
             tiny_model, SceneCache(64 << 20), download_root=tmp_path / "dl", session_idle_s=60
         )
-        session = logic.load(str(two_plane_scene.photo), None, "disparity", None, 0.5, BLUR)[0]
+        session = logic.load(str(two_plane_scene.photo), None, "disparity", None, 0.5, APERTURE)[0]
         folder = session.folder
         assert folder.exists() and logic.live_sessions == 1
         assert logic.expire_idle() == 0
@@ -810,7 +891,7 @@ class TestSessions:
         assert logic.expire_idle() == 1
         assert logic.live_sessions == 0 and not folder.exists() and not session.views
         with pytest.raises(gr.Error, match="upload it again"):
-            logic.render_full(session, 0.3, BLUR)
+            logic.render_full(session, 0.3, APERTURE)
 
     def test_closed_tab_ends_its_sessions(self, tiny_model, tmp_path, two_plane_scene):
         logic = RefocusApp(tiny_model, SceneCache(64 << 20), download_root=tmp_path / "dl")
@@ -818,7 +899,7 @@ class TestSessions:
         class Request:
             session_hash = "tab-1"
 
-        args = (str(two_plane_scene.photo), None, "disparity", None, 0.5, BLUR)
+        args = (str(two_plane_scene.photo), None, "disparity", None, 0.5, APERTURE)
         mine = logic.load(*args, request=Request())[0]
         other = logic.load(*args)[0]
         assert logic.end_sessions("tab-1") == 1
@@ -828,7 +909,7 @@ class TestSessions:
 class TestDownload:
     def test_png_is_the_full_render(self, loaded):
         logic, session, _ = loaded
-        logic.click(session, [5, 5], BLUR)
+        logic.click(session, [5, 5], APERTURE)
         up = logic.download(session, "PNG")
         path = Path(up["value"])
         assert path.suffix == ".png" and path.name.startswith("scene_bokeh_f")
@@ -839,7 +920,7 @@ class TestDownload:
         """The browser gets a JPEG at display size (not a PNG); Download keeps every pixel
         of the full-resolution render."""
         scene = scene_factory(2000, 1200, seed=3, stem="wide")
-        out = logic.load(str(scene.photo), None, "disparity", None, 0.5, 0.0)
+        out = logic.load(str(scene.photo), None, "disparity", None, 0.5, 2.8, blur_on=False)
         session = out[0]
         with Image.open(out[2]["value"]) as shown:
             assert shown.format == "JPEG" and shown.size == (1600, 960)
@@ -918,6 +999,25 @@ class TestBuildDemo:
                         if t[0] == by_elem["input"]}  # fmt: skip
         # an upload fires .change twice in Gradio 6; the app listens to .upload instead
         assert photo_events == {"upload", "clear", "select"}
+
+    def test_controls_speak_a_photographers_language(self, config):
+        props = {c["props"].get("elem_id"): c["props"] for c in config["components"]}
+        label = props["focus"]["label"]
+        assert label.index("near") < label.index("far")  # left to right, as the slider reads
+        assert (props["focus"]["minimum"], props["focus"]["maximum"]) == (0, 1)
+        blur = props["blur"]
+        assert "f-number" in blur["label"] and "50 mm" in blur["info"]
+        assert (blur["minimum"], blur["maximum"], blur["value"]) == (1, 22, DEFAULT_F_NUMBER)
+        assert props["blades"]["label"] == "Aperture shape (blades)"
+        assert props["blur_on"]["value"] is True
+        assert "f/2.8: blur K = 99.2 px on a 4000x3000 photo" in blur["info"]
+        by_elem = {k: c["id"] for c in config["components"] for k in [c["props"].get("elem_id")]}
+        # the blur switch renders again and updates the note under the slider
+        on = [d for d in config["dependencies"]
+              if [by_elem["blur_on"], "change"] in map(list, d["targets"])]  # fmt: skip
+        assert {d["api_name"] for d in on} == {"render", "blur_note_ui_2"}
+        # the note sets the slider's info line only: no value, so no .change or .release
+        assert all(d["outputs"] == [by_elem["blur"]] for d in on if d["api_name"] != "render")
 
     def test_examples_from_assets(self):
         from app.main import sample_paths
