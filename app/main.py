@@ -481,10 +481,23 @@ def build_demo(
                 )  # fmt: skip
             )
 
-        photo.select(
+        clicked = photo.select(
             on_select,
             [session, blur, *options, blur_on],
             [focus, *shown, download],
+            api_visibility="private",
+            **heavy,
+            **quiet,
+        )
+        # A click while a slider's number box has the keyboard focus also sends that
+        # slider's release (the box loses focus) with the old focus; that full render can
+        # start after the click's, win, and leave the click's new focus to a preview with
+        # Download disabled. A full render of the values now on the page follows the
+        # click: nothing to do when the click's render stands (same params).
+        clicked.success(
+            render_full_ui,
+            render_inputs,
+            [*shown, download],
             api_visibility="private",
             **heavy,
             **quiet,

@@ -995,6 +995,14 @@ class TestBuildDemo:
             if [by_elem["input"], "select"] in map(list, d["targets"])
         ]
         assert len(select) == 1 and by_elem["focus"] in select[0]["outputs"]
+        # the click is followed by a full render of the page's values (a release in flight
+        # with the old focus may have overtaken the click's render)
+        sid = select[0]["id"]
+        after = [d for d in config["dependencies"]
+                 if d["trigger_after"] == sid and d["trigger_only_on_success"]]  # fmt: skip
+        assert len(after) == 1
+        assert {by_elem[k] for k in ("focus", "blur", "blur_on")} <= set(after[0]["inputs"])
+        assert by_elem["result"] in after[0]["outputs"]
         photo_events = {t[1] for d in config["dependencies"] for t in d["targets"]
                         if t[0] == by_elem["input"]}  # fmt: skip
         # an upload fires .change twice in Gradio 6; the app listens to .upload instead
