@@ -489,13 +489,20 @@ def build_demo(
             **heavy,
             **quiet,
         )
+
         # A click while a slider's number box has the keyboard focus also sends that
         # slider's release (the box loses focus) with the old focus; that full render can
         # start after the click's, win, and leave the click's new focus to a preview with
         # Download disabled. A full render of the values now on the page follows the
-        # click: nothing to do when the click's render stands (same params).
+        # click: nothing to do when the click's render stands (same params), nor without a
+        # photo (the click said so already).
+        def refresh_ui(state, *values):
+            if state is None:
+                return (*(gr.skip(),) * len(shown), gr.skip())
+            return render_full_ui(state, *values)
+
         clicked.success(
-            render_full_ui,
+            refresh_ui,
             render_inputs,
             [*shown, download],
             api_visibility="private",
