@@ -201,6 +201,12 @@ def build_demo(
     # one group for every event that runs the model, so the CPU is not oversubscribed
     heavy = {"concurrency_id": "model", "concurrency_limit": concurrency}
     quiet = {"show_progress": "hidden", "trigger_mode": "always_last"}
+    # events that can take over a second at 12 MP show that they are running on the picture
+    # they will replace: a spinner over it for an upload or a click (the user waits for
+    # them), the running time in its corner for a full render after a slider or an option
+    # (no overlay: the drag's previews stay unobstructed). Previews show nothing.
+    waited = {"show_progress": "full", "trigger_mode": "always_last"}
+    timed = {"show_progress": "minimal", "trigger_mode": "always_last"}
     chained = {"show_progress": "hidden", "api_visibility": "private", "api_name": "auto_download"}
 
     with gr.Blocks(title="D2F refocus", delete_cache=(600, 3600)) as demo:
@@ -366,8 +372,9 @@ def build_demo(
             "outputs": [session, focus, *shown, download, photo],
             # raw upload payloads: decoding errors are reported by the app, not by Gradio
             "preprocess": False,
+            "show_progress_on": [result, compare],
             **heavy,
-            **quiet,
+            **waited,
         }
         # .upload, not .change: an upload fires .change twice in Gradio 6, and the two runs
         # then race on the same output file; and the load sets the photo panel (a Lens Blur
@@ -439,8 +446,9 @@ def build_demo(
                 render_inputs,
                 [*shown, download],
                 api_name=f"render_{slider.elem_id}",
+                show_progress_on=[result, compare],
                 **heavy,
-                **quiet,
+                **timed,
             ).success(logic.download, [session, fmt], [download], **chained)
         gr.on(
             [blades.change, highlight.change, fusion.change, quality.change, blur_on.change],
@@ -448,8 +456,9 @@ def build_demo(
             render_inputs,
             [*shown, download],
             api_name="render",
+            show_progress_on=[result, compare],
             **heavy,
-            **quiet,
+            **timed,
         ).success(logic.download, [session, fmt], [download], **chained)
         gr.on([blur.change, blur_on.change], trigger_mode="always_last", **note_io)
 
@@ -486,8 +495,9 @@ def build_demo(
             [session, blur, *options, blur_on],
             [focus, *shown, download],
             api_visibility="private",
+            show_progress_on=[result, compare],
             **heavy,
-            **quiet,
+            **waited,
         )
 
         # A click while a slider's number box has the keyboard focus also sends that

@@ -986,9 +986,14 @@ class TestBuildDemo:
             events = {t[1] for d in config["dependencies"] for t in d["targets"] if t[0] == sid}
             assert events == {"change", "release"}, name  # never .input next to .change
             for d in config["dependencies"]:
-                if any(t[0] == sid for t in d["targets"]):
+                events = {t[1] for t in d["targets"] if t[0] == sid}
+                if events:
                     assert d["trigger_mode"] == "always_last"
+                if "change" in events:  # the drag's previews: no overlay, no timer
                     assert d["show_progress"] == "hidden"
+                if "release" in events:  # the full render: its running time on the result
+                    assert d["show_progress"] == "minimal"
+                    assert d["show_progress_on"] == [by_elem["result"], by_elem["compare"]]
         select = [
             d
             for d in config["dependencies"]
@@ -1007,6 +1012,22 @@ class TestBuildDemo:
                         if t[0] == by_elem["input"]}  # fmt: skip
         # an upload fires .change twice in Gradio 6; the app listens to .upload instead
         assert photo_events == {"upload", "clear", "select"}
+
+    def test_slow_events_show_progress(self, config):
+        """An upload (decode, prepare, render: seconds at 12 MP) and a click (focus and a
+        full render) show a spinner over the result; nothing else covers it."""
+        by_elem = {c["props"].get("elem_id"): c["id"] for c in config["components"]}
+        shown_on = [by_elem["result"], by_elem["compare"]]
+        full = {
+            (t[0], t[1]) for d in config["dependencies"] if d["show_progress"] == "full"
+            for t in d["targets"]
+        }  # fmt: skip
+        assert (by_elem["input"], "upload") in full and (by_elem["input"], "select") in full
+        controls = "focus blur rotation blades hdr fusion quality blur_on view format".split()
+        assert not {by_elem[c] for c in controls} & {t[0] for t in full}
+        for d in config["dependencies"]:
+            if d["show_progress"] != "hidden":
+                assert d["show_progress_on"] == shown_on
 
     def test_controls_speak_a_photographers_language(self, config):
         props = {c["props"].get("elem_id"): c["props"] for c in config["components"]}
