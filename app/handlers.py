@@ -250,6 +250,8 @@ class Session:
         before: ``(h, w, 3)`` uint8 input at display size.
         views: the last render at display size: ``"Bokeh"`` ``(h, w, 3)`` uint8, the maps
             ``(h, w)`` uint8 (0..255 for 0..1), coloured when shown.
+        pass_width: width in px of the rendering pass of :attr:`views` (a preview's pass is
+            its own size): the defocus map's scale (its 1 is 69 px at that pass).
         full_params: params of the full-resolution render the views hold or will hold
             (None: none, or a preview has replaced it).
         full_seq: counts full-resolution renders; a preview that overlaps one is dropped.
@@ -275,6 +277,7 @@ class Session:
     size: tuple[int, int]
     before: np.ndarray
     views: dict[str, np.ndarray] = field(default_factory=dict)
+    pass_width: int = 0
     full_params: RenderParams | None = None
     full_seq: int = 0
     last_full_params: RenderParams | None = None
@@ -678,6 +681,7 @@ class RefocusApp:
         size = (shown.shape[1], shown.shape[0])
         # maps come at the render pass's size; shown at the bokeh's size they line up when
         # the user switches views. Kept grey (one byte a pixel), coloured when shown.
+        session.pass_width = int(result.defocus.shape[-1])
         session.views = {
             "Bokeh": shown,
             "Disparity": imaging.map_to_display(result.disparity, size, "gray")[..., 0],
@@ -700,8 +704,9 @@ class RefocusApp:
         if legend is None or view != "Defocus":
             return legend
         # the defocus map is the paper's D of the CoC at the render pass, 1 = 69 px there;
-        # the pass is smaller than the photo by the width ratio of the two
-        px = round(MAX_DEFOCUS_COC * session.size[0] / session.scene.image_lr.shape[-1])
+        # the pass (a preview's is its own size) is smaller than the photo by the width
+        # ratio of the two
+        px = round(MAX_DEFOCUS_COC * session.size[0] / max(session.pass_width, 1))
         cmap, low, high, title = legend
         return cmap, low, high.format(px=px), title
 

@@ -671,6 +671,11 @@ class TestRender:
         scale = session.size[0] / session.scene.image_lr.shape[-1]
         assert f"1 = a blur of {round(69 * scale)} px or more across" in legend
         assert "render pass" not in legend
+        # a preview's map is at its own pass: the legend follows it
+        out = logic.render_preview(session, 0.2, APERTURE, view="Defocus")
+        pass_w = logic.model.render(session.scene, 0.8, 10.0, max_side=PREVIEW_MAX_SIDE)
+        scale = session.size[0] / pass_w.defocus.shape[1]
+        assert f"1 = a blur of {round(69 * scale)} px or more across" in out[2]["value"]
         with pytest.raises(gr.Error, match="Unknown view"):
             logic.show_view(session, "X-ray")
         assert logic.show_view(None, "Bokeh")[0]["value"] is None
