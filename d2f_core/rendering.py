@@ -530,21 +530,6 @@ class HiddenSurface:
         oy, ox = self.origin
         return _upsample_window(self.x, self.grid, y0 - oy, y1 - oy, x0 - ox, x1 - ox)
 
-    def on_grid(self, factor: int, height: int, width: int) -> torch.Tensor:
-        """The surface on the frame's grid of ``factor`` px (``height x width`` cells),
-        zero outside its box."""
-        oy, ox = self.origin
-        out = self.x.new_zeros(*self.x.shape[:2], height, width)
-        if factor >= self.grid:
-            part = F.avg_pool2d(self.x, factor // self.grid, ceil_mode=True)
-        else:
-            n = self.grid // factor
-            part = _upsample(self.x, n, self.x.shape[-2] * n, self.x.shape[-1] * n)
-        y0, x0 = oy // factor, ox // factor
-        h, w = min(part.shape[-2], height - y0), min(part.shape[-1], width - x0)
-        out[..., y0 : y0 + h, x0 : x0 + w] = part[..., :h, :w]
-        return out
-
 
 def _input_window(x: torch.Tensor, grad: bool) -> Callable[[int, int, int, int], torch.Tensor]:
     """``[1, x]`` on a window, from the renderer's layer input ``x`` (which carries the
@@ -1742,16 +1727,6 @@ def _render_tiled(
         fold = (fold[0], fold[1][0], fold[2][0])
     front = []
 
-    if under is not None:
-        # under every layer (over is associative), on the grid of the layers behind the
-        # focal plane: what the layers leave of it shows
-        factor = under.grid if back is None else back[0]
-        if back is None:
-            back = (factor, image.new_zeros(1, chans, hp // factor, wp // factor))
-        grid = back[1]
-        grid.addcmul_(under.on_grid(factor, *grid.shape[-2:]), 1 - grid[:, :1].clamp(0, 1))
-        grid = under = None
-
     # full-resolution passes, band by band; the result is an ordinary tensor
     with torch.inference_mode(False):
         out = torch.empty_like(image)
@@ -1794,6 +1769,14 @@ def _render_tiled(
                 box = (ya - y0, yb - y0, xa, xb)
                 out_s, oy0, ox0 = _direct_stacked(rows_of, image, chans, box, k, (y1 - y0, width))
                 _blend_stacked(acc[None], out_s, oy0, ox0)
+        if under is not None:
+            # under every layer (over is associative): what the layers leave of it shows
+            hy0, hy1, hx0, hx1 = under.box
+            a, b = max(y0, hy0), min(y1, hy1)
+            if a < b:
+                region = acc[:, a - y0 : b - y0, hx0:hx1]
+                left = 1 - region[:1].clamp(0, 1)
+                region.addcmul_(under.window(a, b, hx0, hx1)[0], left)
         if fold is not None:
             acc.mul_(_upsample_rows(fold[2], fold[0], y0, y1, width))
             acc.add_(_upsample_rows(fold[1], fold[0], y0, y1, width))
