@@ -85,7 +85,7 @@ NEAREST_M = 1.0
 BLUR_PER_PX_AT_F1 = LENS_FOCAL_MM**2 / (NEAREST_M * 1000.0 * SENSOR_WIDTH_MM)
 #: The aperture slider's range and default: f/1 (most blur) to f/22.
 F_NUMBER_RANGE = (1.0, 22.0)
-DEFAULT_F_NUMBER = 2.8
+DEFAULT_F_NUMBER = 1.4
 #: K is capped here (the old px slider's top, and the range the renderer is timed for):
 #: f/1 reaches it on a long side of 4320 px and more (12 MP at 3:2), 278 px at 4000 px.
 MAX_BLUR_PX = 300.0

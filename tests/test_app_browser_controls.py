@@ -133,15 +133,15 @@ def test_focus_and_aperture_controls(
         browser = p.chromium.launch(**chromium_launch_options)
         try:
             page = open_app(browser, server.url, errors=errors, accept_downloads=True)
-            # before an upload the note describes a 4000x3000 photo at the default f/2.8
-            assert shown_k(page) == expected_k(2.8, 4000) == 99.2
+            # before an upload the note describes a 4000x3000 photo at the default f/1.4
+            assert shown_k(page) == expected_k(1.4, 4000) == 198.4
             label = page.locator("#focus").inner_text()
             assert label.index("near") < label.index("far")
 
             upload_with_depth(page, scene)
-            # the default f/2.8 on this photo's 960 px long side: K = 23.8 px
+            # the default f/1.4 on this photo's 960 px long side: K = 47.6 px
             wait_note(page, "on this 960x720 photo")
-            assert shown_k(page) == expected_k(2.8) == 23.8
+            assert shown_k(page) == expected_k(1.4) == 47.6
 
             # 1. f/1 typed + Enter: the note and the status give K for this photo
             type_value(page, "blur", "1")

@@ -1044,7 +1044,7 @@ class TestBuildDemo:
         assert (blur["minimum"], blur["maximum"], blur["value"]) == (1, 22, DEFAULT_F_NUMBER)
         assert props["blades"]["label"] == "Aperture shape (blades)"
         assert props["blur_on"]["value"] is True
-        assert "f/2.8: blur K = 99.2 px on a 4000x3000 photo" in blur["info"]
+        assert "f/1.4: blur K = 198.4 px on a 4000x3000 photo" in blur["info"]
         by_elem = {k: c["id"] for c in config["components"] for k in [c["props"].get("elem_id")]}
         # the blur switch renders again and updates the note under the slider
         on = [d for d in config["dependencies"]
