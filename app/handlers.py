@@ -684,9 +684,9 @@ class RefocusApp:
         session.pass_width = int(result.defocus.shape[-1])
         session.views = {
             "Bokeh": shown,
-            "Disparity": imaging.map_to_display(result.disparity, size, "gray")[..., 0],
-            "Defocus": imaging.map_to_display(result.defocus, size, "gray")[..., 0],
-            "Fusion mask": imaging.map_to_display(result.fusion_mask, size, "gray")[..., 0],
+            "Disparity": imaging.map_to_grey(result.disparity, size),
+            "Defocus": imaging.map_to_grey(result.defocus, size),
+            "Fusion mask": imaging.map_to_grey(result.fusion_mask, size),
         }
 
     @staticmethod

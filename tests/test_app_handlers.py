@@ -217,6 +217,25 @@ class TestDisplayHelpers:
         np.testing.assert_array_equal(
             imaging.to_uint8(np.array([0.0, 0.5, 1.0, 2.0])), [0, 128, 255, 255]
         )
+        # a shrink by whole cells first keeps the picture: a 4000x3000 gradient at 1600x1200
+        ramp = np.broadcast_to(np.linspace(0, 255, 4000, dtype=np.float32), (3000, 4000))
+        big = np.repeat(ramp[..., None], 3, axis=2).round().astype(np.uint8)
+        small = imaging.fit_display(big, 1600).astype(int)
+        expected = np.linspace(0, 255, 1600)
+        assert small.shape == (1200, 1600, 3) and np.abs(small[600, :, 1] - expected).max() <= 2
+
+    def test_map_to_grey(self):
+        # values to bytes at the asked size, NaN as 0, the same bytes as the gray colour table
+        m = np.array([[0.0, 0.5], [1.0, np.nan]], np.float32)
+        np.testing.assert_array_equal(imaging.map_to_grey(m, (2, 2)), [[0, 128], [255, 0]])
+        values = np.random.default_rng(0).random((30, 40)).astype(np.float32)
+        np.testing.assert_array_equal(
+            imaging.map_to_grey(values, (40, 30)), imaging.colorize(values, "gray")[..., 0]
+        )
+        # a 12 MP map shown at 1600x1200: its mean kept (the box means first, then bilinear)
+        full = np.random.default_rng(1).random((3000, 4000)).astype(np.float32)
+        shown = imaging.map_to_grey(full, (1600, 1200))
+        assert shown.shape == (1200, 1600) and abs(shown.mean() / 255 - full.mean()) < 0.01
 
 
 # --------------------------------------------------------------------------- cache
