@@ -80,6 +80,12 @@ def test_every_input_ends_in_the_full_render(
             page = open_app(browser, server.url, errors=errors, accept_downloads=True)
             page.set_input_files("#input input[type=file]", str(two_plane_scene.photo))
             page.wait_for_function(f"() => {STATUS}.includes('full render')")
+            # the aperture's info line is set by an event of its own after the upload's
+            # render; text typed while it redraws the slider can be lost
+            page.wait_for_function(
+                "() => document.querySelector('#blur').innerText.includes('on this')",
+                timeout=TIMEOUT_MS,
+            )
 
             # 1. an f-number typed into the aperture slider's number box, then Enter
             box = page.locator("#blur input[data-testid=number-input]")
