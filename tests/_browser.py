@@ -47,3 +47,19 @@ def open_app(browser, url: str, *, height: int = 900, errors: list | None = None
     page.goto(url)
     page.wait_for_selector("#focus input[type=range]")
     return page
+
+
+def click_photo_at(page, x: int, y: int) -> None:
+    """Click photo pixel (x, y) of ``#input img``, undoing its letterboxed, scaled display."""
+    box = page.evaluate(
+        """() => {
+            const img = document.querySelector('#input img');
+            const r = img.getBoundingClientRect();
+            return {w: r.width, h: r.height, nw: img.naturalWidth, nh: img.naturalHeight};
+        }"""
+    )
+    scale = min(box["w"] / box["nw"], box["h"] / box["nh"], 1.0)
+    ox = (box["w"] - box["nw"] * scale) / 2
+    oy = (box["h"] - box["nh"] * scale) / 2
+    pos = {"x": ox + (x + 0.5) * scale, "y": oy + (y + 0.5) * scale}
+    page.locator("#input img").click(position=pos)

@@ -28,20 +28,13 @@ import numpy as np
 import pytest
 from PIL import Image
 
+# Debian's Chromium and the launch flags that work with it as root
+# (../shared/BROWSER_TESTING.md), shared with the app's browser latency bench
+from app.latency_bench import CHROMIUM, CHROMIUM_ARGS
+
 REPO_ROOT = Path(__file__).resolve().parent.parent
 #: Small networks and a small render pass keep model-backed tests fast on 2 cores.
 TINY_CONFIG = {"network_size": 64, "max_render_side": 256}
-CHROMIUM = "/usr/bin/chromium"
-#: Launch flags measured to work with Debian's Chromium as root (../shared/BROWSER_TESTING.md).
-CHROMIUM_ARGS = [
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-    "--no-first-run",
-    "--disable-quic",
-]
 
 
 def _torch_threads(n: int) -> Iterator[None]:

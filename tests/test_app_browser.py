@@ -13,25 +13,9 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from _browser import fetch_image, open_app, result_src, wait_new_result
+from _browser import click_photo_at, fetch_image, open_app, result_src, wait_new_result
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
-
-
-def click_photo_at(page, x: int, y: int) -> None:
-    """Click photo pixel (x, y) of ``#input img``, undoing its letterboxed, scaled display."""
-    box = page.evaluate(
-        """() => {
-            const img = document.querySelector('#input img');
-            const r = img.getBoundingClientRect();
-            return {w: r.width, h: r.height, nw: img.naturalWidth, nh: img.naturalHeight};
-        }"""
-    )
-    scale = min(box["w"] / box["nw"], box["h"] / box["nh"], 1.0)
-    ox = (box["w"] - box["nw"] * scale) / 2
-    oy = (box["h"] - box["nh"] * scale) / 2
-    pos = {"x": ox + (x + 0.5) * scale, "y": oy + (y + 0.5) * scale}
-    page.locator("#input img").click(position=pos)
 
 
 def focus_value(page) -> float:

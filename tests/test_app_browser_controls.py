@@ -14,7 +14,14 @@ import re
 
 import numpy as np
 import pytest
-from _browser import TIMEOUT_MS, fetch_image, open_app, result_src, wait_new_result
+from _browser import (
+    TIMEOUT_MS,
+    click_photo_at,
+    fetch_image,
+    open_app,
+    result_src,
+    wait_new_result,
+)
 from PIL import Image
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
@@ -76,23 +83,6 @@ def current_result(page, old: str | None) -> np.ndarray:
     if src == old:
         src = wait_new_result(page, old)
     return fetch_image(page, src)
-
-
-def click_photo_at(page, x: int, y: int) -> None:
-    """Click photo pixel (x, y) of ``#input img``, undoing its letterboxed, scaled display."""
-    box = page.evaluate(
-        """() => {
-            const img = document.querySelector('#input img');
-            const r = img.getBoundingClientRect();
-            return {w: r.width, h: r.height, nw: img.naturalWidth, nh: img.naturalHeight};
-        }"""
-    )
-    scale = min(box["w"] / box["nw"], box["h"] / box["nh"], 1.0)
-    ox = (box["w"] - box["nw"] * scale) / 2
-    oy = (box["h"] - box["nh"] * scale) / 2
-    page.locator("#input img").click(
-        position={"x": ox + (x + 0.5) * scale, "y": oy + (y + 0.5) * scale}
-    )
 
 
 def saved_download(page, folder) -> tuple[str, Image.Image]:
