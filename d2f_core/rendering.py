@@ -657,14 +657,19 @@ def hidden_surface(
         near = (c + _max_filter(-c, 5))[..., y0 - a : y1 - a, :] >= jump
         if not bool(near.any()):
             continue
-        top = max(top, float(torch.where(near, c[..., y0 - a : y1 - a, :].abs(), 0.0).max()))
+        # the layer that draws each near pixel: of the two either side of its coordinate, the
+        # more blurred one in front of the focal plane and the sharper one behind it (a CoC
+        # on a kernel size sits half-way between two layers: rounding would go either way)
+        c = c[..., y0 - a : y1 - a, :]
+        layer = torch.where(c > 0, c.ceil(), c.abs().floor())
+        top = max(top, float(torch.where(near, layer, 0.0).max()))
         cells = F.max_pool2d(near.to(coord.dtype), cell, cell, ceil_mode=True)
         grid[..., y0 // cell : y0 // cell + cells.shape[-2], :] = cells
     if top < 0:
         return None
     # kernel sizes grow with |coord| on both sides: the near side's radius
     sizes = {abs(centre): size for centre, size in plan.order}
-    radius = sizes[min(round(top), max(sizes))] // 2
+    radius = sizes[min(int(top), max(sizes))] // 2
     if 2 * radius + 1 < _HIDDEN_MIN_SIZE:
         return None
     band = _max_filter(grid, 2 * (-(-radius // cell)) + 1)

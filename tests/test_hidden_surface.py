@@ -130,3 +130,35 @@ def test_push_pull_fills_from_known_pixels():
     row = out[0, 0, 8]
     assert bool((row[1:] >= row[:-1] - 1e-6).all())
     assert 0.25 <= float(row.min()) and float(row.max()) <= 0.75
+
+
+def test_near_side_on_a_kernel_size():
+    # A near rectangle whose CoC is exactly the last kernel's, (0.95 - 0.1) * 80 = 68 px: its
+    # layer coordinate is 13.5 in float32, 13.4999990 one float32 step nearer the focus and
+    # 13.4999999 in float64. Layer 14, the more blurred of the two either side, draws it in
+    # every case, so the hidden surface and the render must not depend on which.
+    h, w = 96, 128
+    image = torch.rand(1, 3, h, w, generator=torch.Generator().manual_seed(0))
+    near = torch.tensor(0.95)
+
+    def disparity(value: torch.Tensor) -> torch.Tensor:
+        d = torch.full((1, 1, h, w), 0.1)
+        d[..., 24:72, 40:90] = value
+        return d
+
+    inputs = [
+        (image, disparity(near)),
+        (image, disparity(torch.nextafter(near, torch.tensor(0.0)))),
+        (image.double(), disparity(near).double()),
+    ]
+    surfaces, renders = [], []
+    for img, d in inputs:
+        plan = rendering.layer_plan(d, torch.tensor(0.1, dtype=d.dtype).view(1, 1, 1, 1), 80.0)
+        assert abs(float(plan.coord.max()) - 13.5) < 1e-5
+        x = torch.cat([torch.ones_like(img[:, :1]), img], dim=1)
+        surfaces.append(rendering.hidden_surface(rendering._input_window(x, False), plan))
+        renders.append(rendering.render(img, d, 0.1, 80.0).double())
+    # the near side's CoC radius is 34 px: cells of 8 px, the frame's edges within reach
+    assert [(s.grid, s.box) for s in surfaces] == [(8, (0, 96, 0, 128))] * 3
+    for other in renders[1:]:
+        assert float((other - renders[0]).abs().max()) < 1e-3
