@@ -171,13 +171,9 @@ def to_uint8(image: np.ndarray) -> np.ndarray:
 
 
 def _shrink(img: Image.Image, size: tuple[int, int]) -> Image.Image:
-    """``img`` resized to ``size = (width, height)``, bilinearly; when it shrinks by 2x or
-    more, first by whole cells (box means, :meth:`Image.reduce`): a 12 MP picture to
-    1600x1200 in 62 against 88 ms, a 12 MP float map in about a third of the time."""
-    f = min(img.width // max(1, size[0]), img.height // max(1, size[1]))
-    if f >= 2:
-        img = img.reduce(f)
-    return img.resize(size, Image.Resampling.BILINEAR)
+    """``img`` resized to ``size = (width, height)``, bilinearly, by whole cells first where
+    it shrinks by 2x or more (PIL's ``reducing_gap``, which keeps the geometry exact)."""
+    return img.resize(size, Image.Resampling.BILINEAR, reducing_gap=2.0)
 
 
 def fit_display(image: np.ndarray, max_side: int = DISPLAY_MAX_SIDE) -> np.ndarray:

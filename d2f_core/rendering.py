@@ -629,17 +629,18 @@ def hidden_surface(
     jump: float = _HIDDEN_JUMP,
 ) -> HiddenSurface | None:
     """The surface behind the rims of blurred near objects, for the depth order's plan
-    ``plan`` of one image (no gradients); ``None`` when no blurred near side meets a depth
-    edge. ``layer_input(y0, y1, x0, x1)`` gives the frame's ``[1, x]`` (ones, the weighted
-    colour, the weights) on a window.
+    ``plan`` of one image; ``None`` when no blurred near side meets a depth edge (or for a
+    batch: :func:`render` plans image by image). ``layer_input(y0, y1, x0, x1)`` gives the
+    frame's ``[1, x]`` (ones, the weighted colour, the weights) on a window.
 
     At a depth edge (a jump of at least ``jump`` layers within 2 px) the photo shows only the
     near side, but where the near side is blurred a lens sees past its rim, up to its CoC
     radius inside it, to what lies behind: the far side, continued under the near one. The
     far-side pixels along each edge are the known pixels; their colour and layer coordinate
-    are carried under the near side by push-pull (:func:`_push_pull`) on a grid of 2 px (the
-    fill is smooth), and drawn where the pixel is within the largest blurred near side's CoC
-    radius of an edge and at least ``jump`` layers nearer than what is carried under it.
+    are carried under the near side by push-pull (:func:`_push_pull`) on a grid of 2, 4 or
+    8 px as that radius grows (the fill is smooth), and drawn where a cell is within the
+    largest blurred near side's CoC radius of an edge and holds a pixel at least ``jump``
+    layers nearer than what is carried under it.
     The full-resolution passes run by bands of rows, in bounded memory.
     """
     coord = plan.coord.detach()  # where it is drawn: no gradient
@@ -1190,8 +1191,8 @@ def _composite(
 ) -> tuple[torch.Tensor, torch.Tensor, tuple[torch.Tensor, torch.Tensor] | None]:
     """Composite the layers of ``x`` back to front. Returns (acc, alpha, split).
 
-    A ``hidden`` surface (:func:`hidden_surface`, no gradients) is composited under all
-    the layers (under the layers behind the focal plane with ``front``).
+    A ``hidden`` surface (:func:`hidden_surface`) is composited under all the layers
+    (under the layers behind the focal plane with ``front``).
 
     With ``front`` (a signed plan), the layers in front of the focal plane are composited
     from zero into their own accumulator, ``(C_f, A_f)``, and merged once,
@@ -1873,8 +1874,8 @@ def render(
             defocused rim is for the sharpening step to decide, like the subject).
         hidden: depth order: draw what lies behind the rim of a blurred near object
             (:func:`hidden_surface`), which a real lens sees past it and the photo does not
-            show; ``False`` leaves those pixels to the near object alone. No gradient flows
-            into the hidden surface itself.
+            show; ``False`` leaves those pixels to the near object alone. Gradients flow
+            into the colours and layer coordinates it carries, not into where it is drawn.
         checked: ``True`` from a caller that has put ``focus`` and ``blur`` through
             :func:`check_focus_blur` already (``D2F.render``, :func:`render_bokeh`,
             ``adaptive.render_adaptive``): they are used as given, not checked again.
