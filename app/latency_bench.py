@@ -229,6 +229,21 @@ def write_photos(folder: Path, size: tuple[int, int], count: int) -> list[Path]:
     return paths
 
 
+def app_env(temp: Path) -> dict[str, str]:
+    """This process's environment for a Gradio server or client confined to ``temp`` (its
+    files there), offline and without telemetry."""
+    env = dict(os.environ)
+    env.update(
+        GRADIO_TEMP_DIR=str(temp),
+        GRADIO_ANALYTICS_ENABLED="False",
+        HF_HUB_DISABLE_TELEMETRY="1",
+        HF_HUB_OFFLINE="1",
+        GRADIO_RUN_HISTORY="False",
+        PYTHONUNBUFFERED="1",
+    )
+    return env
+
+
 def _free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
@@ -243,15 +258,7 @@ def start_app(
     port = _free_port()
     temp = folder / "gradio_tmp"
     temp.mkdir(parents=True, exist_ok=True)
-    env = dict(os.environ)
-    env.update(
-        GRADIO_TEMP_DIR=str(temp),
-        GRADIO_ANALYTICS_ENABLED="False",
-        HF_HUB_DISABLE_TELEMETRY="1",
-        HF_HUB_OFFLINE="1",
-        GRADIO_RUN_HISTORY="False",
-        PYTHONUNBUFFERED="1",
-    )
+    env = app_env(temp)
     cmd = [sys.executable, "-m", "app", "--port", str(port), "--threads", str(threads)]
     if weights:
         cmd += ["--weights", str(weights)]

@@ -12,7 +12,6 @@
 
 from __future__ import annotations
 
-import os
 import shutil
 import socket
 import subprocess
@@ -30,7 +29,7 @@ from PIL import Image
 
 # Debian's Chromium and the launch flags that work with it as root
 # (../shared/BROWSER_TESTING.md), shared with the app's browser latency bench
-from app.latency_bench import CHROMIUM, CHROMIUM_ARGS
+from app.latency_bench import CHROMIUM, CHROMIUM_ARGS, app_env
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 #: Small networks and a small render pass keep model-backed tests fast on 2 cores.
@@ -171,16 +170,7 @@ def gradio_env(tmp_path: Path) -> dict[str, str]:
     """Environment for a Gradio server or client confined to this test (no telemetry)."""
     temp = tmp_path / "gradio_tmp"
     temp.mkdir()
-    env = dict(os.environ)
-    env.update(
-        GRADIO_TEMP_DIR=str(temp),
-        GRADIO_ANALYTICS_ENABLED="False",
-        HF_HUB_DISABLE_TELEMETRY="1",
-        HF_HUB_OFFLINE="1",
-        GRADIO_RUN_HISTORY="False",
-        PYTHONUNBUFFERED="1",
-    )
-    return env
+    return app_env(temp)
 
 
 def find_free_port() -> int:
