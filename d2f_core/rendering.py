@@ -1494,11 +1494,7 @@ def _upsample_rows(grid: torch.Tensor, factor: int, y0: int, y1: int, width: int
     ``(C, gh, gw)`` by ``factor``, columns ``:width``: only the cells those rows read."""
     if factor == 1:
         return grid[:, y0:y1, :width]
-    gh = grid.shape[1]
-    a = max(0, y0 // factor - 1)
-    b = min(gh, -(-y1 // factor) + 1)
-    up = _upsample(grid[None, :, a:b], factor, (b - a) * factor, width)[0]
-    return up[:, y0 - a * factor : y1 - a * factor]
+    return _upsample_window(grid[None], factor, y0, y1, 0, width)[0]
 
 
 def _blend_fft(
@@ -1630,11 +1626,10 @@ def _render_tiled(
     if hidden and plan.signed:
 
         def layer_input(a: int, b: int, c: int, d: int) -> torch.Tensor:
-            ones = image.new_ones(1, 1, b - a, d - c)
-            if weights is None:
-                return torch.cat([ones, image[..., a:b, c:d]], dim=1)
-            w = weights[..., a:b, c:d]
-            return torch.cat([ones, image[..., a:b, c:d] * w[:, :1], w], dim=1)
+            # the layer of mask one: [1, x] as the layers are made
+            out = image.new_empty(1, chans, b - a, d - c)
+            layer_rows(slice(a, b), slice(c, d), image.new_ones(b - a, d - c), out[0])
+            return out
 
         under = hidden_surface(layer_input, plan)
 
