@@ -244,10 +244,29 @@ def app_env(temp: Path) -> dict[str, str]:
     return env
 
 
-def _free_port() -> int:
+def free_port() -> int:
+    """A localhost TCP port that was free a moment ago."""
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+def wait_ready(server: Server, timeout: float) -> None:
+    """Poll the app's ``/gradio_api/info`` until it answers 200; :class:`BenchError` with
+    the end of the server's log if it exits first or does not answer within ``timeout`` s."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if server.process.poll() is not None:
+            code, tail = server.process.returncode, server.log.read_text()[-4000:]
+            raise BenchError(f"app exited with {code}:\n{tail}")
+        try:
+            with urllib.request.urlopen(f"{server.url}/gradio_api/info", timeout=2) as r:
+                if r.status == 200:
+                    return
+        except (urllib.error.URLError, ConnectionError, TimeoutError):
+            pass
+        time.sleep(0.2)
+    raise BenchError(f"app not ready after {timeout:.0f} s:\n{server.log.read_text()[-4000:]}")
 
 
 def start_app(
@@ -255,7 +274,7 @@ def start_app(
 ) -> Server:
     """``python -m app`` on a free port with ``threads`` torch threads, Gradio's files and the
     log in ``folder``; returns once ``/gradio_api/info`` answers."""
-    port = _free_port()
+    port = free_port()
     temp = folder / "gradio_tmp"
     temp.mkdir(parents=True, exist_ok=True)
     env = app_env(temp)
@@ -266,19 +285,12 @@ def start_app(
     with log.open("wb") as fh:
         proc = subprocess.Popen(cmd, cwd=REPO_ROOT, env=env, stdout=fh, stderr=fh)
     server = Server(f"http://127.0.0.1:{port}", proc, log)
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if proc.poll() is not None:
-            raise BenchError(f"app exited with {proc.returncode}:\n{log.read_text()[-3000:]}")
-        try:
-            with urllib.request.urlopen(f"{server.url}/gradio_api/info", timeout=2) as r:
-                if r.status == 200:
-                    return server
-        except (urllib.error.URLError, ConnectionError, TimeoutError):
-            pass
-        time.sleep(0.2)
-    server.stop()
-    raise BenchError(f"app not ready after {timeout:.0f} s:\n{log.read_text()[-3000:]}")
+    try:
+        wait_ready(server, timeout)
+    except BenchError:
+        server.stop()
+        raise
+    return server
 
 
 def _cpu_seconds(pid: int) -> float:

@@ -13,12 +13,8 @@
 from __future__ import annotations
 
 import shutil
-import socket
 import subprocess
 import sys
-import time
-import urllib.error
-import urllib.request
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,7 +25,8 @@ from PIL import Image
 
 # Debian's Chromium and the launch flags that work with it as root
 # (../shared/BROWSER_TESTING.md), shared with the app's browser latency bench
-from app.latency_bench import CHROMIUM, CHROMIUM_ARGS, app_env
+from app.latency_bench import CHROMIUM, CHROMIUM_ARGS, BenchError, Server, app_env, wait_ready
+from app.latency_bench import free_port as find_free_port
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 #: Small networks and a small render pass keep model-backed tests fast on 2 cores.
@@ -173,53 +170,23 @@ def gradio_env(tmp_path: Path) -> dict[str, str]:
     return app_env(temp)
 
 
-def find_free_port() -> int:
-    """A localhost TCP port that was free a moment ago."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 @pytest.fixture
 def free_port() -> int:
     return find_free_port()
 
 
-@dataclass
-class AppServer:
-    url: str
-    process: subprocess.Popen
-    log: Path
-
-
-def wait_until_ready(url: str, process: subprocess.Popen, log: Path, timeout: float) -> None:
-    """Poll ``/gradio_api/info`` until it answers 200; fail with the server log otherwise."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if process.poll() is not None:
-            pytest.fail(f"app exited with {process.returncode}:\n{log.read_text()[-4000:]}")
-        try:
-            with urllib.request.urlopen(f"{url}/gradio_api/info", timeout=2) as r:
-                if r.status == 200:
-                    return
-        except (urllib.error.URLError, ConnectionError, TimeoutError):
-            pass
-        time.sleep(0.2)
-    pytest.fail(f"app not ready after {timeout:.0f} s:\n{log.read_text()[-4000:]}")
-
-
 @pytest.fixture
 def app_server(
     tmp_path: Path, gradio_env: dict[str, str], tiny_checkpoint: Path
-) -> Iterator[Callable[..., AppServer]]:
+) -> Iterator[Callable[..., Server]]:
     """Factory: ``start(*extra_args, env=None)`` runs ``python -m app`` on a free port.
 
     The server uses :func:`tiny_checkpoint` and this test's ``gradio_env``; it is stopped
     (SIGTERM, then SIGKILL) at teardown. Its output goes to ``tmp_path/app_<n>.log``.
     """
-    started: list[AppServer] = []
+    started: list[Server] = []
 
-    def start(*extra: str, env: dict[str, str] | None = None, timeout: float = 60) -> AppServer:
+    def start(*extra: str, env: dict[str, str] | None = None, timeout: float = 60) -> Server:
         port = find_free_port()
         log = tmp_path / f"app_{len(started)}.log"
         cmd = [sys.executable, "-m", "app", "--port", str(port)]
@@ -228,19 +195,17 @@ def app_server(
             proc = subprocess.Popen(
                 cmd, cwd=REPO_ROOT, env={**gradio_env, **(env or {})}, stdout=fh, stderr=fh
             )
-        server = AppServer(f"http://127.0.0.1:{port}", proc, log)
+        server = Server(f"http://127.0.0.1:{port}", proc, log)
         started.append(server)
-        wait_until_ready(server.url, proc, log, timeout)
+        try:
+            wait_ready(server, timeout)
+        except BenchError as err:
+            pytest.fail(str(err))
         return server
 
     yield start
     for server in started:
-        server.process.terminate()
-        try:
-            server.process.wait(10)
-        except subprocess.TimeoutExpired:
-            server.process.kill()
-            server.process.wait(10)
+        server.stop()
 
 
 @pytest.fixture(scope="session")
