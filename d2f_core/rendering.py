@@ -1403,22 +1403,15 @@ def _blend_transmit(
 _TILED_MIN_PIXELS = 3_000_000
 # Tile side (px) of the tiled path: a multiple of MAX_FACTOR.
 _TT = 32
-# Most pixels one masking step of the tiled path works on (bounds its buffers).
-_CHUNK_PIXELS = 1 << 20
 # Pixels per band of the full-resolution passes.
 _BAND_PIXELS = 1_000_000
 
 
-def _tiles(t: torch.Tensor, tile: int) -> torch.Tensor:
-    """``(C, H, W) -> (H / tile, W / tile, C, tile, tile)``, a view."""
-    c, h, w = t.shape
-    return t.view(c, h // tile, tile, w // tile, tile).permute(1, 3, 0, 2, 4)
-
-
 class _TileSource:
     """The ``tile x tile`` tiles of a ``(C, H, W)`` frame whose sides need not be whole
-    tiles, without a padded copy of it: tiles inside the frame are read from it, the partial
-    tiles of the last row and column from two small copies padded with ``fill``."""
+    tiles, for their extremes, without a padded copy of it: tiles inside the frame are read
+    from it, the partial tiles of the last row and column from two small copies padded with
+    ``fill``."""
 
     def __init__(self, x: torch.Tensor, tile: int, fill: float) -> None:
         c, h, w = x.shape
@@ -1459,22 +1452,6 @@ class _TileSource:
             out[self.fy] = op(self.bottom, dim=(1, 2, 3))
         if self.right is not None:
             out[: self.fy, self.fx] = op(self.right, dim=(1, 2, 3))
-        return out
-
-    def gather(self, a: torch.Tensor, b: torch.Tensor, out: torch.Tensor | None = None):
-        """Tiles ``(a[i], b[i])``, ``(n, C, t, t)``, written into ``out`` when given."""
-        inside = (a < self.fy) & (b < self.fx)
-        if bool(inside.all()):
-            return self.body[a, b] if out is None else out.copy_(self.body[a, b])
-        if out is None:
-            out = self.body.new_empty(a.numel(), self.c, self.tile, self.tile)
-        out[inside] = self.body[a[inside], b[inside]]
-        if self.bottom is not None:
-            low = a == self.fy
-            out[low] = self.bottom[b[low]]
-        if self.right is not None:
-            side = (b == self.fx) & (a < self.fy)
-            out[side] = self.right[a[side]]
         return out
 
 
@@ -1540,6 +1517,29 @@ def _spans(columns: list[int], gap: int = 2) -> list[tuple[int, int]]:
     return [(a, b) for a, b in spans]
 
 
+#: Rows of tiles per band in which a coarse layer's hit tiles are grouped into boxes.
+_HIT_BAND = 4
+
+
+def _hit_boxes(
+    hit: torch.Tensor, ty0: int, ty1: int, tx0: int, tx1: int, tile: int
+) -> list[tuple[int, int, int, int]]:
+    """Boxes ``(y0, y1, x0, x1)`` (px, whole tiles, possibly past the frame) that cover the
+    tiles set in ``hit`` ``(rows, cols)`` within rows ``ty0:ty1`` and columns ``tx0:tx1``:
+    per band of :data:`_HIT_BAND` tile rows, spans of columns merged across gaps under two
+    tiles, each cut to the band's rows it hits. Boxes do not overlap."""
+    boxes = []
+    sub = hit[ty0:ty1, tx0:tx1]
+    for b0 in range(0, ty1 - ty0, _HIT_BAND):
+        band = sub[b0 : b0 + _HIT_BAND]
+        cols = torch.nonzero(band.any(dim=0)).flatten().tolist()
+        for c0, c1 in _spans(cols):
+            rows = torch.nonzero(band[:, c0 : c1 + 1].any(dim=1)).flatten()
+            r0, r1 = ty0 + b0 + int(rows[0]), ty0 + b0 + int(rows[-1]) + 1
+            boxes.append((r0 * tile, r1 * tile, (tx0 + c0) * tile, (tx0 + c1 + 1) * tile))
+    return boxes
+
+
 def _render_tiled(
     image: torch.Tensor,
     weights: torch.Tensor | None,
@@ -1553,8 +1553,9 @@ def _render_tiled(
 
     Where each layer is masked is found per 32-px tile (from the range of the layer
     coordinate in the tile), so a pixel is masked for the few layers it can reach, not for
-    every layer whose bounding box holds it. Coarse layers (1/2 to 1/16 grids) are masked,
-    summed into their grid and blurred there; the layers behind the focal plane are
+    every layer whose bounding box holds it. Coarse layers (1/2 to 1/16 grids) are masked
+    over boxes of their hit tiles (bands of tile rows, spans of nearby columns), summed into
+    their grid and blurred there; the layers behind the focal plane are
     composited into one accumulator that moves to the next finer grid as their kernels
     shrink (upsampled once per grid), the layers in front into (colour, transmittance) per
     grid, folded into one at the end. The full-resolution layers, the merge of both and
@@ -1568,14 +1569,12 @@ def _render_tiled(
     nty, ntx = -(-height // t), -(-width // t)
     hp, wp = nty * t, ntx * t
     dev, dtype = str(image.device), image.dtype
-    # the layer is [mask, mask w I, mask w] (or [mask, mask I]), read tile by tile or row by
-    # row from the image, the weights (plus the floor, added in place by the caller) and the
+    # the layer is [mask, mask w I, mask w] (or [mask, mask I]), read box by box or band by
+    # band from the image, the weights (plus the floor, added in place by the caller) and the
     # layer coordinate: no padded or weighted copy of the frame is built
     cx = 3 if weights is None else 3 + weights.shape[1]
     chans = cx + 1
     coord = plan.coord[0]
-    itiles = _TileSource(image[0], t, 0.0)
-    wtiles = None if weights is None else _TileSource(weights[0], t, 0.0)
     # the layer coordinate's range per tile; past the frame the coordinate is so far that no
     # mask reaches it
     ctiles = _TileSource(coord, t, _FAR)
@@ -1583,17 +1582,6 @@ def _render_tiled(
     ctiles.refill(-_FAR)
     hi = ctiles.extreme(torch.amax)
     reach = 1.0 + _mask_reach(plan.gamma)
-
-    def layer_tiles(a: torch.Tensor, b: torch.Tensor, m: torch.Tensor) -> torch.Tensor:
-        """The layer of mask ``m`` on tiles ``(a, b)``, ``(n, chans, t, t)``."""
-        z = image.new_empty(a.numel(), chans, t, t)
-        z[:, 0] = m
-        if wtiles is None:
-            torch.mul(itiles.gather(a, b), m[:, None], out=z[:, 1:])
-        else:
-            torch.mul(wtiles.gather(a, b), m[:, None], out=z[:, 4:])
-            torch.mul(itiles.gather(a, b), z[:, 4:5], out=z[:, 1:4])
-        return z
 
     def layer_rows(ys: slice, xs: slice, m: torch.Tensor, out: torch.Tensor) -> None:
         """The layer of mask ``m`` on frame rows ``ys`` and columns ``xs`` into ``out``
@@ -1633,13 +1621,12 @@ def _render_tiled(
 
         under = hidden_surface(layer_input, plan)
 
-    chunk = max(1, _CHUNK_PIXELS // (t * t))
     back: tuple[int, torch.Tensor] | None = None  # (factor, colour) behind the focus
     front: list[list] = []  # [factor, colour, transmit] per grid, back to front
     sharp: list[tuple[int, int, torch.Tensor]] = []  # full-resolution layers
     phase = 0  # 0: behind the sharp layers, 1: sharp layers, 2: in front of them
     previous = MAX_FACTOR * 2
-    grid = gtiles = z = pooled = blurred = None
+    grid = z = pooled = blurred = None
     for centre, size in plan.order:
         hit = hits(centre)
         index = torch.nonzero(hit.flatten()).flatten()
@@ -1664,16 +1651,22 @@ def _render_tiled(
         tx0, tx1 = int(tx.min()), int(tx.max()) + 1
         cell = t // factor
         grid = image.new_zeros(chans, (ty1 - ty0) * cell, (tx1 - tx0) * cell)
-        gtiles = _tiles(grid, cell)
         g = gate(centre)
-        for i in range(0, index.numel(), chunk):
-            a, b = ty[i : i + chunk], tx[i : i + chunk]
-            n = a.numel()
-            m = _tile_mask(ctiles.gather(a, b)[:, 0], centre, plan.gamma, g)  # (n, t, t)
-            z = layer_tiles(a, b, m)
-            pooled = z.view(n, chans, cell, factor, t).sum(3)
-            pooled = pooled.view(n, chans, cell, cell, factor).sum(4)
-            gtiles[a - ty0, b - tx0] = pooled
+        for ya, yb, xa, xb in _hit_boxes(hit, ty0, ty1, tx0, tx1, t):
+            # the layer over a box of hit tiles, straight from the frame's rows (no gathered
+            # copy), summed into its cells; past the frame the layer is 0
+            ha, wa = min(yb, height) - ya, min(xb, width) - xa
+            z = image.new_empty(chans, yb - ya, xb - xa)
+            m = _tile_mask(coord[0, ya : ya + ha, xa : xa + wa], centre, plan.gamma, g)
+            layer_rows(slice(ya, ya + ha), slice(xa, xa + wa), m, z[:, :ha, :wa])
+            if ha < yb - ya:
+                z[:, ha:].zero_()
+            if wa < xb - xa:
+                z[:, :ha, wa:].zero_()
+            pooled = z.view(chans, (yb - ya) // factor, factor, xb - xa).sum(2)
+            pooled = pooled.view(chans, (yb - ya) // factor, (xb - xa) // factor, factor).sum(3)
+            gy, gx = (ya - ty0 * t) // factor, (xa - tx0 * t) // factor
+            grid[:, gy : gy + pooled.shape[1], gx : gx + pooled.shape[2]] = pooled
         # cells are summed: the kernel carries the 1 / factor**2 of the mean
         gh, gw = hp // factor, wp // factor
         k = _kernel(spec, size, factor, dev, dtype, 1.0 / factor**2)
@@ -1701,7 +1694,7 @@ def _render_tiled(
                 _blend_stacked(back[1], blurred, oy, ox)
             else:
                 _blend_fft(back[1], grid, spec, size, factor, oy, ox)
-            grid = gtiles = blurred = None  # freed before the next layer's
+            grid = blurred = None  # freed before the next layer's
             continue
         if not front or front[-1][0] != factor:
             front.append([factor, image.new_zeros(1, chans, gh, gw), image.new_ones(1, 1, gh, gw)])
@@ -1709,8 +1702,8 @@ def _render_tiled(
             _blend_stacked(front[-1][1], blurred, oy, ox, transmit=front[-1][2])
         else:
             _blend_fft(front[-1][1], grid, spec, size, factor, oy, ox, transmit=front[-1][2])
-        grid = gtiles = blurred = None
-    del grid, gtiles, z, pooled, blurred  # the last coarse layer's buffers
+        grid = blurred = None
+    del grid, z, pooled, blurred  # the last coarse layer's buffers
     # fold the front grids into one: the coarsest is on top
     fold = None
     for factor, colour, transmit in reversed(front):

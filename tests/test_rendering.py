@@ -923,6 +923,25 @@ class TestLargeFrames:
         assert rendering._spans([1, 2, 5, 9], gap=1) == [(1, 2), (5, 5), (9, 9)]
         assert rendering._spans([]) == []
 
+    def test_hit_boxes_cover_the_hit_tiles_once(self):
+        # every hit tile in exactly one box, boxes whole tiles, within the rows and columns
+        # asked for, and a box's extra tiles only in the gaps of under two tiles it bridges
+        g = torch.Generator().manual_seed(3)
+        hit = torch.rand(23, 31, generator=g) > 0.8
+        hit[:, 12:20] = False  # a gap of 8 tile columns splits the spans
+        boxes = rendering._hit_boxes(hit, 2, 21, 1, 30, 32)
+        covered = torch.zeros(23, 31, dtype=torch.int64)
+        for y0, y1, x0, x1 in boxes:
+            assert y0 % 32 == y1 % 32 == x0 % 32 == x1 % 32 == 0
+            assert y1 - y0 <= rendering._HIT_BAND * 32
+            covered[y0 // 32 : y1 // 32, x0 // 32 : x1 // 32] += 1
+        assert int(covered.max()) == 1
+        inside = torch.zeros_like(hit)
+        inside[2:21, 1:30] = True
+        assert torch.equal(covered.bool() & hit, hit & inside)
+        assert not covered[:, 12:20].any() and not covered[:2].any() and not covered[21:].any()
+        assert rendering._hit_boxes(torch.zeros(4, 4, dtype=torch.bool), 0, 4, 0, 4, 32) == []
+
     @pytest.mark.parametrize("h,w", [(64, 96), (70, 96), (64, 101), (75, 101), (20, 25)])
     def test_tile_source_matches_a_padded_copy(self, h, w):
         # tiles read from the frame and its two padded edge copies are those of a padded copy
@@ -931,15 +950,8 @@ class TestLargeFrames:
         ny, nx = -(-h // 32), -(-w // 32)
         padded = torch.full((2, ny * 32, nx * 32), 7.0)
         padded[:, :h, :w] = x
-        tiles = rendering._tiles(padded, 32)
-        a, b = torch.meshgrid(torch.arange(ny), torch.arange(nx), indexing="ij")
-        a, b = a.flatten().flip(0), b.flatten().flip(0)  # edge tiles first, any order works
-        torch.testing.assert_close(src.gather(a, b), tiles[a, b], rtol=0, atol=0)
-        inside = (a < h // 32) & (b < w // 32)
-        if inside.any():
-            out = torch.empty(int(inside.sum()), 2, 32, 32)
-            src.gather(a[inside], b[inside], out=out)
-            torch.testing.assert_close(out, tiles[a[inside], b[inside]], rtol=0, atol=0)
+        # (ny, nx, C, 32, 32), a view of the padded copy
+        tiles = padded.view(2, ny, 32, nx, 32).permute(1, 3, 0, 2, 4)
         torch.testing.assert_close(src.extreme(torch.amax), tiles.amax(dim=(2, 3, 4)))
         src.refill(-7.0)
         padded[:, h:] = -7.0
