@@ -530,6 +530,32 @@ class HiddenSurface:
         oy, ox = self.origin
         return _upsample_window(self.x, self.grid, y0 - oy, y1 - oy, x0 - ox, x1 - ox)
 
+    def spans(self, y0: int, y1: int) -> list[tuple[int, int]]:
+        """Column ranges ``(x0, x1)`` (px, inside :attr:`box`) outside which the surface is 0
+        on frame rows ``y0:y1`` (inside :attr:`box`): the cells it is drawn on, one cell
+        wider each side (the bilinear upsampling reaches that far)."""
+        oy, ox = self.origin
+        g = self.grid
+        a, b = max(0, (y0 - oy) // g - 1), (y1 - 1 - oy) // g + 2
+        drawn = self.x[0, 0, a:b].detach().ne(0).any(dim=0)
+        cols = torch.nonzero(drawn).flatten().tolist()
+        out = []
+        for c0, c1 in _spans(cols, gap=3):
+            x0 = max(self.box[2], ox + (c0 - 1) * g)
+            x1 = min(self.box[3], ox + (c1 + 2) * g)
+            if x0 < x1:
+                out.append((x0, x1))
+        return out
+
+    def composite(self, acc: torch.Tensor, y0: int, y1: int, top: int = 0) -> None:
+        """In place, without gradients: ``acc + (1 - alpha) * surface`` on frame rows
+        ``y0:y1`` (inside :attr:`box`), where ``acc`` ``(C, rows, W)`` holds frame rows from
+        ``top``, alpha first; only the columns where the surface is drawn."""
+        for x0, x1 in self.spans(y0, y1):
+            region = acc[:, y0 - top : y1 - top, x0:x1]
+            left = 1 - region[:1].clamp(0, 1)
+            region.addcmul_(self.window(y0, y1, x0, x1)[0], left)
+
 
 def _input_window(x: torch.Tensor, grad: bool) -> Callable[[int, int, int, int], torch.Tensor]:
     """``[1, x]`` on a window, from the renderer's layer input ``x`` (which carries the
@@ -550,12 +576,13 @@ def _under(acc: torch.Tensor, hidden: HiddenSurface, grad: bool) -> torch.Tensor
     surface's gradient flows into the colours and layer coordinates it is made of (not
     into where it is drawn)."""
     y0, y1, x0, x1 = hidden.box
+    if not grad:
+        for i in range(acc.shape[0]):
+            hidden.composite(acc[i], y0, y1)
+        return acc
     part = hidden.window(y0, y1, x0, x1)
     region = acc[..., y0:y1, x0:x1]
     left = 1 - region[:, :1].clamp(0, 1)
-    if not grad:
-        region.addcmul_(part, left)
-        return acc
     acc = acc.clone()
     acc[..., y0:y1, x0:x1] = region + part * left
     return acc
@@ -1342,38 +1369,10 @@ def _composite(
 
 
 def _upsample(z: torch.Tensor, factor: int, height: int, width: int) -> torch.Tensor:
-    """Bilinear upsampling of a coarse-grid layer by ``factor`` (``F.interpolate``'s
-    ``align_corners=False``, edges held), cropped to the frame.
-
-    Without gradients, one interpolation per output phase and axis: 1.7x faster than
-    ``F.interpolate`` on this CPU.
-    """
-    if torch.is_grad_enabled() and z.requires_grad:
-        up = F.interpolate(z, scale_factor=factor, mode="bilinear", align_corners=False)
-    else:
-        up = _upsample_axis(_upsample_axis(z, factor, -2), factor, -1)
+    """Bilinear upsampling of a coarse-grid layer by ``factor`` (``align_corners=False``,
+    edges held), cropped to the frame."""
+    up = F.interpolate(z, scale_factor=factor, mode="bilinear", align_corners=False)
     return up[..., :height, :width]
-
-
-def _upsample_axis(a: torch.Tensor, factor: int, dim: int) -> torch.Tensor:
-    n = a.shape[dim]
-    shape = list(a.shape)
-    shape[dim] = n * factor
-    out = a.new_empty(shape)
-    phases = out.unflatten(dim, (n, factor))
-    for p in range(factor):
-        # output sample p of each cell lies ``offset`` input samples from the cell's centre
-        offset = (p + 0.5) / factor - 0.5
-        phase = phases.select(dim, p)  # dim < 0: the phase axis after unflatten
-        if offset < 0:  # between the sample and the one before it; the first is held
-            src, nbr, edge = a.narrow(dim, 1, n - 1), a.narrow(dim, 0, n - 1), 0
-            dst = phase.narrow(dim, 1, n - 1)
-        else:  # between the sample and the one after it; the last is held
-            src, nbr, edge = a.narrow(dim, 0, n - 1), a.narrow(dim, 1, n - 1), n - 1
-            dst = phase.narrow(dim, 0, n - 1)
-        torch.lerp(src, nbr, abs(offset), out=dst)
-        phase.narrow(dim, edge, 1).copy_(a.narrow(dim, edge, 1))
-    return out
 
 
 def _blend_transmit(
@@ -1765,12 +1764,9 @@ def _render_tiled(
                 _blend_stacked(acc[None], out_s, oy0, ox0)
         if under is not None:
             # under every layer (over is associative): what the layers leave of it shows
-            hy0, hy1, hx0, hx1 = under.box
-            a, b = max(y0, hy0), min(y1, hy1)
+            a, b = max(y0, under.box[0]), min(y1, under.box[1])
             if a < b:
-                region = acc[:, a - y0 : b - y0, hx0:hx1]
-                left = 1 - region[:1].clamp(0, 1)
-                region.addcmul_(under.window(a, b, hx0, hx1)[0], left)
+                under.composite(acc, a, b, top=y0)
         if fold is not None:
             acc.mul_(_upsample_rows(fold[2], fold[0], y0, y1, width))
             acc.add_(_upsample_rows(fold[1], fold[0], y0, y1, width))

@@ -162,3 +162,40 @@ def test_near_side_on_a_kernel_size():
     assert [(s.grid, s.box) for s in surfaces] == [(8, (0, 96, 0, 128))] * 3
     for other in renders[1:]:
         assert float((other - renders[0]).abs().max()) < 1e-3
+
+
+def test_drawn_only_within_its_spans():
+    # two small near boxes far apart on a wide frame: the surface is 0 outside the column
+    # spans it reports for any rows, and compositing by spans equals compositing its whole box
+    h, w = 96, 320
+    disp = torch.full((1, 1, h, w), 0.2)
+    disp[..., 10:40, 20:60] = 0.9
+    disp[..., 10:40, 260:300] = 0.9
+    image = torch.rand(1, 3, h, w, generator=torch.Generator().manual_seed(5))
+    with torch.inference_mode():
+        plan = rendering.layer_plan(disp, torch.tensor(0.2).view(1, 1, 1, 1), 28.0)
+        x = torch.cat([torch.ones_like(image[:, :1]), image], dim=1)
+        under = rendering.hidden_surface(rendering._input_window(x, False), plan)
+        assert under is not None
+        y0, y1, x0, x1 = under.box
+        assert x0 < 20 and x1 > 300  # the box holds both: its middle is 0
+        whole = under.window(y0, y1, x0, x1)[0]
+        drawn_rows = 0
+        for a, b in [(y0, y1), (y0, y0 + 4), (12, 20), (30, 41), (60, y1)]:
+            spans = under.spans(a, b)
+            assert all(x0 <= s < e <= x1 for s, e in spans)
+            inside = torch.zeros(w, dtype=torch.bool)
+            for s, e in spans:
+                inside[s:e] = True
+            assert not inside[110:210].any()  # far from both boxes
+            rows = whole[:, a - y0 : b - y0]
+            assert rows[..., ~inside[x0:x1]].abs().max() == 0
+            drawn_rows += bool(spans)
+            assert bool(spans) == bool(rows.abs().max() > 0)
+        assert drawn_rows >= 3  # the whole box and the near boxes' rows
+        acc = torch.rand(4, h, w, generator=torch.Generator().manual_seed(6))
+        expect = acc.clone()
+        region = expect[:, y0:y1, x0:x1]
+        region.addcmul_(whole, 1 - region[:1].clamp(0, 1))
+        under.composite(acc, y0, y1)
+        torch.testing.assert_close(acc, expect, rtol=0, atol=1e-6)
