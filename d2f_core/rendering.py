@@ -683,14 +683,18 @@ def hidden_surface(
         a, b = max(0, y0 - 2), min(height, y1 + 2)
         c = coord[..., a:b, :]
         near = (c + _max_filter(-c, 5))[..., y0 - a : y1 - a, :] >= jump
-        if not bool(near.any()):
+        ahead = c[..., y0 - a : y1 - a, :][near]
+        if not ahead.numel():
             continue
         # the layer that draws each near pixel: of the two either side of its coordinate, the
-        # more blurred one in front of the focal plane and the sharper one behind it (a CoC
-        # on a kernel size sits half-way between two layers: rounding would go either way)
-        c = c[..., y0 - a : y1 - a, :]
-        layer = torch.where(c > 0, c.ceil(), c.abs().floor())
-        top = max(top, float(torch.where(near, layer, 0.0).max()))
+        # more blurred one in front of the focal plane (ceil) and the sharper one behind it
+        # (floor of |coord|; a CoC on a kernel size sits half-way between two layers:
+        # rounding would go either way); the largest of them, from the extremes
+        most, least = float(ahead.max()), float(ahead.min())
+        if most > 0:
+            top = max(top, math.ceil(most))
+        if least <= 0:
+            top = max(top, math.floor(-least))
         cells = F.max_pool2d(near.to(coord.dtype), cell, cell, ceil_mode=True)
         grid[..., y0 // cell : y0 // cell + cells.shape[-2], :] = cells
     if top < 0:
@@ -713,27 +717,33 @@ def hidden_surface(
     py0, px0 = max(0, y0 - m) // MAX_FACTOR * MAX_FACTOR, max(0, x0 - m) // MAX_FACTOR * MAX_FACTOR
     py1, px1 = min(height, y1 + m), min(width, x1 + m)
     hh, hw = -(-(py1 - py0) // g), -(-(px1 - px0) // g)
-    sums = known = nearest = None
+    sums = known = None
+    nearest = coord.new_zeros(1, 1, hh, hw)
     for r0 in range(py0, py1, step):
         r1 = min(py1, r0 + step)
         a, b = max(0, r0 - 2), min(height, r1 + 2)
         c = coord[..., a:b, px0:px1]
-        far = (_max_filter(c, 5) - c)[..., r0 - a : r1 - a, :].ge_(jump)
         carried = plan.coord[..., r0:r1, px0:px1]
-        part = torch.cat([layer_input(r0, r1, px0, px1), carried], dim=1) * far
-        part = F.avg_pool2d(part, g, ceil_mode=True, divisor_override=1)
-        count = F.avg_pool2d(far, g, ceil_mode=True, divisor_override=1)
         # each cell's nearest pixel: the hidden surface is drawn under the cells that hold a
         # near side
         top_c = F.max_pool2d(carried, g, ceil_mode=True)
+        nearest[..., (r0 - py0) // g : (r0 - py0) // g + top_c.shape[-2], :] = top_c
+        # the far-side pixels (few: along the edges), summed into their cells
+        far = torch.nonzero((_max_filter(c, 5) - c)[0, 0, r0 - a : r1 - a] >= jump)
+        if not far.numel():
+            continue
+        ys, xs = far[:, 0], far[:, 1]
+        values = layer_input(r0, r1, px0, px1)[0][:, ys, xs]
+        values = torch.cat([values, carried[0][:, ys, xs]])  # (C + 1, pixels)
+        index = ((r0 - py0) // g + ys // g) * hw + xs // g
         if sums is None:
-            sums = part.new_zeros(1, part.shape[1], hh, hw)
-            known = part.new_zeros(1, 1, hh, hw)
-            nearest = coord.new_zeros(1, 1, hh, hw)
-        rows_g = slice((r0 - py0) // g, (r0 - py0) // g + part.shape[-2])
-        sums[..., rows_g, :] = part
-        known[..., rows_g, :] = count
-        nearest[..., rows_g, :] = top_c
+            sums = values.new_zeros(values.shape[0], hh * hw)
+            known = coord.new_zeros(hh * hw)
+        sums.index_add_(1, index, values)
+        known.index_add_(0, index, torch.ones_like(index, dtype=known.dtype))
+    if sums is None:
+        return None
+    sums, known = sums.view(1, -1, hh, hw), known.view(1, 1, hh, hw)
     fill = _push_pull(sums / known.clamp(min=1e-12), known)
     # drawn where the cell holds a pixel well in front of what is carried under it (fading
     # in over a layer), within reach of an edge
