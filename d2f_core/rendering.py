@@ -1379,10 +1379,39 @@ def _composite(
 
 
 def _upsample(z: torch.Tensor, factor: int, height: int, width: int) -> torch.Tensor:
-    """Bilinear upsampling of a coarse-grid layer by ``factor`` (``align_corners=False``,
-    edges held), cropped to the frame."""
-    up = F.interpolate(z, scale_factor=factor, mode="bilinear", align_corners=False)
+    """Bilinear upsampling of a coarse-grid layer by ``factor`` (``F.interpolate``'s
+    ``align_corners=False``, edges held), cropped to the frame.
+
+    Without gradients and by 2 or 4, one interpolation per output phase and axis: 5-15 %
+    faster than ``F.interpolate`` at slider sizes on this CPU (torch 2.13), which is
+    1.5-2x faster by 8 and 16.
+    """
+    if factor > 4 or (torch.is_grad_enabled() and z.requires_grad):
+        up = F.interpolate(z, scale_factor=factor, mode="bilinear", align_corners=False)
+    else:
+        up = _upsample_axis(_upsample_axis(z, factor, -2), factor, -1)
     return up[..., :height, :width]
+
+
+def _upsample_axis(a: torch.Tensor, factor: int, dim: int) -> torch.Tensor:
+    n = a.shape[dim]
+    shape = list(a.shape)
+    shape[dim] = n * factor
+    out = a.new_empty(shape)
+    phases = out.unflatten(dim, (n, factor))
+    for p in range(factor):
+        # output sample p of each cell lies ``offset`` input samples from the cell's centre
+        offset = (p + 0.5) / factor - 0.5
+        phase = phases.select(dim, p)  # dim < 0: the phase axis after unflatten
+        if offset < 0:  # between the sample and the one before it; the first is held
+            src, nbr, edge = a.narrow(dim, 1, n - 1), a.narrow(dim, 0, n - 1), 0
+            dst = phase.narrow(dim, 1, n - 1)
+        else:  # between the sample and the one after it; the last is held
+            src, nbr, edge = a.narrow(dim, 0, n - 1), a.narrow(dim, 1, n - 1), n - 1
+            dst = phase.narrow(dim, 0, n - 1)
+        torch.lerp(src, nbr, abs(offset), out=dst)
+        phase.narrow(dim, edge, 1).copy_(a.narrow(dim, edge, 1))
+    return out
 
 
 def _blend_transmit(
