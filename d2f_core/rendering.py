@@ -1528,12 +1528,24 @@ def _blend_fft(
     y0: int,
     x0: int,
     transmit: torch.Tensor | None = None,
+    pieces: list[tuple[int, int, int, int]] | None = None,
 ) -> None:
     """:func:`_blend` (and with ``transmit`` :func:`_blend_transmit`) in place of the
     coarse layer ``grid`` ``(C, h, w)`` (cells summed) blurred by :func:`_fft`, one channel
-    at a time: a spectrum and a blurred channel at a time, not all of them, are held."""
+    at a time: a spectrum and a blurred channel at a time, not all of them, are held.
+
+    With ``pieces`` (boxes ``(y0, y1, x0, x1)`` in cells outside which ``grid`` is 0), each
+    piece is blurred by its own FFT and the blurs are summed (the blur is linear): a layer
+    scattered over the frame is transformed over its pieces, not over their bounding box."""
     gain = 1.0 / factor**2
-    alpha = _fft(grid[None, :1], spec, size, factor, gain)
+    if pieces is None:
+
+        def blur(z: torch.Tensor) -> torch.Tensor:
+            return _fft(z, spec, size, factor, gain)
+
+    else:
+        blur = _PieceBlur(pieces, spec, size, factor, gain)
+    alpha = blur(grid[None, :1])
     meet = _overlap(acc.shape[-2:], y0, x0, alpha.shape[-2:])
     if meet is None:
         return
@@ -1541,13 +1553,41 @@ def _blend_fft(
     alpha = alpha[..., rows, cols]
     clamped = alpha.clamp(0, 1)
     for c in range(grid.shape[0]):
-        part = alpha if c == 0 else _fft(grid[None, c : c + 1], spec, size, factor, gain)
+        part = alpha if c == 0 else blur(grid[None, c : c + 1])
         region = acc[:, c : c + 1, frows, fcols]
         # acc (1 - alpha) as acc - acc alpha: one pass
         region.addcmul_(region, clamped, value=-1).add_(part if c == 0 else part[..., rows, cols])
     if transmit is not None:
         region = transmit[..., frows, fcols]
         region.addcmul_(region, clamped, value=-1)
+
+
+class _PieceBlur:
+    """:func:`_fft` of a ``(1, 1, h, w)`` layer that is 0 outside ``pieces`` (boxes in cells),
+    as the sum of the pieces' own FFT blurs; each piece's kernel spectrum is made once, for
+    every channel (not in :func:`_spectrum`'s cache: piece sizes vary)."""
+
+    def __init__(self, pieces, spec: KernelSpec, size: int, factor: int, gain: float) -> None:
+        self.pieces = pieces
+        self.args = (spec, size, factor, gain)
+        self.spectra: dict[tuple[int, int], torch.Tensor] = {}
+
+    def __call__(self, z: torch.Tensor) -> torch.Tensor:
+        spec, size, factor, gain = self.args
+        k = _kernel(spec, size, factor, str(z.device), z.dtype, gain)
+        r = k.shape[-1] // 2
+        h, w = z.shape[-2:]
+        out = z.new_zeros(*z.shape[:-2], h + 2 * r, w + 2 * r)
+        for a, b, c, d in self.pieces:
+            ph, pw = b - a + 2 * r, d - c + 2 * r
+            fh, fw = _fast_len(ph), _fast_len(pw)
+            if (fh, fw) not in self.spectra:
+                self.spectra[(fh, fw)] = torch.fft.rfft2(k, s=(fh, fw))
+            spectrum = torch.fft.rfft2(z[..., a:b, c:d], s=(fh, fw))
+            spectrum.mul_(self.spectra[(fh, fw)])
+            blurred = torch.fft.irfft2(spectrum, s=(fh, fw))
+            out[..., a : a + ph, c : c + pw] += blurred[..., :ph, :pw]
+        return out
 
 
 def _spans(columns: list[int], gap: int = 2) -> list[tuple[int, int]]:
@@ -1564,19 +1604,25 @@ def _spans(columns: list[int], gap: int = 2) -> list[tuple[int, int]]:
 
 #: Rows of tiles per band in which a coarse layer's hit tiles are grouped into boxes.
 _HIT_BAND = 4
+#: The same for the pieces a coarse layer is blurred by FFT in (:func:`_blend_fft`).
+_FFT_BAND = 16
+#: A layer is blurred by pieces when their padded area is under this share of its box's.
+_FFT_PIECES_SHARE = 0.7
 
 
 def _hit_boxes(
-    hit: torch.Tensor, ty0: int, ty1: int, tx0: int, tx1: int, tile: int
+    hit: torch.Tensor, ty0: int, ty1: int, tx0: int, tx1: int, tile: int, band_rows: int = 0
 ) -> list[tuple[int, int, int, int]]:
     """Boxes ``(y0, y1, x0, x1)`` (px, whole tiles, possibly past the frame) that cover the
     tiles set in ``hit`` ``(rows, cols)`` within rows ``ty0:ty1`` and columns ``tx0:tx1``:
-    per band of :data:`_HIT_BAND` tile rows, spans of columns merged across gaps under two
-    tiles, each cut to the band's rows it hits. Boxes do not overlap."""
+    per band of ``band_rows`` (default :data:`_HIT_BAND`) tile rows, spans of columns merged
+    across gaps under two tiles, each cut to the band's rows it hits. Boxes do not overlap,
+    and those of a band of ``n`` rows lie inside those of a band of ``m n`` rows."""
     boxes = []
+    band_rows = band_rows or _HIT_BAND
     sub = hit[ty0:ty1, tx0:tx1]
-    for b0 in range(0, ty1 - ty0, _HIT_BAND):
-        band = sub[b0 : b0 + _HIT_BAND]
+    for b0 in range(0, ty1 - ty0, band_rows):
+        band = sub[b0 : b0 + band_rows]
         cols = torch.nonzero(band.any(dim=0)).flatten().tolist()
         for c0, c1 in _spans(cols):
             rows = torch.nonzero(band[:, c0 : c1 + 1].any(dim=1)).flatten()
@@ -1724,11 +1770,20 @@ def _render_tiled(
             blurred, oy, ox = _direct_stacked(rows_of, image, chans, cbox, k, (gh, gw))
             stacked = True
         else:
-            # blurred by FFT and composited one channel at a time (see _blend_fft)
+            # blurred by FFT and composited one channel at a time (see _blend_fft), by
+            # pieces when the layer's tiles and their blur fill little of its box
             blurred = None
             r = k.shape[-1] // 2
             oy, ox = ty0 * cell - r, tx0 * cell - r
             stacked = False
+            pieces = [
+                ((a - ty0 * t) // factor, (b - ty0 * t) // factor,
+                 (c - tx0 * t) // factor, (d - tx0 * t) // factor)
+                for a, b, c, d in _hit_boxes(hit, ty0, ty1, tx0, tx1, t, _FFT_BAND)
+            ]  # fmt: skip
+            area = sum((b - a + 2 * r) * (d - c + 2 * r) for a, b, c, d in pieces)
+            if area > _FFT_PIECES_SHARE * (grid.shape[1] + 2 * r) * (grid.shape[2] + 2 * r):
+                pieces = None
         if phase == 0:
             if back is None:
                 back = (factor, image.new_zeros(1, chans, gh, gw))
@@ -1738,7 +1793,7 @@ def _render_tiled(
             if stacked:
                 _blend_stacked(back[1], blurred, oy, ox)
             else:
-                _blend_fft(back[1], grid, spec, size, factor, oy, ox)
+                _blend_fft(back[1], grid, spec, size, factor, oy, ox, pieces=pieces)
             grid = blurred = None  # freed before the next layer's
             continue
         if not front or front[-1][0] != factor:
@@ -1746,7 +1801,7 @@ def _render_tiled(
         if stacked:
             _blend_stacked(front[-1][1], blurred, oy, ox, transmit=front[-1][2])
         else:
-            _blend_fft(front[-1][1], grid, spec, size, factor, oy, ox, transmit=front[-1][2])
+            _blend_fft(front[-1][1], grid, spec, size, factor, oy, ox, front[-1][2], pieces=pieces)
         grid = blurred = None
     del grid, z, pooled, blurred  # the last coarse layer's buffers
     # fold the front grids into one: the coarsest is on top

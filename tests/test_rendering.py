@@ -956,6 +956,11 @@ class TestLargeFrames:
         assert torch.equal(covered.bool() & hit, hit & inside)
         assert not covered[:, 12:20].any() and not covered[:2].any() and not covered[21:].any()
         assert rendering._hit_boxes(torch.zeros(4, 4, dtype=torch.bool), 0, 4, 0, 4, 32) == []
+        # the boxes of bands of 4 rows lie inside those of bands of 16 (the FFT's pieces
+        # cover every tile the masking wrote)
+        big = rendering._hit_boxes(hit, 2, 21, 1, 30, 32, 16)
+        for y0, y1, x0, x1 in boxes:
+            assert any(a <= y0 and y1 <= b and c <= x0 and x1 <= d for a, b, c, d in big)
 
     @pytest.mark.parametrize("h,w", [(64, 96), (70, 96), (64, 101), (75, 101), (20, 25)])
     def test_tile_source_matches_a_padded_copy(self, h, w):
