@@ -962,6 +962,20 @@ class TestLargeFrames:
         for y0, y1, x0, x1 in boxes:
             assert any(a <= y0 and y1 <= b and c <= x0 and x1 <= d for a, b, c, d in big)
 
+    def test_fft_by_pieces_is_the_fft_of_the_whole(self):
+        # a layer that is 0 outside two boxes, blurred box by box and summed, is its blur
+        g = torch.Generator().manual_seed(11)
+        z = torch.zeros(1, 1, 90, 130)
+        pieces = [(0, 32, 8, 40), (48, 90, 64, 128)]
+        for a, b, c, d in pieces:
+            z[..., a:b, c:d] = torch.rand(b - a, d - c, generator=g)
+        spec = rendering.KernelSpec()
+        whole = rendering._fft(z, spec, 45, 2, 0.25)
+        parts = rendering._PieceBlur(pieces, spec, 45, 2, 0.25)(z)
+        assert parts.shape == whole.shape
+        torch.testing.assert_close(parts, whole, rtol=0, atol=1e-5)
+        assert float(whole.abs().max()) > 0.1
+
     @pytest.mark.parametrize("h,w", [(64, 96), (70, 96), (64, 101), (75, 101), (20, 25)])
     def test_tile_source_matches_a_padded_copy(self, h, w):
         # tiles read from the frame and its two padded edge copies are those of a padded copy
