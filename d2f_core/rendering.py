@@ -1082,7 +1082,10 @@ def _direct_stacked(
     stacked = base.view(b, rows, wp, s * channels).permute(0, 3, 1, 2)  # channels-last
     weight = k.flip(-1, -2).expand(s * channels, 1, -1, -1)
     out = F.conv2d(stacked, weight, groups=s * channels).permute(0, 2, 3, 1).contiguous()
-    out = out.view(b, hs, ox1 - ox0, s, channels).permute(0, 4, 3, 1, 2)
+    # planar for the blend (elementwise ops on mixed layouts are several times slower): a
+    # transpose of the (pixels, s * channels) matrix, which torch does blockwise
+    out = out.view(-1, s * channels).t().contiguous()
+    out = out.view(s, channels, b, hs, ox1 - ox0).permute(2, 1, 0, 3, 4)
     return out, oy0, ox0
 
 
