@@ -10,6 +10,7 @@ disturbing anyone. The server's RSS growth over the run is checked against a bou
 
 from __future__ import annotations
 
+import tempfile
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -66,9 +67,18 @@ def peak_rss(pid: int, start: float):
         sampler.join()
 
 
-def test_sixteen_sessions(app_server, scene_factory, gradio_env, tmp_path, monkeypatch):
+@pytest.fixture
+def client_env(gradio_env, monkeypatch):
+    """This process as a gradio_client confined to the test's folder: Gradio's environment,
+    and Python's temp dir, where gradio_client makes a folder for every file it downloads
+    and leaves it behind (some 300 empty folders in /tmp per run of these tests)."""
     for key in ("GRADIO_TEMP_DIR", "GRADIO_ANALYTICS_ENABLED", "HF_HUB_DISABLE_TELEMETRY"):
         monkeypatch.setenv(key, gradio_env[key])
+    monkeypatch.setattr(tempfile, "tempdir", gradio_env["GRADIO_TEMP_DIR"])
+    return gradio_env
+
+
+def test_sixteen_sessions(app_server, scene_factory, client_env, tmp_path):
     from gradio_client import Client, handle_file
     from gradio_client.exceptions import AppError
 
@@ -179,16 +189,12 @@ FORTY_PEAK_BOUND_MB = 550
 FORTY_AFTER_BOUND_MB = 300
 
 
-def test_forty_sessions_bounded_memory(
-    app_server, scene_factory, gradio_env, tmp_path, monkeypatch
-):
+def test_forty_sessions_bounded_memory(app_server, scene_factory, client_env, tmp_path):
     """44 API sessions, each with its own 800x600 photo, open in waves of six, and their
     clients go away with the photo open (the client's heartbeat ends, as when a tab is
     closed): the app closes their sessions and files at once. Past the cap of eight live
     sessions an upload gets a message. The server's memory stays under a bound; an upload
     past the size limit is refused. (Before, every session stayed for an hour.)"""
-    for key in ("GRADIO_TEMP_DIR", "GRADIO_ANALYTICS_ENABLED", "HF_HUB_DISABLE_TELEMETRY"):
-        monkeypatch.setenv(key, gradio_env[key])
     from gradio_client import Client, handle_file
     from gradio_client.exceptions import AppError
 
