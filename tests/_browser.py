@@ -30,6 +30,32 @@ def wait_new_result(page, old: str | None) -> str:
     return result_src(page)
 
 
+def wait_full_result(page, old: str | None) -> str:
+    """Wait until ``#result img`` shows a different, fully loaded file that is a full render
+    at the focus the focus slider now shows (the status line says so), and return its src.
+
+    Checked in one step in the page, so the src belongs to that status line: a render of
+    older values that lands in between (e.g. the release of a slider whose number box had
+    the keyboard focus when the photo was clicked, which the app follows with a render of
+    the values on the page) is not taken for it."""
+    handle = page.wait_for_function(
+        r"""(old) => {
+            const img = document.querySelector('#result img');
+            const info = document.querySelector('#info textarea');
+            const box = document.querySelector('#focus input[data-testid=number-input]');
+            if (!img || !info || !box) return false;
+            const src = img.getAttribute('src');
+            if (!src || src === old || !img.complete || img.naturalWidth === 0) return false;
+            const m = info.value.match(/focus (\d+\.\d+)/);
+            if (!m || !info.value.includes('full render')) return false;
+            return Math.abs(parseFloat(m[1]) - parseFloat(box.value)) < 0.002 ? src : false;
+        }""",
+        arg=old,
+        timeout=TIMEOUT_MS,
+    )
+    return handle.json_value()
+
+
 def fetch_image(page, src: str) -> np.ndarray:
     url = src if src.startswith("http") else page.url.rstrip("/") + "/" + src.lstrip("/")
     with urllib.request.urlopen(url, timeout=10) as r:

@@ -13,7 +13,14 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from _browser import click_photo_at, fetch_image, open_app, result_src, wait_new_result
+from _browser import (
+    click_photo_at,
+    fetch_image,
+    open_app,
+    result_src,
+    wait_full_result,
+    wait_new_result,
+)
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
 
@@ -100,7 +107,7 @@ def test_refocus_in_browser(
                 "() => parseFloat(document.querySelector("
                 "'#focus input[data-testid=number-input]').value) < 0.05"
             )
-            src = wait_new_result(page, src)
+            src = wait_full_result(page, src)
             near = fetch_image(page, src)
             near_focus = focus_value(page)
             shot(page, "focused_near")
@@ -112,7 +119,7 @@ def test_refocus_in_browser(
                 "() => parseFloat(document.querySelector("
                 "'#focus input[data-testid=number-input]').value) > 0.95"
             )
-            src = wait_new_result(page, src)
+            src = wait_full_result(page, src)
             far = fetch_image(page, src)
             far_focus = focus_value(page)
             shot(page, "focused_far")
