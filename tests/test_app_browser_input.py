@@ -137,13 +137,18 @@ def test_every_input_ends_in_the_full_render(
             assert saved_name(page).endswith(aperture_name(blur))
 
             # 6. a value typed, then Download clicked at once (the box loses focus): the
-            # button waits for the full render of the value on screen, never the old file
+            # button waits for the full render of the value on screen, never the old file.
+            # The typed value's preview is shown, or dropped when the full render of the same
+            # value started first (this photo's renders take some 15 ms): either way the
+            # status line names the value
             box.click()
             box.fill("2")
-            page.wait_for_function(f"() => {STATUS}.includes('f/2, blur 11.1 px | preview')")
+            page.wait_for_function(f"() => {STATUS}.includes('f/2, blur 11.1 px | ')")
             button = page.locator("button#download, #download button").first
-            assert button.is_disabled()
-            # a real click on the disabled button: the box loses focus (release), no file
+            if "f/2, blur 11.1 px | preview" in page.evaluate(f"() => {STATUS}"):
+                assert button.is_disabled()
+            # a real click on the button, disabled while a preview is shown: the box loses
+            # focus (release), no file
             bb = button.bounding_box()
             page.mouse.click(bb["x"] + bb["width"] / 2, bb["y"] + bb["height"] / 2)
             wait_full_render(page, blur="2")
