@@ -856,13 +856,20 @@ def _fft(
     h, w = z.shape[-2:]
     fh, fw = _fast_len(h + 2 * r), _fast_len(w + 2 * r)
     spec_k = _spectrum(spec, size, factor, fh, fw, str(z.device), z.dtype, gain)
-    spectrum = torch.fft.rfft2(z.contiguous(), s=(fh, fw))
+    return _fft_by(z.contiguous(), spec_k, fh, fw, h + 2 * r, w + 2 * r)
+
+
+def _fft_by(
+    z: torch.Tensor, spec_k: torch.Tensor, fh: int, fw: int, height: int, width: int
+) -> torch.Tensor:
+    """Convolution of ``z`` by the kernel whose real FFT at size ``fh x fw`` is ``spec_k``,
+    cropped to ``height x width``."""
+    spectrum = torch.fft.rfft2(z, s=(fh, fw))
     if torch.is_grad_enabled() and z.requires_grad:
         spectrum = spectrum * spec_k
     else:
         spectrum.mul_(spec_k)
-    out = torch.fft.irfft2(spectrum, s=(fh, fw))
-    return out[..., : h + 2 * r, : w + 2 * r]
+    return torch.fft.irfft2(spectrum, s=(fh, fw))[..., :height, :width]
 
 
 def _pool(
@@ -1586,10 +1593,8 @@ class _PieceBlur:
             fh, fw = _fast_len(ph), _fast_len(pw)
             if (fh, fw) not in self.spectra:
                 self.spectra[(fh, fw)] = torch.fft.rfft2(k, s=(fh, fw))
-            spectrum = torch.fft.rfft2(z[..., a:b, c:d], s=(fh, fw))
-            spectrum.mul_(self.spectra[(fh, fw)])
-            blurred = torch.fft.irfft2(spectrum, s=(fh, fw))
-            out[..., a : a + ph, c : c + pw] += blurred[..., :ph, :pw]
+            spec_k = self.spectra[(fh, fw)]
+            out[..., a : a + ph, c : c + pw] += _fft_by(z[..., a:b, c:d], spec_k, fh, fw, ph, pw)
         return out
 
 
@@ -1840,15 +1845,13 @@ def _render_tiled(
         for centre, size, hit in sharp:
             k = _kernel(spec, size, 1, dev, dtype)
             r = k.shape[-1] // 2
-            # the layer's tiles whose blur reaches the band, as boxes of nearby columns
+            # the layer's tiles whose blur reaches the band, as boxes of nearby columns (one
+            # band of tile rows), cut to the rows the blur reaches
             first = max(0, (y0 - r) // t)
-            band = hit[first : (y1 + r - 1) // t + 1]
+            last = min(nty, (y1 + r - 1) // t + 1)
             g = gate(centre)
-            for c0, c1 in _spans(torch.nonzero(band.any(dim=0)).flatten().tolist()):
-                rows_hit = torch.nonzero(band[:, c0 : c1 + 1].any(dim=1)).flatten()
-                ya = max(0, y0 - r, (first + int(rows_hit[0])) * t)
-                yb = min(height, y1 + r, (first + int(rows_hit[-1]) + 1) * t)
-                xa, xb = c0 * t, min(width, (c1 + 1) * t)
+            for ya, yb, xa, xb in _hit_boxes(hit, first, last, 0, ntx, t, last - first):
+                ya, yb, xb = max(ya, y0 - r), min(yb, height, y1 + r), min(xb, width)
                 if yb <= ya:
                     continue
 
