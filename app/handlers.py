@@ -446,6 +446,13 @@ def one_line(message: Any, limit: int = 300) -> str:
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
+#: What an event on a closed session answers.
+CLOSED_MESSAGE = (
+    "This photo was closed to free memory (unused for a while, or the page was closed); "
+    "please upload it again."
+)
+
+
 def reported(fn: Callable) -> Callable:
     """Turn bad-input exceptions into ``gr.Error`` and anything else into a short one.
 
@@ -466,17 +473,22 @@ def reported(fn: Callable) -> Callable:
             raise
         except SessionClosed:
             log.info("%s refused: the session was closed", fn.__name__)
-            raise user_error(
-                "This photo was closed to free memory (unused for a while, or the page was "
-                "closed); please upload it again."
-            ) from None
-        except (ValueError, TypeError) as err:
-            log.info("%s refused: %s", fn.__name__, one_line(err))
-            raise user_error(str(err)) from None
-        except MemoryError:
-            log.exception("out of memory in %s", fn.__name__)
-            raise user_error("The server ran out of memory; try a smaller photo.") from None
+            raise user_error(CLOSED_MESSAGE) from None
         except Exception as err:
+            if any(session.closed for session in held):
+                # the tab was closed (or the session expired) while the event ran, and its
+                # files were removed under it: no fault of the input nor of the event
+                log.info(
+                    "%s stopped: the session was closed while it ran (%s)",
+                    fn.__name__, type(err).__name__,
+                )  # fmt: skip
+                raise user_error(CLOSED_MESSAGE) from None
+            if isinstance(err, (ValueError, TypeError)):
+                log.info("%s refused: %s", fn.__name__, one_line(err))
+                raise user_error(str(err)) from None
+            if isinstance(err, MemoryError):
+                log.exception("out of memory in %s", fn.__name__)
+                raise user_error("The server ran out of memory; try a smaller photo.") from None
             log.exception("unexpected failure in %s", fn.__name__)
             raise user_error(
                 f"Something went wrong ({type(err).__name__}); please retry."

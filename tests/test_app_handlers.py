@@ -931,6 +931,37 @@ class TestSessions:
 
 
 class TestDownload:
+    @pytest.mark.parametrize("when", ["before the write", "while PIL writes"])
+    def test_tab_closed_while_the_file_is_written(self, loaded, monkeypatch, caplog, when):
+        """A tab closed while its download is written removes the session's folder under
+        the writer: the event ends with the closed-photo message and one log line, not an
+        "unexpected failure" with a traceback (CI's browser test met this once)."""
+        logic, session, _ = loaded
+        logic.click(session, [5, 5], APERTURE)
+        if when == "before the write":  # the folder is gone: save_image refuses the path
+            write = imaging.save_image
+
+            def close_then_write(image, path, **kw):
+                session.close()  # what the page's unload event does meanwhile
+                return write(image, path, **kw)
+
+            monkeypatch.setattr(imaging, "save_image", close_then_write)
+        else:  # the temp file is open: the rename after it fails
+            pil_save = Image.Image.save
+
+            def close_then_save(img, fp, *a, **kw):
+                session.close()
+                return pil_save(img, fp, *a, **kw)
+
+            monkeypatch.setattr(Image.Image, "save", close_then_save)
+        with caplog.at_level("INFO", logger="app.handlers"):
+            with pytest.raises(gr.Error, match="upload it again"):
+                logic.download(session, "PNG")
+        assert session.closed and session.folder is None
+        assert "stopped: the session was closed" in caplog.text
+        assert "unexpected failure" not in caplog.text and "Traceback" not in caplog.text
+        assert not any(r.exc_info for r in caplog.records)
+
     def test_png_is_the_full_render(self, loaded):
         logic, session, _ = loaded
         logic.click(session, [5, 5], APERTURE)
