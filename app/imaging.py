@@ -158,16 +158,34 @@ def load_depth_map(
     return disparity, (raw.shape[1], raw.shape[0])
 
 
+def steady_page_faults() -> bool:
+    """Stop NumPy from asking Linux for huge pages (``madvise(MADV_HUGEPAGE)``) for its
+    large arrays, for this process; return whether NumPy offers the switch.
+
+    Where the kernel compacts memory on demand for such regions (its ``defrag`` setting
+    ``madvise``, a common default), a fresh 144 MB array (a 12 MP picture in floats) stalled
+    0.2-1.7 s in turn on a busy machine while compaction ran; with 4 kB pages the same array
+    costs a steady 0.1 s. The app waits on such arrays between a render and its picture, so
+    it takes the steady time (``d2f-app`` calls this at start).
+    """
+    import importlib
+
+    for module in ("numpy._core.multiarray", "numpy.core.multiarray"):
+        try:
+            switch = importlib.import_module(module)._set_madvise_hugepage
+        except (ImportError, AttributeError):
+            continue
+        switch(False)
+        return True
+    return False
+
+
 def to_uint8(image: np.ndarray) -> np.ndarray:
     """``(H, W[, 3])`` float in [0, 1] (or uint8) -> uint8, rounded."""
     if image.dtype == np.uint8:
         return image
-    # one float32 temporary, worked in place: 68 against 116 ms for a 12 MP picture
-    # (each new 144 MB array costs its page faults)
-    tmp = np.multiply(image, 255.0, dtype=np.float32)
-    np.add(tmp, 0.5, out=tmp)
-    np.clip(tmp, 0.0, 255.0, out=tmp)
-    return tmp.astype(np.uint8)
+    # by bands of rows: a 12 MP picture's float temporary took 70 ms to 1.8 s in page faults
+    return d2f_io.float_to_uint8(np.asarray(image), name=None)
 
 
 def _shrink(img: Image.Image, size: tuple[int, int]) -> Image.Image:

@@ -15,6 +15,7 @@ from typing import Any
 import gradio as gr
 from gradio.route_utils import FnIndexInferError
 
+from app import imaging
 from app import sources as depth_choice
 from app.cache import SceneCache
 from app.handlers import (
@@ -590,6 +591,7 @@ def main(argv: list[str] | None = None) -> int:
     # several renders run at once (one per session event); each on one thread keeps them
     # from stalling each other at every parallel region when cores are busy
     torch.set_num_threads(args.threads)
+    imaging.steady_page_faults()
     try:
         model = load_model(args.weights)
     except (FileNotFoundError, ValueError) as err:

@@ -414,3 +414,52 @@ class TestSave:
         with pytest.raises(ValueError, match="overwrite"):
             save_image(tmp_path / "." / "photo.png", np.ones((4, 4, 3)), protect=[str(src)])
         assert src.read_bytes() == before
+
+
+class TestFloatToUint8:
+    """Floats to bytes by bands of rows: the same bytes as the whole-picture formula."""
+
+    @staticmethod
+    def reference(a: np.ndarray) -> np.ndarray:
+        return (np.clip(a.astype(np.float32), 0, 1) * np.float32(255) + np.float32(0.5)).astype(
+            np.uint8
+        )
+
+    @pytest.mark.parametrize("shape", [(1, 1), (7, 5, 3), (300, 17, 3), (2049, 512)])
+    def test_same_bytes_as_whole_picture(self, shape, monkeypatch):
+        monkeypatch.setattr(io_image, "_BAND_ELEMENTS", 4096)  # many bands, a short last one
+        rng = np.random.default_rng(3)
+        a = rng.uniform(-0.2, 1.2, shape)
+        a.flat[:6] = [0.0, 1.0, 0.5 / 255, 254.5 / 255, -0.0, 1.0 + 1e-9][: a.size]
+        for x in (a, a.astype(np.float32), a[::-1]):  # float64, float32, a strided view
+            out = io_image.float_to_uint8(x)
+            assert out.dtype == np.uint8 and out.shape == x.shape
+            np.testing.assert_array_equal(out, self.reference(x))
+
+    def test_known_values(self):
+        got = io_image.float_to_uint8(np.array([[0.0, 0.5, 1.0, 2.0, -1.0, 0.499 / 255]]))
+        np.testing.assert_array_equal(got, [[0, 128, 255, 255, 0, 0]])
+
+    def test_nan_in_a_later_band_is_named(self, monkeypatch):
+        monkeypatch.setattr(io_image, "_BAND_ELEMENTS", 64)
+        a = np.zeros((100, 8, 3), np.float32)
+        a[97, 2, 1] = np.nan
+        with pytest.raises(ValueError, match="bokeh: contains NaN"):
+            io_image.float_to_uint8(a, "bokeh")
+        with pytest.raises(ValueError, match="contains NaN"):
+            io_image.to_uint8(a)
+        out = io_image.float_to_uint8(np.where(np.isnan(a), 0, a), None)
+        assert not out.any()
+
+    def test_no_float_temporary_of_the_whole_picture(self):
+        """Peak memory is the bytes out plus one band, not a float copy of the picture."""
+        import tracemalloc
+
+        a = np.full((2000, 1000, 3), 0.5, np.float32)  # 24 MB of floats, 6 MB of bytes
+        tracemalloc.start()
+        try:
+            io_image.to_uint8(a)
+            peak = tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+        assert peak < a.nbytes // 4 + 4 * io_image._BAND_ELEMENTS + (1 << 20), peak

@@ -633,13 +633,38 @@ def to_uint8(array: np.ndarray, name: str = "array") -> np.ndarray:
         return a.astype(np.uint8) * 255
     if not np.issubdtype(a.dtype, np.floating):
         raise InputTypeError(f"{name}: expected float [0, 1] or uint8 values, got dtype {a.dtype}")
-    if not np.isfinite(a).all():
-        raise ValueError(f"{name}: contains NaN or infinite values")
-    # clip, scale and add 0.5 in one float32 buffer: rounds half up, 2x faster than np.round
-    buf = np.clip(a, 0.0, 1.0, dtype=np.float32)
-    buf *= 255.0
-    buf += 0.5
-    return buf.astype(np.uint8)
+    return float_to_uint8(a, name)
+
+
+#: Elements of the float32 band :func:`float_to_uint8` works on at once (6 MB). A float
+#: temporary of the whole picture (144 MB at 12 MP) is fresh memory each call, and its page
+#: faults cost 70 ms to 1.8 s in turn on a busy machine; a band costs a steady 35-40 ms.
+_BAND_ELEMENTS = 1 << 20
+
+
+def float_to_uint8(a: np.ndarray, name: str | None = "array") -> np.ndarray:
+    """Float ``a`` (any shape, values in [0, 1]) -> uint8 of the same shape, clipped and
+    rounded half up, by bands of rows in one reused float32 buffer.
+
+    ``name`` set: NaN or infinite values raise ``ValueError`` naming it; ``None``: they are
+    not looked for (a renderer's output, clamped already).
+    """
+    out = np.empty(a.shape, np.uint8)
+    if a.size == 0:
+        return out
+    rows = max(1, _BAND_ELEMENTS // max(1, a[0].size))
+    scratch = np.empty((min(rows, a.shape[0]), *a.shape[1:]), np.float32)
+    for r0 in range(0, a.shape[0], rows):
+        band = a[r0 : r0 + rows]
+        if name is not None and not np.isfinite(band).all():
+            raise ValueError(f"{name}: contains NaN or infinite values")
+        buf = scratch[: band.shape[0]]
+        # clip, scale and add 0.5 in float32: rounds half up, 2x faster than np.round
+        np.clip(band, 0.0, 1.0, out=buf)
+        buf *= 255.0
+        buf += 0.5
+        out[r0 : r0 + rows] = buf  # the cast truncates: floor of x + 0.5
+    return out
 
 
 def same_file(a: str | os.PathLike, b: str | os.PathLike) -> bool:
