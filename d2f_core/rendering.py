@@ -336,6 +336,22 @@ def hdr_boost(
         mask = highlight_mask(image, threshold)  # [B,1,H,W]
         base = torch.ones_like(mask) if radiance is None else radiance
         return mask * alpha * _power(image.clamp(0, 1), beta) + (1 - mask) * base
+    grad = torch.is_grad_enabled() and any(
+        t is not None and t.requires_grad for t in (image, radiance)
+    )
+    if grad or image[:, :1].numel() <= _PLAN_BAND:
+        return _boost_rows(image, radiance, alpha, beta, threshold)
+    # by bands of rows, each in cache (0.16 s of a 12 MP render over whole frames)
+    out = image.new_empty(image.shape[0], 1, *image.shape[2:])
+    rows = max(1, _PLAN_BAND // max(1, image.shape[0] * image.shape[-1]))
+    for r0 in range(0, image.shape[-2], rows):
+        part = slice(r0, r0 + rows)
+        r = None if radiance is None else radiance[..., part, :]
+        out[..., part, :] = _boost_rows(image[..., part, :], r, alpha, beta, threshold)
+    return out
+
+
+def _boost_rows(image, radiance, alpha: float, beta: float, threshold: float) -> torch.Tensor:
     # the brightest channel is at least the threshold exactly where any channel is
     peak = image.amax(dim=1, keepdim=True)
     boost = _power(peak.clamp(0, 1), beta).mul_(alpha)
@@ -442,8 +458,8 @@ def layer_plan(
       with the next smaller kernel (a 10 px CoC with the 7 px one) and in front with the next
       larger. The shipped ``lite`` weights were trained with it.
     """
-    signed = disparity - focus  # [B,1,H,W]
     if order == "paper":
+        signed = disparity - focus  # [B,1,H,W]
         sizes = kernel_sizes(num_layers, max_size=max(blur, 1.0), schedule=schedule)
         n = len(sizes)
         coord = signed.abs().clamp(max=1.0) * (n - 1)
@@ -453,7 +469,20 @@ def layer_plan(
     if order != "depth":
         raise ValueError(f"order must be 'depth' or 'paper', got {order!r}")
     _check_placement(placement)
-    coc = signed.abs() * blur
+    banded = (
+        isinstance(focus, torch.Tensor)
+        and disparity.numel() > _PLAN_BAND
+        and not (torch.is_grad_enabled() and (disparity.requires_grad or focus.requires_grad))
+    )
+    signed = None if banded else disparity - focus  # [B,1,H,W]
+    if banded:
+        # the largest CoC from the disparity's extremes (|d - f| is largest at one of them):
+        # the same float as the maximum over every pixel, without a frame of temporaries
+        low, high = disparity.detach().flatten(1).aminmax(dim=1)
+        f = focus.detach().reshape(-1).to(disparity.dtype)
+        coc = torch.maximum((high - f).abs(), (low - f).abs()) * blur
+    else:
+        coc = signed.abs() * blur
     max_coc = float(coc.detach().max()) if coc.numel() else 0.0
     # A kernel of s px (radius s // 2) draws a disc s - 1 px across, which is where layer j
     # sits with "nearest" placement (the 1-px kernel at CoC 0). The schedule is in absolute px
@@ -467,18 +496,43 @@ def layer_plan(
         sizes.append(size)
         if size - nearest >= max_coc or max_coc <= 1:
             break
-    u = _interp(coc, [float(s - nearest) for s in sizes])
-    if nearest and len(sizes) > 1:
+    knots = [float(s - nearest) for s in sizes]
+    half = nearest and len(sizes) > 1
+    if banded:
+        # by bands of rows: a dozen elementwise passes over a band that stays in cache, not
+        # over frames of fresh memory (0.39 s of a 12 MP render)
+        coord = torch.empty_like(disparity)
+        rows = max(1, _PLAN_BAND // max(1, disparity.shape[0] * disparity.shape[-1]))
+        for r0 in range(0, disparity.shape[-2], rows):
+            band = disparity[..., r0 : r0 + rows, :] - focus
+            coord[..., r0 : r0 + rows, :] = _plan_coord(band, band.abs() * blur, knots, half)
+    else:
+        coord = _plan_coord(signed, coc, knots, half)
+    n = len(sizes)
+    layers = [(j, sizes[abs(j)]) for j in range(-(n - 1), n)]
+    return LayerPlan(coord, layers, gamma / 14.0, True)
+
+
+#: Pixels of the depth-order plan's bands (:func:`layer_plan` without gradients; 1 MB of
+#: float32 each).
+_PLAN_BAND = 1 << 18
+
+
+def _plan_coord(
+    signed: torch.Tensor, coc: torch.Tensor, knots: list[float], half: bool
+) -> torch.Tensor:
+    """The depth-order layer coordinate of the pixels whose disparity minus focus is
+    ``signed`` and whose CoC is ``coc``, for layers at the CoCs ``knots`` (``half``:
+    "nearest" placement)."""
+    u = _interp(coc, knots)
+    if half:
         # Between two layers both soft masks are close to 1 and the nearer layer hides the
         # other: behind the focal plane that is the sharper one, in front the more blurred
         # one. Half a layer toward the hidden side makes every pixel show the layer whose
         # kernel is nearest its CoC, on both sides; in front, CoCs under half a layer (1 px)
         # stay on the sharp layer.
         u = torch.where(signed < 0, u + 0.5, (u - 0.5).clamp(min=0))
-    coord = torch.copysign(u, signed)
-    n = len(sizes)
-    layers = [(j, sizes[abs(j)]) for j in range(-(n - 1), n)]
-    return LayerPlan(coord, layers, gamma / 14.0, True)
+    return torch.copysign(u, signed)
 
 
 def _layer_mask(coord: torch.Tensor, centre: int, gamma: float, grad: bool = True) -> torch.Tensor:

@@ -246,6 +246,50 @@ class TestHighlights:
         assert hdr_boost(near, r0, beta=2.5).item() == pytest.approx(3.0 * 0.995**2.5, rel=1e-6)
 
 
+class TestBands:
+    """Without gradients the plan and the highlight weights are computed by bands of rows:
+    the same numbers as over the whole frame, bit for bit."""
+
+    @staticmethod
+    def whole_and_banded(monkeypatch, fn):
+        whole = fn()
+        monkeypatch.setattr(rendering, "_PLAN_BAND", 97)  # bands of 1-2 rows, a short last one
+        with torch.inference_mode():
+            banded = fn()
+        return whole, banded
+
+    @pytest.mark.parametrize("placement", ["nearest", "paper"])
+    def test_layer_plan(self, monkeypatch, placement):
+        gen = torch.Generator().manual_seed(8)
+        disp = torch.rand(2, 1, 37, 53, generator=gen)
+        disp[1, 0, 5, 7] = 1.0  # the largest CoC on one pixel of the second image
+        focus = torch.tensor([0.45, 0.2]).view(2, 1, 1, 1)
+        whole, banded = self.whole_and_banded(
+            monkeypatch,
+            lambda: rendering.layer_plan(disp, focus, 83.0, placement=placement),
+        )
+        assert whole.order == banded.order and len(whole.order) > 5
+        assert torch.equal(whole.coord, banded.coord)
+        # the largest CoC from the extremes picked the same cut of the schedule
+        assert max(abs(c) for c, _ in whole.order) == max(abs(c) for c, _ in banded.order)
+
+    def test_layer_plan_keeps_gradients_whole(self, monkeypatch):
+        monkeypatch.setattr(rendering, "_PLAN_BAND", 97)
+        disp = torch.rand(1, 1, 20, 30, requires_grad=True)
+        plan = rendering.layer_plan(disp, torch.full((1, 1, 1, 1), 0.5), 40.0)
+        plan.coord.sum().backward()
+        assert disp.grad is not None and disp.grad.abs().sum() > 0
+
+    @pytest.mark.parametrize("with_radiance", [False, True])
+    def test_hdr_boost(self, monkeypatch, with_radiance):
+        gen = torch.Generator().manual_seed(9)
+        img = torch.rand(2, 3, 31, 45, generator=gen)
+        img[:, :, ::4] = 0.995  # highlights in every fourth row
+        r0 = torch.rand(2, 1, 31, 45, generator=gen) if with_radiance else None
+        whole, banded = self.whole_and_banded(monkeypatch, lambda: hdr_boost(img, r0))
+        assert torch.equal(whole, banded) and (whole > 2.9).any()
+
+
 class TestImplementations:
     @pytest.mark.parametrize("order", ["depth", "paper"])
     def test_fft_crop_skip_equals_direct_full_frame(self, order):
