@@ -339,7 +339,10 @@ def hdr_boost(
     grad = torch.is_grad_enabled() and any(
         t is not None and t.requires_grad for t in (image, radiance)
     )
-    if grad or image[:, :1].numel() <= _PLAN_BAND:
+    whole = radiance is not None and (
+        radiance.shape[-2:] != image.shape[-2:] or radiance.dtype != image.dtype
+    )  # a radiance that broadcasts, or promotes: as over the whole frame
+    if grad or whole or image[:, :1].numel() <= _PLAN_BAND:
         return _boost_rows(image, radiance, alpha, beta, threshold)
     # by bands of rows, each in cache (0.16 s of a 12 MP render over whole frames)
     out = image.new_empty(image.shape[0], 1, *image.shape[2:])
@@ -471,6 +474,7 @@ def layer_plan(
     _check_placement(placement)
     banded = (
         isinstance(focus, torch.Tensor)
+        and focus.dtype == disparity.dtype
         and disparity.numel() > _PLAN_BAND
         and not (torch.is_grad_enabled() and (disparity.requires_grad or focus.requires_grad))
     )

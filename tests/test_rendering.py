@@ -273,6 +273,21 @@ class TestBands:
         # the largest CoC from the extremes picked the same cut of the schedule
         assert max(abs(c) for c, _ in whole.order) == max(abs(c) for c, _ in banded.order)
 
+    def test_mixed_dtypes_and_broadcast_radiance_as_whole_frame(self, monkeypatch):
+        """A float64 focus on a float32 map promotes the plan to float64, and a radiance of
+        one value per image broadcasts: both as over the whole frame."""
+        gen = torch.Generator().manual_seed(10)
+        disp = torch.rand(1, 1, 30, 40, generator=gen)
+        focus = torch.full((1, 1, 1, 1), 0.3, dtype=torch.float64)
+        whole, banded = self.whole_and_banded(
+            monkeypatch, lambda: rendering.layer_plan(disp, focus, 50.0)
+        )
+        assert banded.coord.dtype == torch.float64 and torch.equal(whole.coord, banded.coord)
+        img = torch.rand(1, 3, 30, 40, generator=gen)
+        r0 = torch.full((1, 1, 1, 1), 0.5)
+        whole, banded = self.whole_and_banded(monkeypatch, lambda: hdr_boost(img, r0))
+        assert banded.shape == (1, 1, 30, 40) and torch.equal(whole, banded)
+
     def test_layer_plan_keeps_gradients_whole(self, monkeypatch):
         monkeypatch.setattr(rendering, "_PLAN_BAND", 97)
         disp = torch.rand(1, 1, 20, 30, requires_grad=True)
