@@ -686,6 +686,21 @@ def _max_filter(t: torch.Tensor, size: int) -> torch.Tensor:
     return _window_max(_window_max(t, size, -2), size, -1)
 
 
+def _cell_max(t: torch.Tensor, g: int) -> torch.Tensor:
+    """Maximum over cells of ``g x g`` px, a partial last row or column of cells over what
+    it holds: ``F.max_pool2d(t, g, ceil_mode=True)``, as two strided maxima (5-10x faster on
+    CPU than the pooling kernel for small cells)."""
+    if g == 1:
+        return t
+    ph, pw = -t.shape[-2] % g, -t.shape[-1] % g
+    if ph or pw:
+        t = F.pad(t, (0, pw, 0, ph), value=-math.inf)
+    h, w = t.shape[-2:]
+    lead = t.shape[:-2]
+    rows = t.reshape(*lead, h // g, g, w).amax(dim=-2)
+    return rows.reshape(*lead, h // g, w // g, g).amax(dim=-1)
+
+
 def _push_pull(values: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
     """Fill ``values`` where ``weight`` is 0 from where it is not, by push-pull over an image
     pyramid: each level holds the weighted mean of its 2x2 cells, and a cell's value is
@@ -760,7 +775,7 @@ def hidden_surface(
             top = max(top, math.ceil(most))
         if least <= 0:
             top = max(top, math.floor(-least))
-        cells = F.max_pool2d(near.to(coord.dtype), cell, cell, ceil_mode=True)
+        cells = _cell_max(near.to(coord.dtype), cell)
         grid[..., y0 // cell : y0 // cell + cells.shape[-2], :] = cells
     if top < 0:
         return None
@@ -791,7 +806,7 @@ def hidden_surface(
         carried = plan.coord[..., r0:r1, px0:px1]
         # each cell's nearest pixel: the hidden surface is drawn under the cells that hold a
         # near side
-        top_c = F.max_pool2d(carried, g, ceil_mode=True)
+        top_c = _cell_max(carried, g)
         nearest[..., (r0 - py0) // g : (r0 - py0) // g + top_c.shape[-2], :] = top_c
         # the far-side pixels (few: along the edges), summed into their cells
         far = torch.nonzero((_max_filter(c, 5) - c)[0, 0, r0 - a : r1 - a] >= jump)
@@ -813,7 +828,7 @@ def hidden_surface(
     # drawn where the cell holds a pixel well in front of what is carried under it (fading
     # in over a layer), within reach of an edge
     if g > cell:
-        band = F.max_pool2d(band, g // cell, ceil_mode=True)
+        band = _cell_max(band, g // cell)
     elif g < cell:
         band = band.repeat_interleave(cell // g, -2).repeat_interleave(cell // g, -1)
     band = band[..., py0 // g : py0 // g + hh, px0 // g : px0 // g + hw]

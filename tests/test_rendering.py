@@ -305,6 +305,16 @@ class TestBands:
         assert torch.equal(whole, banded) and (whole > 2.9).any()
 
 
+@pytest.mark.parametrize("shape", [(1, 1, 8, 12), (1, 1, 9, 13), (1, 5, 31, 7), (2, 1, 1, 1)])
+@pytest.mark.parametrize("g", [1, 2, 3, 4, 8])
+def test_cell_max_is_max_pool(shape, g):
+    """Cell maxima by strided maxima: max_pool2d's numbers, partial cells included."""
+    t = torch.randn(*shape, generator=torch.Generator().manual_seed(g))
+    want = F.max_pool2d(t, g, g, ceil_mode=True)
+    got = rendering._cell_max(t, g)
+    assert got.shape == want.shape and torch.equal(got, want)
+
+
 class TestImplementations:
     @pytest.mark.parametrize("order", ["depth", "paper"])
     def test_fft_crop_skip_equals_direct_full_frame(self, order):
