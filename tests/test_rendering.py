@@ -315,6 +315,16 @@ def test_cell_max_is_max_pool(shape, g):
     assert got.shape == want.shape and torch.equal(got, want)
 
 
+@pytest.mark.parametrize("rows", [1, 6, 7, 8, 23])
+def test_transposed_in_blocks(monkeypatch, rows):
+    """A tall matrix transposed block by block: the same as one transpose, whatever the
+    last block holds."""
+    monkeypatch.setattr(rendering, "_TRANSPOSE_ROWS", 7)
+    m = torch.randn(rows, 15, generator=torch.Generator().manual_seed(rows))
+    got = rendering._transposed(m)
+    assert got.is_contiguous() and torch.equal(got, m.t().contiguous())
+
+
 class TestImplementations:
     @pytest.mark.parametrize("order", ["depth", "paper"])
     def test_fft_crop_skip_equals_direct_full_frame(self, order):
