@@ -439,6 +439,9 @@ class TestFloatToUint8:
     def test_known_values(self):
         got = io_image.float_to_uint8(np.array([[0.0, 0.5, 1.0, 2.0, -1.0, 0.499 / 255]]))
         np.testing.assert_array_equal(got, [[0, 128, 255, 255, 0, 0]])
+        scalar = io_image.float_to_uint8(np.float32(0.5))
+        assert scalar.shape == () and scalar == 128
+        assert io_image.float_to_uint8(np.zeros((0, 4, 3))).shape == (0, 4, 3)
 
     def test_nan_in_a_later_band_is_named(self, monkeypatch):
         monkeypatch.setattr(io_image, "_BAND_ELEMENTS", 64)

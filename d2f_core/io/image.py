@@ -636,7 +636,7 @@ def to_uint8(array: np.ndarray, name: str = "array") -> np.ndarray:
     return float_to_uint8(a, name)
 
 
-#: Elements of the float32 band :func:`float_to_uint8` works on at once (6 MB). A float
+#: Elements of the float32 band :func:`float_to_uint8` works on at once (4 MB). A float
 #: temporary of the whole picture (144 MB at 12 MP) is fresh memory each call, and its page
 #: faults cost 70 ms to 1.8 s in turn on a busy machine; a band costs a steady 35-40 ms.
 _BAND_ELEMENTS = 1 << 20
@@ -649,6 +649,8 @@ def float_to_uint8(a: np.ndarray, name: str | None = "array") -> np.ndarray:
     ``name`` set: NaN or infinite values raise ``ValueError`` naming it; ``None``: they are
     not looked for (a renderer's output, clamped already).
     """
+    if a.ndim == 0:
+        return float_to_uint8(a.reshape(1), name).reshape(())
     out = np.empty(a.shape, np.uint8)
     if a.size == 0:
         return out
