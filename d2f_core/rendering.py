@@ -291,6 +291,23 @@ def highlight_mask(image: torch.Tensor, threshold: float = HDR_THRESHOLD) -> tor
     return (image >= threshold).any(dim=1, keepdim=True).to(image.dtype)
 
 
+def _tracks_grad(*tensors: torch.Tensor | None) -> bool:
+    """Whether autograd records work on any of ``tensors`` (``None`` skipped) now."""
+    return torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in tensors)
+
+
+#: Pixels (over the batch) of the bands of rows that the plan and the highlight weights are
+#: computed in without gradients (1 MB of float32 each).
+_ROW_BAND = 1 << 18
+
+
+def _row_bands(t: torch.Tensor) -> list[slice]:
+    """Slices of rows of ``t`` ``(B, C, H, W)`` by :data:`_ROW_BAND` pixels over the batch
+    (at least one row each)."""
+    rows = max(1, _ROW_BAND // max(1, t.shape[0] * t.shape[-1]))
+    return [slice(r0, r0 + rows) for r0 in range(0, t.shape[-2], rows)]
+
+
 def _power(x: torch.Tensor, exponent: float) -> torch.Tensor:
     """``x ** exponent``; a small whole exponent by repeated squaring (``pow`` with one costs
     as much as with any other: 0.28 ms against 0.03 ms for the three products of ``x ** 5`` on
@@ -336,19 +353,14 @@ def hdr_boost(
         mask = highlight_mask(image, threshold)  # [B,1,H,W]
         base = torch.ones_like(mask) if radiance is None else radiance
         return mask * alpha * _power(image.clamp(0, 1), beta) + (1 - mask) * base
-    grad = torch.is_grad_enabled() and any(
-        t is not None and t.requires_grad for t in (image, radiance)
-    )
     whole = radiance is not None and (
         radiance.shape[-2:] != image.shape[-2:] or radiance.dtype != image.dtype
     )  # a radiance that broadcasts, or promotes: as over the whole frame
-    if grad or whole or image[:, :1].numel() <= _PLAN_BAND:
+    if _tracks_grad(image, radiance) or whole or image[:, :1].numel() <= _ROW_BAND:
         return _boost_rows(image, radiance, alpha, beta, threshold)
     # by bands of rows, each in cache (0.16 s of a 12 MP render over whole frames)
     out = image.new_empty(image.shape[0], 1, *image.shape[2:])
-    rows = max(1, _PLAN_BAND // max(1, image.shape[0] * image.shape[-1]))
-    for r0 in range(0, image.shape[-2], rows):
-        part = slice(r0, r0 + rows)
+    for part in _row_bands(image):
         r = None if radiance is None else radiance[..., part, :]
         out[..., part, :] = _boost_rows(image[..., part, :], r, alpha, beta, threshold)
     return out
@@ -475,8 +487,8 @@ def layer_plan(
     banded = (
         isinstance(focus, torch.Tensor)
         and focus.dtype == disparity.dtype
-        and disparity.numel() > _PLAN_BAND
-        and not (torch.is_grad_enabled() and (disparity.requires_grad or focus.requires_grad))
+        and disparity.numel() > _ROW_BAND
+        and not _tracks_grad(disparity, focus)
     )
     signed = None if banded else disparity - focus  # [B,1,H,W]
     if banded:
@@ -506,20 +518,14 @@ def layer_plan(
         # by bands of rows: a dozen elementwise passes over a band that stays in cache, not
         # over frames of fresh memory (0.39 s of a 12 MP render)
         coord = torch.empty_like(disparity)
-        rows = max(1, _PLAN_BAND // max(1, disparity.shape[0] * disparity.shape[-1]))
-        for r0 in range(0, disparity.shape[-2], rows):
-            band = disparity[..., r0 : r0 + rows, :] - focus
-            coord[..., r0 : r0 + rows, :] = _plan_coord(band, band.abs() * blur, knots, half)
+        for part in _row_bands(disparity):
+            band = disparity[..., part, :] - focus
+            coord[..., part, :] = _plan_coord(band, band.abs() * blur, knots, half)
     else:
         coord = _plan_coord(signed, coc, knots, half)
     n = len(sizes)
     layers = [(j, sizes[abs(j)]) for j in range(-(n - 1), n)]
     return LayerPlan(coord, layers, gamma / 14.0, True)
-
-
-#: Pixels of the depth-order plan's bands (:func:`layer_plan` without gradients; 1 MB of
-#: float32 each).
-_PLAN_BAND = 1 << 18
 
 
 def _plan_coord(
@@ -938,7 +944,7 @@ def _fft_by(
     """Convolution of ``z`` by the kernel whose real FFT at size ``fh x fw`` is ``spec_k``,
     cropped to ``height x width``."""
     spectrum = torch.fft.rfft2(z, s=(fh, fw))
-    if torch.is_grad_enabled() and z.requires_grad:
+    if _tracks_grad(z):
         spectrum = spectrum * spec_k
     else:
         spectrum.mul_(spec_k)
@@ -1365,7 +1371,7 @@ def _composite(
     ``((B, C + 1, H, W), (B, 1, H, W))``.
     """
     b, c, height, width = x.shape
-    grad = torch.is_grad_enabled() and (x.requires_grad or plan.coord.requires_grad)
+    grad = _tracks_grad(x, plan.coord)
     dev, dtype = str(x.device), x.dtype
     if not grad:
         c -= 1  # the channel of ones
@@ -1494,7 +1500,7 @@ def _upsample(z: torch.Tensor, factor: int, height: int, width: int) -> torch.Te
     faster than ``F.interpolate`` at slider sizes on this CPU (torch 2.13), which is
     1.5-2x faster by 8 and 16.
     """
-    if factor > 4 or (torch.is_grad_enabled() and z.requires_grad):
+    if factor > 4 or _tracks_grad(z):
         up = F.interpolate(z, scale_factor=factor, mode="bilinear", align_corners=False)
     else:
         up = _upsample_axis(_upsample_axis(z, factor, -2), factor, -1)
@@ -2167,9 +2173,7 @@ def _render(
     if blur == 0 and order == "depth":
         return _with_behind(image.clamp(0, 1), behind)
 
-    grad = torch.is_grad_enabled() and any(
-        t is not None and t.requires_grad for t in (image, disparity, radiance)
-    )
+    grad = _tracks_grad(image, disparity, radiance)
 
     # Without gradients, fewer threads while other processes keep the cores busy (see
     # _ThreadChoice); a training step keeps its own.

@@ -253,7 +253,7 @@ class TestBands:
     @staticmethod
     def whole_and_banded(monkeypatch, fn):
         whole = fn()
-        monkeypatch.setattr(rendering, "_PLAN_BAND", 97)  # bands of 1-2 rows, a short last one
+        monkeypatch.setattr(rendering, "_ROW_BAND", 97)  # bands of 1-2 rows, a short last one
         with torch.inference_mode():
             banded = fn()
         return whole, banded
@@ -289,7 +289,7 @@ class TestBands:
         assert banded.shape == (1, 1, 30, 40) and torch.equal(whole, banded)
 
     def test_layer_plan_keeps_gradients_whole(self, monkeypatch):
-        monkeypatch.setattr(rendering, "_PLAN_BAND", 97)
+        monkeypatch.setattr(rendering, "_ROW_BAND", 97)
         disp = torch.rand(1, 1, 20, 30, requires_grad=True)
         plan = rendering.layer_plan(disp, torch.full((1, 1, 1, 1), 0.5), 40.0)
         plan.coord.sum().backward()
