@@ -665,6 +665,12 @@ def _upsample_window(grid: torch.Tensor, factor: int, y0: int, y1: int, x0: int,
     gh, gw = grid.shape[-2:]
     a, b = max(0, y0 // factor - 1), min(gh, -(-y1 // factor) + 1)
     c, d = max(0, x0 // factor - 1), min(gw, -(-x1 // factor) + 1)
+    if factor <= 4 and not _tracks_grad(grid):
+        # the rows cut before the columns are interpolated: less work, and a contiguous
+        # result when every column is kept
+        rows = _upsample_axis(grid[..., a:b, c:d], factor, -2)
+        rows = rows[..., y0 - a * factor : y1 - a * factor, :]
+        return _upsample_axis(rows, factor, -1)[..., x0 - c * factor : x1 - c * factor]
     up = _upsample(grid[..., a:b, c:d], factor, (b - a) * factor, (d - c) * factor)
     return up[..., y0 - a * factor : y1 - a * factor, x0 - c * factor : x1 - c * factor]
 
@@ -740,11 +746,14 @@ def hidden_surface(
     layer_input: Callable[[int, int, int, int], torch.Tensor],
     plan: LayerPlan,
     jump: float = _HIDDEN_JUMP,
+    pixels: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
 ) -> HiddenSurface | None:
     """The surface behind the rims of blurred near objects, for the depth order's plan
     ``plan`` of one image; ``None`` when no blurred near side meets a depth edge (or for a
     batch: :func:`render` plans image by image). ``layer_input(y0, y1, x0, x1)`` gives the
-    frame's ``[1, x]`` (ones, the weighted colour, the weights) on a window.
+    frame's ``[1, x]`` (ones, the weighted colour, the weights) on a window; ``pixels(ys, xs)``,
+    when given, the same at the frame pixels ``(ys, xs)`` as ``(C, n)`` (for a large frame
+    that is not held whole: the few pixels along the edges, not a window of rows, are read).
 
     At a depth edge (a jump of at least ``jump`` layers within 2 px) the photo shows only the
     near side, but where the near side is blurred a lens sees past its rim, up to its CoC
@@ -819,7 +828,10 @@ def hidden_surface(
         if not far.numel():
             continue
         ys, xs = far[:, 0], far[:, 1]
-        values = layer_input(r0, r1, px0, px1)[0][:, ys, xs]
+        if pixels is None:
+            values = layer_input(r0, r1, px0, px1)[0][:, ys, xs]
+        else:
+            values = pixels(ys + r0, xs + px0)
         values = torch.cat([values, carried[0][:, ys, xs]])  # (C + 1, pixels)
         index = ((r0 - py0) // g + ys // g) * hw + xs // g
         if sums is None:
@@ -1618,6 +1630,127 @@ def _tile_mask(ct: torch.Tensor, centre: int, gamma: float, gate: int) -> torch.
     return m
 
 
+#: A 2x2 cell whose layer coordinates span more than this many layers is masked pixel by
+#: pixel (see :class:`_HalfSource`).
+_MIXED_RANGE = 0.1
+#: Which tiles a layer takes: from the bins of the coordinates each tile holds
+#: (:func:`_tile_bins`), or with ``False`` from the tiles' coordinate ranges alone (which
+#: put a tile across a depth edge in every layer between its two sides).
+_EXACT_HITS = True
+
+
+#: Bins of the layer coordinate per layer in :func:`_tile_bins`.
+_TILE_BINS = 4
+#: Rows of tiles :func:`_tile_bins` counts at once.
+_TILE_BIN_ROWS = 4
+
+
+def _tile_bins(coord: torch.Tensor, tile: int, ny: int, nx: int):
+    """Which bins of the layer coordinate each ``tile x tile`` tile of ``coord (H, W)``
+    holds a pixel in: ``(ny * nx, bins)`` (0 or 1), and each bin's lowest and highest
+    coordinate. Bins are 1 / :data:`_TILE_BINS` of a layer wide, split at 0 with 0 a bin of
+    its own, so a bin's pixels are all on one side of focus (or at it)."""
+    height, width = coord.shape
+    q = _TILE_BINS
+    top = int(math.ceil(max(abs(float(coord.min())), abs(float(coord.max()))) * q))
+    nb = 2 * top + 1
+    j = torch.arange(-top, top + 1, dtype=coord.dtype, device=coord.device)
+    lower = torch.where(j > 0, (j - 1) / q, j / q)
+    upper = torch.where(j < 0, (j + 1) / q, j / q)
+    rows = tile * _TILE_BIN_ROWS
+    cols = torch.arange(width, device=coord.device) // tile
+    base = ((torch.arange(rows, device=coord.device) // tile)[:, None] * nx + cols) * nb + top
+    present = coord.new_zeros(ny * nx * nb)
+    for y0 in range(0, height, rows):
+        y1 = min(height, y0 + rows)
+        band = coord[y0:y1]
+        b = band.abs().mul_(q).ceil_().copysign_(band).to(torch.int64).add_(base[: y1 - y0])
+        counts = torch.bincount(b.view(-1), minlength=-(-(y1 - y0) // tile) * nx * nb)
+        t0 = y0 // tile * nx * nb
+        present[t0 : t0 + counts.numel()] = (counts > 0).to(coord.dtype)
+    return present.view(ny * nx, nb), lower, upper
+
+
+class _HalfSource:
+    """The layer input ``[1, w I, w]`` (or ``[1, I]``) and the layer coordinate of the frame
+    padded to ``hp x wp``, averaged over cells of 2x2 px, for the coarse layers to be masked
+    on: ``x (chans, hp/2, wp/2)``, ``c (hp/2, wp/2)``.
+
+    Past the frame the input is 0 and the coordinate is so far that no mask reaches it; a
+    cell that the frame's last odd row or column cuts takes the coordinate of its pixels
+    inside and their input over 4. A cell whose four coordinates span more than
+    :data:`_MIXED_RANGE` layers (a depth edge) is 0 here: its pixels are kept one by one
+    (``pc (n, 4)``, ``px (chans, n, 4)``) and masked as they are by :meth:`add_mixed`."""
+
+    def __init__(self, image, weights, coord, hp: int, wp: int, chans: int) -> None:
+        _, _, height, width = image.shape
+        self.x = image.new_zeros(chans, hp // 2, wp // 2)
+        self.c = coord.new_full((hp // 2, wp // 2), _FAR)
+        gw = -(-width // 2)
+        rows = max(2, (_ROW_BAND // max(width, 1)) // 2 * 2)
+        pc, px, cy, cx = [], [], [], []
+        buf = cbuf = None
+        for y0 in range(0, height, rows):
+            y1 = min(height, y0 + rows)
+            n = y1 - y0
+            ne = n + n % 2
+            if buf is None or buf.shape[1] != ne:
+                buf = image.new_zeros(chans, ne, 2 * gw)
+                cbuf = coord.new_empty(ne, 2 * gw)
+            buf[0, :n, :width] = 1.0
+            if weights is None:
+                buf[1:, :n, :width] = image[0, :, y0:y1]
+            else:
+                buf[4:, :n, :width] = weights[0, :, y0:y1]
+                torch.mul(image[0, :, y0:y1], buf[4:5, :n, :width], out=buf[1:4, :n, :width])
+            cbuf[:n, :width] = coord[0, y0:y1]
+            if width % 2:  # the cut cells: their pixels inside stand for the rest
+                cbuf[:n, width] = cbuf[:n, width - 1]
+            if n % 2:
+                cbuf[n] = cbuf[n - 1]
+            quads = [cbuf[i::2, j::2] for i in (0, 1) for j in (0, 1)]
+            r0 = y0 // 2
+            out_c = self.c[r0 : r0 + ne // 2, :gw]
+            torch.add(quads[0], quads[1], out=out_c)
+            out_c.add_(quads[2]).add_(quads[3]).mul_(0.25)
+            out_x = self.x[:, r0 : r0 + ne // 2, :gw]
+            torch.add(buf[:, 0::2, 0::2], buf[:, 0::2, 1::2], out=out_x)
+            out_x.add_(buf[:, 1::2, 0::2]).add_(buf[:, 1::2, 1::2]).mul_(0.25)
+            high = torch.maximum(torch.maximum(quads[0], quads[1]), torch.maximum(*quads[2:]))
+            low = torch.minimum(torch.minimum(quads[0], quads[1]), torch.minimum(*quads[2:]))
+            mixed = torch.nonzero(high.sub_(low) > _MIXED_RANGE)
+            if mixed.numel():
+                yy, xx = mixed[:, 0], mixed[:, 1]
+                pc.append(torch.stack([q[yy, xx] for q in quads], dim=-1))
+                px.append(
+                    torch.stack([buf[:, i::2, j::2][:, yy, xx] for i in (0, 1) for j in (0, 1)], -1)
+                )
+                cy.append(yy + r0)
+                cx.append(xx)
+                out_x[:, yy, xx] = 0.0
+        self.n = sum(len(p) for p in pc)
+        if self.n:
+            self.pc, self.px = torch.cat(pc), torch.cat(px, dim=1)
+            self.cy, self.cx = torch.cat(cy), torch.cat(cx)
+
+    def add_mixed(self, grid, centre, gamma, gate, hit, box, factor):
+        """Add the mixed cells of the hit tiles (``hit``, tiles of :data:`_TT` px) to the
+        summed cells of ``grid`` ``(chans, h, w)``, whose cells of ``factor`` px start at
+        frame px ``box = (y0, x0)``."""
+        if not self.n:
+            return
+        t = _TT
+        tile = (self.cy * 2 // t) * hit.shape[1] + self.cx * 2 // t
+        idx = torch.nonzero(hit.flatten()[tile]).flatten()
+        if not idx.numel():
+            return
+        m = _tile_mask(self.pc[idx], centre, gamma, gate)
+        part = (self.px[:, idx] * m).sum(-1).mul_(0.25)
+        gy = (self.cy[idx] * 2 - box[0]) // factor
+        gx = (self.cx[idx] * 2 - box[1]) // factor
+        grid.view(grid.shape[0], -1).index_add_(1, gy * grid.shape[2] + gx, part)
+
+
 def _upsample_rows(grid: torch.Tensor, factor: int, y0: int, y1: int, width: int):
     """Rows ``y0:y1`` (frame px) of the bilinear upsampling of the coarse ``grid``
     ``(C, gh, gw)`` by ``factor``, columns ``:width``: only the cells those rows read."""
@@ -1636,6 +1769,7 @@ def _blend_fft(
     x0: int,
     transmit: torch.Tensor | None = None,
     pieces: list[tuple[int, int, int, int]] | None = None,
+    cells: int | None = None,
 ) -> None:
     """:func:`_blend` (and with ``transmit`` :func:`_blend_transmit`) in place of the
     coarse layer ``grid`` ``(C, h, w)`` (cells summed) blurred by :func:`_fft`, one channel
@@ -1644,7 +1778,7 @@ def _blend_fft(
     With ``pieces`` (boxes ``(y0, y1, x0, x1)`` in cells outside which ``grid`` is 0), each
     piece is blurred by its own FFT and the blurs are summed (the blur is linear): a layer
     scattered over the frame is transformed over its pieces, not over their bounding box."""
-    gain = 1.0 / factor**2
+    gain = 1.0 / (cells or factor) ** 2
     if pieces is None:
 
         def blur(z: torch.Tensor) -> torch.Tensor:
@@ -1747,11 +1881,13 @@ def _render_tiled(
 ) -> torch.Tensor:
     """:func:`render` of one large frame without gradients, in bounded memory.
 
-    Where each layer is masked is found per 32-px tile (from the range of the layer
-    coordinate in the tile), so a pixel is masked for the few layers it can reach, not for
-    every layer whose bounding box holds it. Coarse layers (1/2 to 1/16 grids) are masked
-    over boxes of their hit tiles (bands of tile rows, spans of nearby columns), summed into
-    their grid and blurred there; the layers behind the focal plane are
+    Where each layer is masked is found per 32-px tile (from the bins of the layer
+    coordinate the tile holds, :func:`_tile_bins`), so a pixel is masked for the few layers it
+    can reach, not for every layer whose bounding box holds it, nor (across a depth edge) for
+    every layer between the edge's two sides. Coarse layers (1/2 to 1/16 grids) are masked
+    on the frame averaged over cells of 2 px (:class:`_HalfSource`: a cell across a depth
+    edge pixel by pixel) over boxes of their hit tiles (bands of tile rows, spans of nearby
+    columns), summed into their grid and blurred there; the layers behind the focal plane are
     composited into one accumulator that moves to the next finer grid as their kernels
     shrink (upsampled once per grid), the layers in front into (colour, transmittance) per
     grid, folded into one at the end. The full-resolution layers, the merge of both and
@@ -1789,16 +1925,28 @@ def _render_tiled(
             torch.mul(weights[0, :, ys, xs], m, out=out[4:])
             torch.mul(image[0, :, ys, xs], out[4:5], out=out[1:4])
 
+    bins = _tile_bins(coord[0], t, nty, ntx) if _EXACT_HITS else None
+
     def hits(centre: int) -> torch.Tensor:
         """Tiles where layer ``centre`` has a mask above _MASK_EPS, ``(nty, ntx)``."""
         a, b = lo, hi
         if plan.signed and centre > 0:
             a = lo.clamp(min=0.0)
-            return (hi > 0) & (b > centre - reach) & (a < centre + reach)
-        if plan.signed and centre < 0:
+            out = (hi > 0) & (b > centre - reach) & (a < centre + reach)
+        elif plan.signed and centre < 0:
             b = hi.clamp(max=0.0)
-            return (lo < 0) & (b > centre - reach) & (a < centre + reach)
-        return (b > centre - reach) & (a < centre + reach)
+            out = (lo < 0) & (b > centre - reach) & (a < centre + reach)
+        else:
+            out = (b > centre - reach) & (a < centre + reach)
+        if bins is None:
+            return out
+        # a tile across a depth edge holds coordinates on both sides but none between them:
+        # only the layers near the coordinates its pixels have
+        present, lower, upper = bins
+        near = (lower < centre + reach) & (upper > centre - reach)
+        if plan.signed and centre:
+            near &= upper > 0 if centre > 0 else lower < 0
+        return out & (present @ near.to(present.dtype) > 0).view(nty, ntx)
 
     def gate(centre: int) -> int:
         # beyond one reach from 0 the other side's mask is already 0 in float32
@@ -1815,14 +1963,26 @@ def _render_tiled(
             layer_rows(slice(a, b), slice(c, d), image.new_ones(b - a, d - c), out[0])
             return out
 
-        under = hidden_surface(layer_input, plan)
+        def pixels(ys: torch.Tensor, xs: torch.Tensor) -> torch.Tensor:
+            out = image.new_empty(chans, ys.numel())
+            out[0] = 1.0
+            if weights is None:
+                out[1:] = image[0][:, ys, xs]
+            else:
+                out[4:] = weights[0][:, ys, xs]
+                torch.mul(image[0][:, ys, xs], out[4:5], out=out[1:4])
+            return out
+
+        under = hidden_surface(layer_input, plan, pixels=pixels)
+
+    half = None  # the frame on cells of 2 px, made for the first coarse layer
 
     back: tuple[int, torch.Tensor] | None = None  # (factor, colour) behind the focus
     front: list[list] = []  # [factor, colour, transmit] per grid, back to front
     sharp: list[tuple[int, int, torch.Tensor]] = []  # full-resolution layers
     phase = 0  # 0: behind the sharp layers, 1: sharp layers, 2: in front of them
     previous = MAX_FACTOR * 2
-    grid = z = pooled = blurred = None
+    grid = blurred = None
     for centre, size in plan.order:
         hit = hits(centre)
         index = torch.nonzero(hit.flatten()).flatten()
@@ -1848,24 +2008,24 @@ def _render_tiled(
         cell = t // factor
         grid = image.new_zeros(chans, (ty1 - ty0) * cell, (tx1 - tx0) * cell)
         g = gate(centre)
+        if half is None:
+            half = _HalfSource(image, weights, coord, hp, wp, chans)
+        # the layer masked on the half-resolution cells of its hit tiles (cells across a
+        # depth edge pixel by pixel), summed into its grid
         for ya, yb, xa, xb in _hit_boxes(hit, ty0, ty1, tx0, tx1, t):
-            # the layer over a box of hit tiles, straight from the frame's rows (no gathered
-            # copy), summed into its cells; past the frame the layer is 0
-            ha, wa = min(yb, height) - ya, min(xb, width) - xa
-            z = image.new_empty(chans, yb - ya, xb - xa)
-            m = _tile_mask(coord[0, ya : ya + ha, xa : xa + wa], centre, plan.gamma, g)
-            layer_rows(slice(ya, ya + ha), slice(xa, xa + wa), m, z[:, :ha, :wa])
-            if ha < yb - ya:
-                z[:, ha:].zero_()
-            if wa < xb - xa:
-                z[:, :ha, wa:].zero_()
-            pooled = z.view(chans, (yb - ya) // factor, factor, xb - xa).sum(2)
-            pooled = pooled.view(chans, (yb - ya) // factor, (xb - xa) // factor, factor).sum(3)
+            sy, sx = slice(ya // 2, yb // 2), slice(xa // 2, xb // 2)
+            m = _tile_mask(half.c[sy, sx], centre, plan.gamma, g)
             gy, gx = (ya - ty0 * t) // factor, (xa - tx0 * t) // factor
-            grid[:, gy : gy + pooled.shape[1], gx : gx + pooled.shape[2]] = pooled
-        # cells are summed: the kernel carries the 1 / factor**2 of the mean
+            dest = grid[:, gy : gy + (yb - ya) // factor, gx : gx + (xb - xa) // factor]
+            if factor == 2:
+                torch.mul(half.x[:, sy, sx], m, out=dest)
+            else:
+                _pool_product(half.x[:, sy, sx], m, factor // 2, out=dest, mean=False)
+        half.add_mixed(grid, centre, plan.gamma, g, hit, (ty0 * t, tx0 * t), factor)
         gh, gw = hp // factor, wp // factor
-        k = _kernel(spec, size, factor, dev, dtype, 1.0 / factor**2)
+        # each grid cell sums (factor / 2)**2 cell means: the kernel carries 1 / cells**2
+        cells = factor // 2
+        k = _kernel(spec, size, factor, dev, dtype, 1.0 / cells**2)
         if k.shape[-1] <= _DIRECT_MAX_SIZE:
             cbox = (ty0 * cell, ty1 * cell, tx0 * cell, tx1 * cell)
 
@@ -1898,7 +2058,7 @@ def _render_tiled(
             if stacked:
                 _blend_stacked(back[1], blurred, oy, ox)
             else:
-                _blend_fft(back[1], grid, spec, size, factor, oy, ox, pieces=pieces)
+                _blend_fft(back[1], grid, spec, size, factor, oy, ox, pieces=pieces, cells=cells)
             grid = blurred = None  # freed before the next layer's
             continue
         if not front or front[-1][0] != factor:
@@ -1906,9 +2066,9 @@ def _render_tiled(
         if stacked:
             _blend_stacked(front[-1][1], blurred, oy, ox, transmit=front[-1][2])
         else:
-            _blend_fft(front[-1][1], grid, spec, size, factor, oy, ox, front[-1][2], pieces=pieces)
+            _blend_fft(front[-1][1], grid, spec, size, factor, oy, ox, front[-1][2], pieces, cells)
         grid = blurred = None
-    del grid, z, pooled, blurred  # the last coarse layer's buffers
+    del grid, blurred  # the last coarse layer's buffers
     # fold the front grids into one: the coarsest is on top
     fold = None
     for factor, colour, transmit in reversed(front):
@@ -1972,8 +2132,10 @@ def _render_tiled(
             if a < b:
                 under.composite(acc, a, b, top=y0)
         if fold is not None:
-            acc.mul_(_upsample_rows(fold[2], fold[0], y0, y1, width))
-            acc.add_(_upsample_rows(fold[1], fold[0], y0, y1, width))
+            # with weights the alpha channel is not read past here
+            kept = acc if weights is None else acc[1:]
+            kept.mul_(_upsample_rows(fold[2], fold[0], y0, y1, width))
+            kept.add_(_upsample_rows(fold[1][kept is not acc :], fold[0], y0, y1, width))
         norm = acc[:1] if weights is None else acc[4:]
         covered = norm > 1e-6
         band_out = out[0, :, y0:y1]

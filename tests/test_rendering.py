@@ -1083,6 +1083,146 @@ class TestLargeFrames:
         monkeypatch.setattr(rendering, "_TILED_MIN_PIXELS", 10**9)
         assert psnr(tiled, render(image, disp, 0.55, 260.0, **options)) >= 50.0
 
+    @staticmethod
+    def _cell_sums(image, weights, coord, centre, gamma, gate):
+        """Brute force: the layer ``[m, m w I, m w]`` at full resolution, summed over 2x2
+        cells (zero past the frame) and divided by 4."""
+        h, w = coord.shape
+        m = rendering._tile_mask(coord.clone(), centre, gamma, gate)
+        layer = torch.cat([m[None], image[0] * weights[0] * m, weights[0] * m])
+        layer = F.pad(layer, (0, w % 2, 0, h % 2))
+        return F.avg_pool2d(layer[None], 2)[0]
+
+    @pytest.mark.parametrize("h,w", [(64, 64), (67, 77)])
+    def test_half_source_is_the_masked_frame_in_cells(self, h, w):
+        """Where a 2x2 cell holds one layer coordinate, masking the cell's mean is masking
+        its pixels; the cells across a depth edge are kept pixel by pixel. Either way the
+        coarse layers get the cell sums of the full-resolution layer."""
+        gen = torch.Generator().manual_seed(h + w)
+        image = torch.rand(1, 3, h, w, generator=gen)
+        weights = 1 + 3 * torch.rand(1, 1, h, w, generator=gen)
+        # one coordinate per 2x2 cell (a slanted floor), a near box whose edges cut cells,
+        # and a one-pixel stripe far behind
+        cells = torch.linspace(-3.0, 4.0, (h + 1) // 2)[:, None].expand(-1, (w + 1) // 2)
+        coord = cells.repeat_interleave(2, 0).repeat_interleave(2, 1)[:h, :w].clone()
+        coord[13:40, 21:52] = 6.3
+        coord[:, 9] = -5.0
+        hp, wp = -(-h // 32) * 32, -(-w // 32) * 32
+        half = rendering._HalfSource(image, weights, coord[None], hp, wp, 5)
+        assert half.n > 0 and half.x.shape == (5, hp // 2, wp // 2)
+        # past the frame: no input, and a coordinate no mask reaches
+        assert not half.x[:, -(-h // 2) :].any() and not half.x[:, :, -(-w // 2) :].any()
+        assert (half.c[-(-h // 2) :] == rendering._FAR).all()
+        gamma = 100.0 / 14
+        hit = torch.ones(hp // 32, wp // 32, dtype=torch.bool)
+        for centre, gate in ((-3, -1), (-1, -1), (1, 1), (4, 0), (6, 0), (-5, 0)):
+            grid = half.x * rendering._tile_mask(half.c.clone(), centre, gamma, gate)
+            half.add_mixed(grid, centre, gamma, gate, hit, (0, 0), 2)
+            want = self._cell_sums(image, weights, coord, centre, gamma, gate)
+            gh, gw = want.shape[-2:]
+            torch.testing.assert_close(grid[:, :gh, :gw], want, rtol=1e-5, atol=1e-6)
+            assert float(want[0].max()) > 0.4  # the layer is there
+        # a layer whose tiles are not hit gets none of its mixed cells
+        grid = torch.zeros(5, hp // 2, wp // 2)
+        half.add_mixed(grid, 6, gamma, 0, torch.zeros_like(hit), (0, 0), 2)
+        assert not grid.any()
+
+    def test_half_source_cells_summed_into_coarser_grids(self):
+        # a grid of 8 px from the source's cells of 2 px, mixed cells included
+        gen = torch.Generator().manual_seed(4)
+        image, weights = torch.rand(1, 3, 64, 96, generator=gen), torch.ones(1, 1, 64, 96)
+        coord = torch.zeros(64, 96)
+        coord[:, 37:] = 5.0  # an edge through cells of 2 px
+        half = rendering._HalfSource(image, weights, coord[None], 64, 96, 5)
+        hit = torch.ones(2, 3, dtype=torch.bool)
+        grid = torch.zeros(5, 8, 12)
+        m = rendering._tile_mask(half.c.clone(), 5, 100.0 / 14, 0)
+        rendering._pool_product(half.x, m, 4, out=grid, mean=False)
+        half.add_mixed(grid, 5, 100.0 / 14, 0, hit, (0, 0), 8)
+        want = self._cell_sums(image, weights, coord, 5, 100.0 / 14, 0)
+        want = F.avg_pool2d(want[None], 4, divisor_override=1)[0]
+        torch.testing.assert_close(grid, want, rtol=1e-5, atol=1e-5)
+
+    def test_tile_bins_are_the_coordinates_the_tiles_hold(self):
+        gen = torch.Generator().manual_seed(6)
+        coord = (torch.rand(70, 100, generator=gen) * 12 - 6).round(decimals=2)
+        coord[:32, :32] = 0.0
+        coord[5, 5] = -0.1
+        present, lower, upper = rendering._tile_bins(coord, 32, 3, 4)
+        q = rendering._TILE_BINS
+        for ty in range(3):
+            for tx in range(4):
+                tile = coord[ty * 32 : ty * 32 + 32, tx * 32 : tx * 32 + 32].flatten()
+                got = present[ty * 4 + tx] > 0
+                # each pixel's bin holds it, on its own side of 0
+                for v in tile.tolist():
+                    inside = (lower <= v) & (v <= upper)
+                    inside &= (upper > 0) if v > 0 else (lower < 0) if v < 0 else (upper == 0)
+                    assert bool((inside & got).any())
+                assert int(got.sum()) <= tile.numel()
+        assert torch.all(upper - lower <= 1.0 / q + 1e-6)
+        first = present[0] > 0
+        # the first tile: 0 and one pixel in (-0.25, 0]: two bins
+        assert int(first.sum()) == 2 and bool(first[(lower == 0) & (upper == 0)].all())
+
+    def test_a_tile_across_a_depth_edge_is_not_in_the_layers_between(self, monkeypatch):
+        """A depth edge through tiles: the layers between its sides take none of them (each
+        tile is convolved for the layers near the coordinates its pixels have), and the
+        picture is what the tiles' coordinate ranges gave."""
+        monkeypatch.setattr(rendering, "_TILED_MIN_PIXELS", 0)
+        gen = torch.Generator().manual_seed(12)
+        image = torch.rand(1, 3, 160, 224, generator=gen)
+        disp = torch.full((1, 1, 160, 224), 0.95)
+        disp[..., :, 100:] = 0.15  # a far wall beside a subject at the focus
+        areas = {}
+        boxes = rendering._direct_stacked
+
+        def count(rows_of, like, chans, box, k, frame):
+            key = k.shape[-1]
+            areas[key] = areas.get(key, 0) + (box[1] - box[0]) * (box[3] - box[2])
+            return boxes(rows_of, like, chans, box, k, frame)
+
+        monkeypatch.setattr(rendering, "_direct_stacked", count)
+        exact_hits = render(image, disp, 0.95, 240.0)
+        with_bins, areas = areas, {}
+        monkeypatch.setattr(rendering, "_EXACT_HITS", False)
+        ranges = render(image, disp, 0.95, 240.0)
+        assert psnr(exact_hits, ranges) >= 60.0
+        # the sharp layers next to the focal plane: only the subject's side of the edge
+        assert sum(with_bins.values()) < 0.6 * sum(areas.values())
+
+    @pytest.mark.parametrize("coc", [-9.0, -2.6, 2.6, 3.0, 9.0])
+    def test_flat_tiles_between_layers_keep_their_layers(self, monkeypatch, coc):
+        """Tiles whose every pixel sits a fraction of a layer from the focal plane (a CoC
+        of a few px, in front or behind; 2.6 px in front sits between 0 and a quarter of a
+        layer): the layers either side still take them."""
+        monkeypatch.setattr(rendering, "_TILED_MIN_PIXELS", 0)
+        gen = torch.Generator().manual_seed(13)
+        image = torch.rand(1, 3, 128, 160, generator=gen)
+        disp = torch.full((1, 1, 128, 128 + 32), 0.5)
+        disp[..., :64, :96] = 0.5 + coc / 240.0
+        disp[..., 96:, 128:] = 0.05
+        exact_hits = render(image, disp, 0.5, 240.0)
+        monkeypatch.setattr(rendering, "_EXACT_HITS", False)
+        assert psnr(exact_hits, render(image, disp, 0.5, 240.0)) >= 60.0
+
+    def test_hidden_surface_reads_edge_pixels_alone(self):
+        # the pixels along the edges, read one by one, are those of the windows of rows
+        image, disp = _boxed_scene()
+        plan = layer_plan(disp, torch.tensor(0.2), 60.0)
+        x = torch.cat([torch.ones_like(disp), image], dim=1)
+        window = rendering._input_window(x, False)
+        whole = hidden_surface(window, plan)
+        reads = []
+
+        def pixels(ys, xs):
+            reads.append(ys.numel())
+            return x[0][:, ys, xs]
+
+        alone = hidden_surface(window, plan, pixels=pixels)
+        assert whole is not None and reads and sum(reads) < disp.numel() / 4
+        assert torch.equal(whole.x, alone.x) and whole.box == alone.box
+
     def test_upsample_rows_matches_whole_upsampling(self):
         grid = torch.rand(5, 13, 9, generator=torch.Generator().manual_seed(8))
         whole = rendering._upsample(grid[None], 4, 52, 35)[0]
