@@ -460,6 +460,7 @@ def layer_plan(
     gamma: float = GAMMA,
     max_size: float = 69.0,
     placement: str = "nearest",
+    extremes: tuple[float, float] | None = None,
 ) -> LayerPlan:
     """Assign pixels to layers (back-to-front compositing order).
 
@@ -472,6 +473,9 @@ def layer_plan(
       Where two layers overlap the nearer one wins, so behind the focal plane a CoC is drawn
       with the next smaller kernel (a 10 px CoC with the 7 px one) and in front with the next
       larger. The shipped ``lite`` weights were trained with it.
+
+    ``extremes``, the disparity's lowest and highest value when the caller has them (one
+    image), spares a pass over it.
     """
     if order == "paper":
         signed = disparity - focus  # [B,1,H,W]
@@ -494,7 +498,10 @@ def layer_plan(
     if banded:
         # the largest CoC from the disparity's extremes (|d - f| is largest at one of them):
         # the same float as the maximum over every pixel, without a frame of temporaries
-        low, high = disparity.detach().flatten(1).aminmax(dim=1)
+        if extremes is not None and disparity.shape[0] == 1:
+            low, high = (disparity.new_tensor([v]) for v in extremes)
+        else:
+            low, high = disparity.detach().flatten(1).aminmax(dim=1)
         f = focus.detach().reshape(-1).to(disparity.dtype)
         coc = torch.maximum((high - f).abs(), (low - f).abs()) * blur
     else:
@@ -862,6 +869,7 @@ def hidden_surface(
 # --------------------------------------------------------------------------------------
 
 
+@functools.lru_cache(maxsize=1024)
 def _fast_len(n: int) -> int:
     """Smallest 2-3-5-smooth integer >= n (fast FFT sizes)."""
     best = 1 << max(0, (n - 1).bit_length())
@@ -2334,6 +2342,7 @@ def _render(
     _keep_freed_heap()
     if disparity_range[0] < 0 or disparity_range[1] > 1:
         disparity = disparity.clamp(0, 1)
+        disparity_range = tuple(min(max(v, 0.0), 1.0) for v in disparity_range)
     if blur == 0 and order == "depth":
         return _with_behind(image.clamp(0, 1), behind)
 
@@ -2366,6 +2375,7 @@ def _render(
                 schedule=schedule,
                 gamma=gamma,
                 placement=placement,
+                extremes=disparity_range,
             )
             weights = None
             if highlight_boost:

@@ -273,6 +273,19 @@ class TestBands:
         # the largest CoC from the extremes picked the same cut of the schedule
         assert max(abs(c) for c, _ in whole.order) == max(abs(c) for c, _ in banded.order)
 
+    def test_layer_plan_from_given_extremes(self, monkeypatch):
+        # the caller's extremes (render has them from its input checks) give the same plan
+        disp = 0.4 + torch.rand(1, 1, 37, 53, generator=torch.Generator().manual_seed(5)) * 0.3
+        focus = torch.full((1, 1, 1, 1), 0.9)
+        monkeypatch.setattr(rendering, "_ROW_BAND", 97)
+        with torch.inference_mode():
+            plain = rendering.layer_plan(disp, focus, 83.0)
+            given = rendering.layer_plan(disp, focus, 83.0, extremes=rendering._extremes(disp))
+            wrong = rendering.layer_plan(disp, focus, 83.0, extremes=(0.0, 0.7))
+        assert plain.order == given.order and torch.equal(plain.coord, given.coord)
+        # (they are used: a farther lowest value asks for larger kernels)
+        assert max(k for _, k in wrong.order) > max(k for _, k in plain.order)
+
     def test_mixed_dtypes_and_broadcast_radiance_as_whole_frame(self, monkeypatch):
         """A float64 focus on a float32 map promotes the plan to float64, and a radiance of
         one value per image broadcasts: both as over the whole frame."""
