@@ -1689,10 +1689,13 @@ class _HalfSource:
     Past the frame the input is 0 and the coordinate is so far that no mask reaches it; a
     cell that the frame's last odd row or column cuts takes the coordinate of its pixels
     inside and their input over 4. A cell whose four coordinates span more than
-    :data:`_MIXED_RANGE` layers (a depth edge) is 0 here: its pixels are kept one by one
+    :data:`_MIXED_RANGE` layers (a depth edge), or with ``signed`` lie on both sides of the
+    focal plane's gate, is 0 here: its pixels are kept one by one
     (``pc (n, 4)``, ``px (chans, n, 4)``) and masked as they are by :meth:`add_mixed`."""
 
-    def __init__(self, image, weights, coord, hp: int, wp: int, chans: int) -> None:
+    def __init__(
+        self, image, weights, coord, hp: int, wp: int, chans: int, signed: bool = True
+    ) -> None:
         _, _, height, width = image.shape
         self.x = image.new_zeros(chans, hp // 2, wp // 2)
         self.c = coord.new_full((hp // 2, wp // 2), _FAR)
@@ -1718,6 +1721,7 @@ class _HalfSource:
                 cbuf[:n, width] = cbuf[:n, width - 1]
             if n % 2:
                 cbuf[n] = cbuf[n - 1]
+                buf[:, n] = 0.0  # past the frame (the buffer may hold an earlier band)
             quads = [cbuf[i::2, j::2] for i in (0, 1) for j in (0, 1)]
             r0 = y0 // 2
             out_c = self.c[r0 : r0 + ne // 2, :gw]
@@ -1728,7 +1732,12 @@ class _HalfSource:
             out_x.add_(buf[:, 1::2, 0::2]).add_(buf[:, 1::2, 1::2]).mul_(0.25)
             high = torch.maximum(torch.maximum(quads[0], quads[1]), torch.maximum(*quads[2:]))
             low = torch.minimum(torch.minimum(quads[0], quads[1]), torch.minimum(*quads[2:]))
-            mixed = torch.nonzero(high.sub_(low) > _MIXED_RANGE)
+            mixed = high - low > _MIXED_RANGE
+            if signed:
+                # a cell with pixels on both sides of the focal plane's gate (0 belongs to
+                # neither side's layers but 0's): its mean would put all of it on one side
+                mixed |= ((low <= 0) & (high > 0)) | ((low < 0) & (high >= 0))
+            mixed = torch.nonzero(mixed)
             if mixed.numel():
                 yy, xx = mixed[:, 0], mixed[:, 1]
                 pc.append(torch.stack([q[yy, xx] for q in quads], dim=-1))
@@ -1755,7 +1764,7 @@ class _HalfSource:
         if not idx.numel():
             return
         m = _tile_mask(self.pc[idx], centre, gamma, gate)
-        part = (self.px[:, idx] * m).sum(-1).mul_(0.25)
+        part = (self.px[:, idx] * m).sum(-1).mul_(0.25).to(grid.dtype)
         gy = (self.cy[idx] * 2 - box[0]) // factor
         gx = (self.cx[idx] * 2 - box[1]) // factor
         grid.view(grid.shape[0], -1).index_add_(1, gy * grid.shape[2] + gx, part)
@@ -2019,7 +2028,7 @@ def _render_tiled(
         grid = image.new_zeros(chans, (ty1 - ty0) * cell, (tx1 - tx0) * cell)
         g = gate(centre)
         if half is None:
-            half = _HalfSource(image, weights, coord, hp, wp, chans)
+            half = _HalfSource(image, weights, coord, hp, wp, chans, plan.signed)
         # the layer masked on the half-resolution cells of its hit tiles (cells across a
         # depth edge pixel by pixel), summed into its grid
         for ya, yb, xa, xb in _hit_boxes(hit, ty0, ty1, tx0, tx1, t):

@@ -1106,11 +1106,15 @@ class TestLargeFrames:
         layer = F.pad(layer, (0, w % 2, 0, h % 2))
         return F.avg_pool2d(layer[None], 2)[0]
 
-    @pytest.mark.parametrize("h,w", [(64, 64), (67, 77)])
-    def test_half_source_is_the_masked_frame_in_cells(self, h, w):
+    @pytest.mark.parametrize("h,w,band", [(64, 64, 0), (67, 77, 0), (69, 77, 14 * 77)])
+    def test_half_source_is_the_masked_frame_in_cells(self, monkeypatch, h, w, band):
         """Where a 2x2 cell holds one layer coordinate, masking the cell's mean is masking
         its pixels; the cells across a depth edge are kept pixel by pixel. Either way the
         coarse layers get the cell sums of the full-resolution layer."""
+        if band:
+            # bands of 14 rows, the last of 13: its buffer is the one of the bands before,
+            # and the row past the frame must not keep what an earlier band left there
+            monkeypatch.setattr(rendering, "_ROW_BAND", band)
         gen = torch.Generator().manual_seed(h + w)
         image = torch.rand(1, 3, h, w, generator=gen)
         weights = 1 + 3 * torch.rand(1, 1, h, w, generator=gen)
@@ -1218,6 +1222,30 @@ class TestLargeFrames:
         exact_hits = render(image, disp, 0.5, 240.0)
         monkeypatch.setattr(rendering, "_EXACT_HITS", False)
         assert psnr(exact_hits, render(image, disp, 0.5, 240.0)) >= 60.0
+
+    def test_cells_across_the_focal_planes_gate_are_split(self, monkeypatch):
+        """In front of the focal plane small CoCs sit at coordinate 0, which the layers in
+        front do not take, beside pixels at a fraction of a layer that they do: a 2x2 cell
+        holding both is masked pixel by pixel, not at its mean (with few layers, layer 1 is
+        on a coarse grid)."""
+        gen = torch.Generator().manual_seed(0)
+        image = torch.rand(1, 3, 128, 192, generator=gen)
+        disp = 0.5 + (4.33 + torch.rand(1, 1, 128, 192, generator=gen) * 2.73) / 60
+        disp[..., :, 150:] = 0.1
+        options = dict(quality="fast", num_layers=4)
+        monkeypatch.setattr(rendering, "_TILED_MIN_PIXELS", 0)
+        tiled = render(image, disp, 0.5, 60.0, **options)
+        monkeypatch.setattr(rendering, "_TILED_MIN_PIXELS", 10**9)
+        assert psnr(tiled, render(image, disp, 0.5, 60.0, **options)) >= 50.0
+
+    def test_float64_disparity_with_a_float32_image(self, monkeypatch):
+        # the plan (and the cells across depth edges) in float64, the layers in float32
+        image, disp = self._scene(97, 131)
+        disp = disp.double()
+        plain = render(image, disp, 0.5, 60.0)
+        monkeypatch.setattr(rendering, "_TILED_MIN_PIXELS", 0)
+        tiled = render(image, disp, 0.5, 60.0)
+        assert tiled.dtype == torch.float32 and psnr(tiled, plain) >= 50.0
 
     def test_hidden_surface_reads_edge_pixels_alone(self):
         # the pixels along the edges, read one by one, are those of the windows of rows
