@@ -682,9 +682,10 @@ def _upsample_window(grid: torch.Tensor, factor: int, y0: int, y1: int, x0: int,
     return up[..., y0 - a * factor : y1 - a * factor, x0 - c * factor : x1 - c * factor]
 
 
-def _window_max(t: torch.Tensor, size: int, dim: int) -> torch.Tensor:
-    """Running maximum over ``size`` samples centred on each (``size`` odd), along ``dim``,
-    the edge values held: ``log2(size)`` elementwise maxima by window doubling."""
+def _window_max(t: torch.Tensor, size: int, dim: int, op=torch.maximum) -> torch.Tensor:
+    """Running maximum (with ``op=torch.minimum`` minimum) over ``size`` samples centred on
+    each (``size`` odd), along ``dim``, the edge values held: ``log2(size)`` elementwise
+    maxima by window doubling."""
     n = t.shape[dim]
     r = size // 2
     if r == 0 or n == 0:
@@ -694,15 +695,16 @@ def _window_max(t: torch.Tensor, size: int, dim: int) -> torch.Tensor:
     m, span = pad, 1  # m[i]: the maximum of pad[i : i + span]
     while 2 * span <= size:
         k = m.shape[dim] - span
-        m = torch.maximum(m.narrow(dim, 0, k), m.narrow(dim, span, k))
+        m = op(m.narrow(dim, 0, k), m.narrow(dim, span, k))
         span *= 2
     # a window of `size` is two overlapping windows of `span`
-    return torch.maximum(m.narrow(dim, 0, n), m.narrow(dim, size - span, n))
+    return op(m.narrow(dim, 0, n), m.narrow(dim, size - span, n))
 
 
-def _max_filter(t: torch.Tensor, size: int) -> torch.Tensor:
-    """Maximum over the ``size x size`` square centred on each pixel (edges held)."""
-    return _window_max(_window_max(t, size, -2), size, -1)
+def _max_filter(t: torch.Tensor, size: int, op=torch.maximum) -> torch.Tensor:
+    """Maximum (``op=torch.minimum``: minimum) over the ``size x size`` square centred on
+    each pixel (edges held)."""
+    return _window_max(_window_max(t, size, -2, op), size, -1, op)
 
 
 def _cell_max(t: torch.Tensor, g: int) -> torch.Tensor:
@@ -784,7 +786,7 @@ def hidden_surface(
         y1 = min(height, y0 + step)
         a, b = max(0, y0 - 2), min(height, y1 + 2)
         c = coord[..., a:b, :]
-        near = (c + _max_filter(-c, 5))[..., y0 - a : y1 - a, :] >= jump
+        near = (c - _max_filter(c, 5, torch.minimum))[..., y0 - a : y1 - a, :] >= jump
         ahead = c[..., y0 - a : y1 - a, :][near]
         if not ahead.numel():
             continue
@@ -1670,11 +1672,13 @@ def _tile_bins(coord: torch.Tensor, tile: int, ny: int, nx: int):
     rows = tile * _TILE_BIN_ROWS
     cols = torch.arange(width, device=coord.device) // tile
     base = ((torch.arange(rows, device=coord.device) // tile)[:, None] * nx + cols) * nb + top
+    if ny * nx * nb < 1 << 31:
+        base = base.int()  # half the memory traffic of int64 indices
     present = coord.new_zeros(ny * nx * nb)
     for y0 in range(0, height, rows):
         y1 = min(height, y0 + rows)
         band = coord[y0:y1]
-        b = band.abs().mul_(q).ceil_().copysign_(band).to(torch.int64).add_(base[: y1 - y0])
+        b = band.abs().mul_(q).ceil_().copysign_(band).to(base.dtype).add_(base[: y1 - y0])
         counts = torch.bincount(b.view(-1), minlength=-(-(y1 - y0) // tile) * nx * nb)
         t0 = y0 // tile * nx * nb
         present[t0 : t0 + counts.numel()] = (counts > 0).to(coord.dtype)

@@ -318,6 +318,17 @@ class TestBands:
         assert torch.equal(whole, banded) and (whole > 2.9).any()
 
 
+@pytest.mark.parametrize("size", [1, 3, 5, 9])
+def test_max_and_min_filters_are_max_pool(size):
+    # the window-doubling filters against max_pool2d (edges held: padding a maximum with
+    # the edge value is padding it with -inf), and the minimum as the negated maximum
+    t = torch.randn(2, 3, 17, 23, generator=torch.Generator().manual_seed(size))
+    pool = F.max_pool2d(t, size, stride=1, padding=size // 2)
+    assert torch.equal(rendering._max_filter(t, size), pool)
+    low = rendering._max_filter(t, size, torch.minimum)
+    assert torch.equal(low, -F.max_pool2d(-t, size, stride=1, padding=size // 2))
+
+
 @pytest.mark.parametrize("shape", [(1, 1, 8, 12), (1, 1, 9, 13), (1, 5, 31, 7), (2, 1, 1, 1)])
 @pytest.mark.parametrize("g", [1, 2, 3, 4, 8])
 def test_cell_max_is_max_pool(shape, g):
