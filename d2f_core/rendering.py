@@ -635,17 +635,20 @@ class HiddenSurface:
             region.addcmul_(self.window(y0, y1, x0, x1)[0], left)
 
 
-def _input_window(x: torch.Tensor, grad: bool) -> Callable[[int, int, int, int], torch.Tensor]:
-    """``[1, x]`` on a window, from the renderer's layer input ``x`` (which carries the
-    channel of ones without gradients, and not with them)."""
+def _input_pixels(
+    x: torch.Tensor, grad: bool
+) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor]:
+    """``[1, x]`` at frame pixels ``(ys, xs)`` as ``(C, n)``, from the renderer's layer input
+    ``x`` ``(1, C, H, W)`` (which carries the channel of ones without gradients, and not with
+    them)."""
 
-    def window(a: int, b: int, c: int, d: int) -> torch.Tensor:
-        part = x[..., a:b, c:d]
+    def pixels(ys: torch.Tensor, xs: torch.Tensor) -> torch.Tensor:
+        part = x[0][:, ys, xs]
         if not grad:
             return part
-        return torch.cat([torch.ones_like(part[:, :1]), part], dim=1)
+        return torch.cat([torch.ones_like(part[:1]), part])
 
-    return window
+    return pixels
 
 
 def _under(acc: torch.Tensor, hidden: HiddenSurface, grad: bool) -> torch.Tensor:
@@ -752,17 +755,15 @@ _HIDDEN_ROWS = 256
 
 
 def hidden_surface(
-    layer_input: Callable[[int, int, int, int], torch.Tensor],
+    pixels: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
     plan: LayerPlan,
     jump: float = _HIDDEN_JUMP,
-    pixels: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
 ) -> HiddenSurface | None:
     """The surface behind the rims of blurred near objects, for the depth order's plan
     ``plan`` of one image; ``None`` when no blurred near side meets a depth edge (or for a
-    batch: :func:`render` plans image by image). ``layer_input(y0, y1, x0, x1)`` gives the
-    frame's ``[1, x]`` (ones, the weighted colour, the weights) on a window; ``pixels(ys, xs)``,
-    when given, the same at the frame pixels ``(ys, xs)`` as ``(C, n)`` (for a large frame
-    that is not held whole: the few pixels along the edges, not a window of rows, are read).
+    batch: :func:`render` plans image by image). ``pixels(ys, xs)`` gives the frame's
+    ``[1, x]`` (ones, the weighted colour, the weights) at the frame pixels ``(ys, xs)`` as
+    ``(C, n)``: only the few pixels along the edges are read.
 
     At a depth edge (a jump of at least ``jump`` layers within 2 px) the photo shows only the
     near side, but where the near side is blurred a lens sees past its rim, up to its CoC
@@ -837,10 +838,7 @@ def hidden_surface(
         if not far.numel():
             continue
         ys, xs = far[:, 0], far[:, 1]
-        if pixels is None:
-            values = layer_input(r0, r1, px0, px1)[0][:, ys, xs]
-        else:
-            values = pixels(ys + r0, xs + px0)
+        values = pixels(ys + r0, xs + px0)
         values = torch.cat([values, carried[0][:, ys, xs]])  # (C + 1, pixels)
         index = ((r0 - py0) // g + ys // g) * hw + xs // g
         if sums is None:
@@ -1631,6 +1629,19 @@ class _TileSource:
         return out
 
 
+def _fill_layer(image, weights, ys, xs, m: torch.Tensor, out: torch.Tensor) -> None:
+    """The layer ``[m, m w I, m w]`` (``[m, m I]`` when ``weights`` is None) of mask ``m`` at
+    frame rows ``ys`` and columns ``xs`` (slices, or index tensors for single pixels) of
+    ``image`` ``(1, 3, H, W)`` and ``weights`` ``(1, Cw, H, W)``, written into ``out``
+    ``(chans, ...)``."""
+    out[0] = m
+    if weights is None:
+        torch.mul(image[0, :, ys, xs], m, out=out[1:])
+    else:
+        torch.mul(weights[0, :, ys, xs], m, out=out[4:])
+        torch.mul(image[0, :, ys, xs], out[4:5], out=out[1:4])
+
+
 def _tile_mask(ct: torch.Tensor, centre: int, gamma: float, gate: int) -> torch.Tensor:
     """Soft mask of layer ``centre`` for coordinates ``ct`` (in place on a copy), zero on
     the other side of focus when ``gate`` (+1 or -1) is set."""
@@ -1657,14 +1668,18 @@ _TILE_BINS = 4
 _TILE_BIN_ROWS = 4
 
 
-def _tile_bins(coord: torch.Tensor, tile: int, ny: int, nx: int):
+def _tile_bins(
+    coord: torch.Tensor, tile: int, ny: int, nx: int, extremes: tuple[float, float] | None = None
+):
     """Which bins of the layer coordinate each ``tile x tile`` tile of ``coord (H, W)``
     holds a pixel in: ``(ny * nx, bins)`` (0 or 1), and each bin's lowest and highest
     coordinate. Bins are 1 / :data:`_TILE_BINS` of a layer wide, split at 0 with 0 a bin of
-    its own, so a bin's pixels are all on one side of focus (or at it)."""
+    its own, so a bin's pixels are all on one side of focus (or at it). ``extremes``: the
+    coordinate's lowest and highest value when the caller has them."""
     height, width = coord.shape
     q = _TILE_BINS
-    top = int(math.ceil(max(abs(float(coord.min())), abs(float(coord.max()))) * q))
+    low, high = (float(coord.min()), float(coord.max())) if extremes is None else extremes
+    top = int(math.ceil(max(abs(low), abs(high)) * q))
     nb = 2 * top + 1
     j = torch.arange(-top, top + 1, dtype=coord.dtype, device=coord.device)
     lower = torch.where(j > 0, (j - 1) / q, j / q)
@@ -1707,6 +1722,7 @@ class _HalfSource:
         rows = max(2, (_ROW_BAND // max(width, 1)) // 2 * 2)
         pc, px, cy, cx = [], [], [], []
         buf = cbuf = None
+        one = image.new_ones(())  # the layer of mask one
         for y0 in range(0, height, rows):
             y1 = min(height, y0 + rows)
             n = y1 - y0
@@ -1714,12 +1730,7 @@ class _HalfSource:
             if buf is None or buf.shape[1] != ne:
                 buf = image.new_zeros(chans, ne, 2 * gw)
                 cbuf = coord.new_empty(ne, 2 * gw)
-            buf[0, :n, :width] = 1.0
-            if weights is None:
-                buf[1:, :n, :width] = image[0, :, y0:y1]
-            else:
-                buf[4:, :n, :width] = weights[0, :, y0:y1]
-                torch.mul(image[0, :, y0:y1], buf[4:5, :n, :width], out=buf[1:4, :n, :width])
+            _fill_layer(image, weights, slice(y0, y1), slice(None), one, buf[:, :n, :width])
             cbuf[:n, :width] = coord[0, y0:y1]
             if width % 2:  # the cut cells: their pixels inside stand for the rest
                 cbuf[:n, width] = cbuf[:n, width - 1]
@@ -1792,16 +1803,18 @@ def _blend_fft(
     x0: int,
     transmit: torch.Tensor | None = None,
     pieces: list[tuple[int, int, int, int]] | None = None,
-    cells: int | None = None,
+    *,
+    cells: int,
 ) -> None:
     """:func:`_blend` (and with ``transmit`` :func:`_blend_transmit`) in place of the
-    coarse layer ``grid`` ``(C, h, w)`` (cells summed) blurred by :func:`_fft`, one channel
-    at a time: a spectrum and a blurred channel at a time, not all of them, are held.
+    coarse layer ``grid`` ``(C, h, w)`` (each cell the sum of ``cells**2`` cell means)
+    blurred by :func:`_fft`, one channel at a time: a spectrum and a blurred channel at a
+    time, not all of them, are held.
 
     With ``pieces`` (boxes ``(y0, y1, x0, x1)`` in cells outside which ``grid`` is 0), each
     piece is blurred by its own FFT and the blurs are summed (the blur is linear): a layer
     scattered over the frame is transformed over its pieces, not over their bounding box."""
-    gain = 1.0 / (cells or factor) ** 2
+    gain = 1.0 / cells**2
     if pieces is None:
 
         def blur(z: torch.Tensor) -> torch.Tensor:
@@ -1938,17 +1951,12 @@ def _render_tiled(
     hi = ctiles.extreme(torch.amax)
     reach = 1.0 + _mask_reach(plan.gamma)
 
-    def layer_rows(ys: slice, xs: slice, m: torch.Tensor, out: torch.Tensor) -> None:
-        """The layer of mask ``m`` on frame rows ``ys`` and columns ``xs`` into ``out``
-        ``(chans, rows, columns)``."""
-        out[0] = m
-        if weights is None:
-            torch.mul(image[0, :, ys, xs], m, out=out[1:])
-        else:
-            torch.mul(weights[0, :, ys, xs], m, out=out[4:])
-            torch.mul(image[0, :, ys, xs], out[4:5], out=out[1:4])
+    layer_rows = functools.partial(_fill_layer, image, weights)
 
-    bins = _tile_bins(coord[0], t, nty, ntx) if _EXACT_HITS else None
+    bins = None
+    if _EXACT_HITS:
+        # (the tiles past the frame hold _FAR in lo and -_FAR in hi: the frame's extremes)
+        bins = _tile_bins(coord[0], t, nty, ntx, (float(lo.min()), float(hi.max())))
 
     def hits(centre: int) -> torch.Tensor:
         """Tiles where layer ``centre`` has a mask above _MASK_EPS, ``(nty, ntx)``."""
@@ -1980,23 +1988,13 @@ def _render_tiled(
     under = None
     if hidden and plan.signed:
 
-        def layer_input(a: int, b: int, c: int, d: int) -> torch.Tensor:
-            # the layer of mask one: [1, x] as the layers are made
-            out = image.new_empty(1, chans, b - a, d - c)
-            layer_rows(slice(a, b), slice(c, d), image.new_ones(b - a, d - c), out[0])
-            return out
-
         def pixels(ys: torch.Tensor, xs: torch.Tensor) -> torch.Tensor:
+            # the layer of mask one: [1, x] as the layers are made
             out = image.new_empty(chans, ys.numel())
-            out[0] = 1.0
-            if weights is None:
-                out[1:] = image[0][:, ys, xs]
-            else:
-                out[4:] = weights[0][:, ys, xs]
-                torch.mul(image[0][:, ys, xs], out[4:5], out=out[1:4])
+            layer_rows(ys, xs, image.new_ones(()), out)
             return out
 
-        under = hidden_surface(layer_input, plan, pixels=pixels)
+        under = hidden_surface(pixels, plan)
 
     half = None  # the frame on cells of 2 px, made for the first coarse layer
 
@@ -2089,7 +2087,9 @@ def _render_tiled(
         if stacked:
             _blend_stacked(front[-1][1], blurred, oy, ox, transmit=front[-1][2])
         else:
-            _blend_fft(front[-1][1], grid, spec, size, factor, oy, ox, front[-1][2], pieces, cells)
+            _blend_fft(
+                front[-1][1], grid, spec, size, factor, oy, ox, front[-1][2], pieces, cells=cells
+            )
         grid = blurred = None
     del grid, blurred  # the last coarse layer's buffers
     # fold the front grids into one: the coarsest is on top
@@ -2424,7 +2424,7 @@ def _render(
                 spec = KernelSpec(kernel, int(blades), float(rotation))
                 under = None
                 if hidden and plan.signed:
-                    under = hidden_surface(_input_window(x, grad), plan)
+                    under = hidden_surface(_input_pixels(x, grad), plan)
                 acc, alpha, split = _composite(
                     x,
                     plan,

@@ -110,7 +110,7 @@ def test_no_depth_edge_no_hidden_surface():
     image = torch.rand(1, 3, h, w, generator=torch.Generator().manual_seed(0))
     plan = rendering.layer_plan(disp, torch.tensor(0.5).view(1, 1, 1, 1), 40.0)
     x = torch.cat([torch.ones(1, 1, h, w), image], dim=1)
-    assert rendering.hidden_surface(lambda a, b, c, d: x[..., a:b, c:d], plan) is None
+    assert rendering.hidden_surface(lambda ys, xs: x[0][:, ys, xs], plan) is None
     a = rendering.render(image, disp, 0.5, 40.0)
     b = rendering.render(image, disp, 0.5, 40.0, hidden=False)
     torch.testing.assert_close(a, b, rtol=0, atol=0)
@@ -156,7 +156,7 @@ def test_near_side_on_a_kernel_size():
         plan = rendering.layer_plan(d, torch.tensor(0.1, dtype=d.dtype).view(1, 1, 1, 1), 80.0)
         assert abs(float(plan.coord.max()) - 13.5) < 1e-5
         x = torch.cat([torch.ones_like(img[:, :1]), img], dim=1)
-        surfaces.append(rendering.hidden_surface(rendering._input_window(x, False), plan))
+        surfaces.append(rendering.hidden_surface(rendering._input_pixels(x, False), plan))
         renders.append(rendering.render(img, d, 0.1, 80.0).double())
     # the near side's CoC radius is 34 px: cells of 8 px, the frame's edges within reach
     assert [(s.grid, s.box) for s in surfaces] == [(8, (0, 96, 0, 128))] * 3
@@ -175,7 +175,7 @@ def test_drawn_only_within_its_spans():
     with torch.inference_mode():
         plan = rendering.layer_plan(disp, torch.tensor(0.2).view(1, 1, 1, 1), 28.0)
         x = torch.cat([torch.ones_like(image[:, :1]), image], dim=1)
-        under = rendering.hidden_surface(rendering._input_window(x, False), plan)
+        under = rendering.hidden_surface(rendering._input_pixels(x, False), plan)
         assert under is not None
         y0, y1, x0, x1 = under.box
         assert x0 < 20 and x1 > 300  # the box holds both: its middle is 0

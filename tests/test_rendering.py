@@ -482,7 +482,7 @@ class TestImplementations:
             acc = acc * (1 - blurred[:, :1].clamp(0, 1)) + blurred
         # and under every layer, what lies behind the rims of blurred near objects
         ones_x = torch.cat([torch.ones_like(x[:, :1]), x], dim=1)
-        hidden = hidden_surface(lambda a, b, c, d: ones_x[..., a:b, c:d], plan)
+        hidden = hidden_surface(lambda ys, xs: ones_x[0][:, ys, xs], plan)
         assert hidden is not None
         y0, y1, x0, x1 = hidden.box
         under = torch.zeros_like(acc)
@@ -1259,19 +1259,22 @@ class TestLargeFrames:
         assert tiled.dtype == torch.float32 and psnr(tiled, plain) >= 50.0
 
     def test_hidden_surface_reads_edge_pixels_alone(self):
-        # the pixels along the edges, read one by one, are those of the windows of rows
+        # the tiled path's pixels along the edges, made one by one from the image and the
+        # weights, give the surface the renderer's whole-frame layer input gives
         image, disp = _boxed_scene()
+        weights = 1 + torch.rand(1, 1, *disp.shape[-2:], generator=torch.Generator().manual_seed(1))
         plan = layer_plan(disp, torch.tensor(0.2), 60.0)
-        x = torch.cat([torch.ones_like(disp), image], dim=1)
-        window = rendering._input_window(x, False)
-        whole = hidden_surface(window, plan)
+        x = torch.cat([torch.ones_like(disp), image * weights, weights], dim=1)
+        whole = hidden_surface(rendering._input_pixels(x, False), plan)
         reads = []
 
         def pixels(ys, xs):
             reads.append(ys.numel())
-            return x[0][:, ys, xs]
+            out = torch.empty(5, ys.numel())
+            rendering._fill_layer(image, weights, ys, xs, torch.ones(()), out)
+            return out
 
-        alone = hidden_surface(window, plan, pixels=pixels)
+        alone = hidden_surface(pixels, plan)
         assert whole is not None and reads and sum(reads) < disp.numel() / 4
         assert torch.equal(whole.x, alone.x) and whole.box == alone.box
 
