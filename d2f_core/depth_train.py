@@ -46,7 +46,7 @@ from torch import Tensor
 from .io import load_image
 from .networks import build_defocus_net, count_parameters
 from .synth.photo import feather
-from .teachers import Photo, iter_photos, read_label, read_mask, subject_cutout
+from .teachers import FeatureTeacher, Photo, iter_photos, read_label, read_mask, subject_cutout
 
 __all__ = [
     "DepthSample",
@@ -63,6 +63,8 @@ logger = logging.getLogger(__name__)
 
 #: one photo in HELDOUT_MODULUS is held out (by a CRC of its key)
 HELDOUT_MODULUS = 10
+#: the encoder map that feature distillation reads (with the next one upsampled onto it)
+DISTILL_STRIDE = 16
 
 
 def is_heldout(photo: Photo) -> bool:
@@ -352,21 +354,78 @@ class _Batches(torch.utils.data.IterableDataset):
         batch_size: int,
         seed: int,
         shapes: Sequence[tuple[int, int]] = (),
+        teacher: str | Path | None = None,
     ) -> None:
         self.data, self.batch_size, self.seed = data, batch_size, seed
         self.shapes = list(shapes)
+        self.teacher = teacher
 
     def __iter__(self):
         info = torch.utils.data.get_worker_info()
         rng = random.Random(self.seed + (0 if info is None else 7919 * info.id))
         torch.set_num_threads(1)
+        teacher = FeatureTeacher(self.teacher) if self.teacher is not None else None
         budget = self.batch_size * self.data.size[0] * self.data.size[1]
         while True:
             if not self.shapes:
-                yield self.data.batch(rng, self.batch_size)
-                continue
-            h, w = rng.choice(self.shapes)
-            yield self.data.batch(rng, max(2, round(budget / (h * w))), (h, w))
+                batch = self.data.batch(rng, self.batch_size)
+            else:
+                h, w = rng.choice(self.shapes)
+                batch = self.data.batch(rng, max(2, round(budget / (h * w))), (h, w))
+            if teacher is not None:
+                batch = (*batch, teacher_grid(teacher, batch[0]))
+            yield batch
+
+
+def teacher_grid(teacher: FeatureTeacher, images: Tensor) -> Tensor:
+    """The teacher's features of ``images`` (B x 3 x H x W in [0, 1]) averaged onto the
+    grid of the network's stride-16 map, ``(H // 16, W // 16)``, as float16.
+
+    Shape: (B, 3, H, W) -> (B, C, H // 16, W // 16).
+    """
+    h, w = images.shape[-2:]
+    feats = torch.from_numpy(teacher(images.permute(0, 2, 3, 1).numpy()))
+    grid = F.adaptive_avg_pool2d(feats, (max(1, h // DISTILL_STRIDE), max(1, w // DISTILL_STRIDE)))
+    return grid.half()
+
+
+class Distiller(torch.nn.Module):
+    """Feature distillation head (training only; never part of a checkpoint that ships).
+
+    A 1x1 convolution maps the encoder's stride-16 map and its stride-32 map (upsampled)
+    onto the teacher's channels; the loss is the mean squared difference to the teacher's
+    features, centred per channel and scaled by statistics fixed from the first batch (it
+    starts at about 1: the convolution starts at zero). The network
+    must then carry, linearly readable from its encoder, what the teacher's features hold.
+    """
+
+    def __init__(self, encoder_channels: Sequence[int], teacher_channels: int) -> None:
+        super().__init__()
+        self.proj = torch.nn.Conv2d(encoder_channels[2] + encoder_channels[3], teacher_channels, 1)
+        torch.nn.init.zeros_(self.proj.weight)
+        torch.nn.init.zeros_(self.proj.bias)
+        self.register_buffer("mean", torch.zeros(1, teacher_channels, 1, 1))
+        self.register_buffer("std", torch.ones(1, teacher_channels, 1, 1))
+        self.register_buffer("ready", torch.zeros((), dtype=torch.bool))
+
+    def fix_statistics(self, feats: Tensor) -> None:
+        """Centre each channel on its mean over ``feats`` and scale all channels by one
+        factor, their pooled standard deviation (a scale per channel would blow up the
+        channels that happen to be near zero in one batch)."""
+        flat = feats.float().transpose(0, 1).flatten(1)  # [C, N]
+        mean = flat.mean(1)
+        self.mean.copy_(mean.view_as(self.mean))
+        pooled = (flat - mean[:, None]).pow(2).mean().sqrt().clamp_min(1e-6)
+        self.std.fill_(float(pooled))
+        self.ready.fill_(True)
+
+    def forward(self, encoder_feats: Sequence[Tensor], teacher: Tensor) -> Tensor:
+        f3, f4 = encoder_feats[2], encoder_feats[3]
+        f4 = F.interpolate(f4, size=f3.shape[-2:], mode="bilinear", align_corners=False)
+        pred = self.proj(torch.cat([f3, f4], dim=1))
+        h, w = teacher.shape[-2:]
+        target = (teacher.float() - self.mean) / self.std
+        return (pred[..., :h, :w] - target).pow(2).mean()
 
 
 # ------------------------------------------------------------------------------ losses
@@ -438,13 +497,24 @@ def train_depth(args: argparse.Namespace) -> Path:
 
         net.load_lite(D2F.from_checkpoint(args.init).defocus_net.state_dict())
         logger.info("defocus network initialised from %s", args.init)
-    opt = torch.optim.AdamW(net.parameters(), lr=args.lr, weight_decay=1e-4)
+    distiller = None
+    params = list(net.parameters())
+    if args.distill is not None:
+        distiller = Distiller(net.encoder.channels, args.distill_channels)
+        params += list(distiller.parameters())
+        encoder_feats: list[Tensor] = []
+        net.encoder.register_forward_hook(lambda _m, _i, out: encoder_feats.append(out))
+    opt = torch.optim.AdamW(params, lr=args.lr, weight_decay=1e-4)
     step = 0
     last = out / "depth_last.pt"
     if last.is_file() and not args.restart:
         state = torch.load(last, map_location="cpu", weights_only=False)
         net.load_state_dict(state["state_dict"])
         opt.load_state_dict(state["optimizer"])
+        if distiller is not None:
+            if "distiller" not in state:
+                raise ValueError(f"{last} was trained without --distill; use --restart")
+            distiller.load_state_dict(state["distiller"])
         step = int(state["step"])
         logger.info("resumed from %s at step %d", last, step)
     torch.manual_seed(args.seed + step)
@@ -465,6 +535,7 @@ def train_depth(args: argparse.Namespace) -> Path:
                 args.batch_size,
                 args.seed * 1_000_003 + step,
                 batch_shapes(args.sides) if args.sides else (),
+                teacher=args.distill,
             ),
             batch_size=None,
             num_workers=args.workers,
@@ -478,9 +549,16 @@ def train_depth(args: argparse.Namespace) -> Path:
         warm = min(1.0, (step + 1) / 200)
         for g in opt.param_groups:
             g["lr"] = lr * warm
-        images, targets, relative = next(loader)
+        images, targets, relative, *teacher = next(loader)
         pred = net(images)
         loss, parts = depth_loss(pred, targets, relative, args.absolute_weight)
+        if distiller is not None:
+            if not bool(distiller.ready):
+                distiller.fix_statistics(teacher[0])
+            distill = distiller(encoder_feats.pop(), teacher[0])
+            encoder_feats.clear()
+            loss = loss + args.distill_weight * distill
+            parts["distill"] = distill.item()
         opt.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)
@@ -504,6 +582,8 @@ def train_depth(args: argparse.Namespace) -> Path:
                 "step": step,
                 "variant": args.variant,
             }
+            if distiller is not None:
+                state["distiller"] = distiller.state_dict()
             tmp = last.with_suffix(".tmp")
             torch.save(state, tmp)
             tmp.replace(last)
@@ -568,6 +648,15 @@ def build_parser() -> argparse.ArgumentParser:
         "with the ramp (teacher_weight)",
     )
     p.add_argument("--absolute-weight", type=float, default=0.25)
+    p.add_argument(
+        "--distill",
+        type=Path,
+        default=None,
+        metavar="ONNX",
+        help="feature distillation from this teacher (the VOC teacher's ASPP features)",
+    )
+    p.add_argument("--distill-weight", type=float, default=0.1)
+    p.add_argument("--distill-channels", type=int, default=256)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--log-every", type=int, default=20)

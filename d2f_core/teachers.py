@@ -24,9 +24,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import torch
+import torch.nn.functional as F
 from PIL import Image
 
 __all__ = [
+    "FeatureTeacher",
     "Photo",
     "iter_photos",
     "label_photos",
@@ -168,6 +171,73 @@ class _Teachers:
         self.depth.invoke()
         depth = self.depth.get_tensor(self.depth_out)[0, ..., 0]
         return np.round(fg * 255).astype(np.uint8), depth.astype(np.uint8)
+
+
+#: the VOC teacher's 256-channel features after its ASPP projection (stride 8, 33x33 at 257)
+SEG_FEATURES = "Relu__94:0"
+SEG_SIDE = 257
+
+
+class FeatureTeacher:
+    """Intermediate features of an ONNX teacher, for feature distillation in stage 0.
+
+    The graph is loaded with ``onnx``, the tensor named ``output`` is made one of its
+    outputs, and ``onnxruntime`` runs it on one thread (the teacher runs inside a data-loading
+    process). For the VOC teacher the default output is the 256-channel feature map that its
+    classifier reads: the network learns to hold what the teacher knows of objects, which
+    labels alone (its foreground probability) pass on only in part.
+
+    Args:
+        path: the ONNX file.
+        output: name of the tensor to return.
+        side: the square input side the graph takes (inputs are resized to it).
+        layout: ``"nhwc"`` or ``"nchw"``, the graph's input layout.
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        output: str = SEG_FEATURES,
+        side: int = SEG_SIDE,
+        layout: str = "nhwc",
+        threads: int = 1,
+    ) -> None:
+        import onnx
+        import onnxruntime as ort
+
+        if layout not in ("nhwc", "nchw"):
+            raise ValueError(f"layout must be 'nhwc' or 'nchw', got {layout!r}")
+        model = onnx.load(str(path))
+        produced = {name for node in model.graph.node for name in node.output}
+        if output not in produced:
+            raise ValueError(f"{path}: no tensor named {output!r} in the graph")
+        del model.graph.output[:]
+        model.graph.output.append(
+            onnx.helper.make_tensor_value_info(output, onnx.TensorProto.FLOAT, None)
+        )
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads = threads
+        opts.inter_op_num_threads = 1
+        self.session = ort.InferenceSession(
+            model.SerializeToString(), sess_options=opts, providers=["CPUExecutionProvider"]
+        )
+        self.input = self.session.get_inputs()[0].name
+        self.side, self.layout = side, layout
+
+    def __call__(self, images: np.ndarray) -> np.ndarray:
+        """Features of a batch: ``images`` float ``B x H x W x 3`` in [0, 1] (each resized to
+        the teacher's square input and scaled to [-1, 1]) -> float32 ``B x C x h x w``."""
+        if images.ndim != 4 or images.shape[-1] != 3:
+            raise ValueError(f"images must be B x H x W x 3, got shape {images.shape}")
+        t = torch.from_numpy(np.ascontiguousarray(images, dtype=np.float32)).permute(0, 3, 1, 2)
+        t = F.interpolate(t, size=(self.side, self.side), mode="bilinear", align_corners=False)
+        x = t * 2.0 - 1.0
+        if self.layout == "nhwc":
+            x = x.permute(0, 2, 3, 1)
+        feats = [
+            self.session.run(None, {self.input: x[i : i + 1].numpy()})[0] for i in range(len(x))
+        ]
+        return np.concatenate(feats, axis=0).astype(np.float32)
 
 
 def label_photos(

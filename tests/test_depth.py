@@ -4,6 +4,7 @@ stage-0 targets, data and training (on a small generated datasets folder)."""
 from __future__ import annotations
 
 import argparse
+import json
 import random
 from pathlib import Path
 
@@ -432,6 +433,121 @@ def test_samples_and_short_training_roundtrip(tmp_path, tiny_checkpoint, one_thr
         assert torch.equal(model.fusion_net.state_dict()[key], value)
     with pytest.raises(ValueError, match="KEY=VALUE"):
         depth_train.export_checkpoint(last, tiny_checkpoint, tmp_path / "x.pt", ["nope=1"])
+
+
+def test_training_with_feature_distillation(tmp_path, tiny_checkpoint, one_thread):
+    """``--distill``: batches carry the teacher's features on the network's stride-16 grid,
+    the log records the distillation loss, and the distiller is saved and resumed with the
+    network (a checkpoint without one is refused, not resumed with a fresh projection)."""
+    pytest.importorskip("onnxruntime", reason="onnxruntime is not installed (.[teach])")
+    root, labels = tmp_path / "datasets", tmp_path / "labels"
+    _tiny_datasets(root, labels)
+    _tiny_onnx_teacher(tmp_path / "t.onnx", channels=4)
+    data = depth_train.RealDepthData(root, labels, size=(64, 96), synth=0.0)
+    batch = next(iter(depth_train._Batches(data, 2, 0, teacher=tmp_path / "t.onnx")))
+    images, _, _, feats = batch
+    assert feats.shape == (2, 4, 4, 6) and feats.dtype == torch.float16
+    direct = teachers.FeatureTeacher(tmp_path / "t.onnx")(images.permute(0, 2, 3, 1).numpy())
+    pooled = torch.nn.functional.adaptive_avg_pool2d(torch.from_numpy(direct), (4, 6))
+    torch.testing.assert_close(feats.float(), pooled, atol=2e-3, rtol=2e-3)
+
+    argv = ["--data", str(root), "--labels", str(labels), "--out", str(tmp_path / "run"),
+            "--steps", "2", "--batch-size", "2", "--crop", "64", "--save-every", "1",
+            "--workers", "0", "--threads", "1", "--log-every", "1", "--variant", "lite",
+            "--init", str(tiny_checkpoint), "--distill", str(tmp_path / "t.onnx"),
+            "--distill-channels", "4"]  # fmt: skip
+    last = depth_train.train_depth(depth_train.build_parser().parse_args(argv))
+    state = torch.load(last, map_location="cpu", weights_only=True)
+    assert state["step"] == 2 and bool(state["distiller"]["ready"])
+    log = (tmp_path / "run" / "depth_log.jsonl").read_text().splitlines()
+    first = json.loads(log[0])
+    assert first["distill"] == pytest.approx(1.0, abs=1e-3)  # zero projection, its own batch
+    argv[argv.index("--steps") + 1] = "3"
+    again = depth_train.train_depth(depth_train.build_parser().parse_args(argv))
+    assert torch.load(again, weights_only=True)["step"] == 3
+    state = torch.load(again, weights_only=True)
+    state.pop("distiller")
+    torch.save(state, again)
+    argv[argv.index("--steps") + 1] = "4"
+    with pytest.raises(ValueError, match="without --distill"):
+        depth_train.train_depth(depth_train.build_parser().parse_args(argv))
+
+
+def _tiny_onnx_teacher(path: Path, channels: int = 4, seed: int = 0) -> tuple[np.ndarray, ...]:
+    """A two-layer ONNX graph laid out like the VOC teacher (NHWC input of any size, an
+    NCHW 1x1 convolution + ReLU named like its features, then a classifier), saved at
+    ``path``; returns the first layer's weights and bias."""
+    onnx = pytest.importorskip("onnx", reason="onnx is not installed (.[teach])")
+    from onnx import TensorProto, helper, numpy_helper
+
+    rng = np.random.default_rng(seed)
+    w1 = rng.normal(size=(channels, 3, 1, 1)).astype(np.float32)
+    b1 = rng.normal(size=channels).astype(np.float32)
+    w2 = rng.normal(size=(2, channels, 1, 1)).astype(np.float32)
+    nodes = [
+        helper.make_node("Transpose", ["x"], ["nchw"], perm=[0, 3, 1, 2]),
+        helper.make_node("Conv", ["nchw", "w1", "b1"], ["pre"]),
+        helper.make_node("Relu", ["pre"], [teachers.SEG_FEATURES]),
+        helper.make_node("Conv", [teachers.SEG_FEATURES, "w2"], ["logits"]),
+    ]
+    graph = helper.make_graph(
+        nodes,
+        "tiny",
+        [helper.make_tensor_value_info("x", TensorProto.FLOAT, ["n", "h", "w", 3])],
+        [helper.make_tensor_value_info("logits", TensorProto.FLOAT, None)],
+        [numpy_helper.from_array(a, n) for a, n in ((w1, "w1"), (b1, "b1"), (w2, "w2"))],
+    )
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 13)])
+    model.ir_version = 8
+    onnx.save(model, str(path))
+    return w1, b1
+
+
+def test_feature_teacher_returns_the_named_tensor(tmp_path):
+    """The teacher's intermediate tensor, not its output: ReLU(W (2 x - 1) + b) of the
+    image resized to the teacher's side, channels first."""
+    pytest.importorskip("onnxruntime", reason="onnxruntime is not installed (.[teach])")
+    w1, b1 = _tiny_onnx_teacher(tmp_path / "t.onnx")
+    teacher = teachers.FeatureTeacher(tmp_path / "t.onnx", side=16)
+    rng = np.random.default_rng(1)
+    images = rng.uniform(size=(2, 16, 16, 3)).astype(np.float32)
+    feats = teacher(images)
+    expect = np.einsum("ck,bhwk->bchw", w1[:, :, 0, 0], images * 2 - 1) + b1[None, :, None, None]
+    np.testing.assert_allclose(feats, np.maximum(expect, 0), atol=1e-5)
+    # a larger frame is resized to the teacher's side first
+    assert teacher(rng.uniform(size=(1, 40, 24, 3))).shape == (1, 4, 16, 16)
+    with pytest.raises(ValueError, match="no tensor named"):
+        teachers.FeatureTeacher(tmp_path / "t.onnx", output="nope")
+    with pytest.raises(ValueError, match="B x H x W x 3"):
+        teacher(images[0])
+
+
+def test_distiller_starts_at_one_and_learns_a_linear_teacher(one_thread):
+    """Zero-initialised, the loss is the teacher's centred, scaled variance: 1 on the batch
+    that fixed the statistics, even with a channel that is zero there (one pooled scale, no
+    division by a near-zero spread); a teacher that is a linear map of the encoder's maps is
+    learnt to a small fraction of that."""
+    torch.manual_seed(0)
+    distiller = depth_train.Distiller((8, 8, 6, 10), 5)
+    f3, f4 = torch.randn(4, 6, 8, 8), torch.randn(4, 10, 4, 4)
+    up = torch.nn.functional.interpolate(f4, size=(8, 8), mode="bilinear", align_corners=False)
+    mix = torch.randn(5, 16)
+    teacher = torch.einsum("ck,bkhw->bchw", mix, torch.cat([f3, up], 1)) + 3.0
+    teacher[:, 4] = 0.0  # a channel silent in this batch
+    distiller.fix_statistics(teacher.half())
+    feats = [None, None, f3, f4]
+    assert distiller(feats, teacher.half()).item() == pytest.approx(1.0, abs=2e-3)
+    opt = torch.optim.Adam(distiller.parameters(), lr=0.05)
+    for _ in range(300):
+        loss = distiller(feats, teacher)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    assert loss.item() < 0.02
+    # the gradient reaches the encoder's maps once the projection is no longer zero
+    f3g = f3.clone().requires_grad_(True)
+    distiller([None, None, f3g, f4], teacher + 1.0).backward()
+    assert f3g.grad.abs().sum() > 0
 
 
 # ------------------------------------------------------------------------------ teachers
