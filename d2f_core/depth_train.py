@@ -27,6 +27,7 @@ one photo in ten); ``d2f-bench depth`` evaluates on exactly those.
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import logging
 import math
@@ -63,6 +64,9 @@ logger = logging.getLogger(__name__)
 
 #: one photo in HELDOUT_MODULUS is held out (by a CRC of its key)
 HELDOUT_MODULUS = 10
+#: folders of whole scenes (streets, rooms, landscapes): the layouts that the depth teacher
+#: knows; ``scene_weight`` draws them more often
+SCENE_SOURCES = ("photos/sun_hays80", "photos/urban100", "photos/bsds500")
 #: the encoder map that feature distillation reads (with the next one upsampled onto it)
 DISTILL_STRIDE = 16
 
@@ -186,6 +190,8 @@ class RealDepthData:
         synth: probability of a generated layered scene instead of a photo.
         layout_teacher: weight of the depth teacher in the background layout (the rest is
             the ramp); negative: per photo, :func:`teacher_weight`.
+        scene_weight: how much more often than another photo a photo of
+            :data:`SCENE_SOURCES` is drawn.
     """
 
     def __init__(
@@ -198,6 +204,7 @@ class RealDepthData:
         layout_teacher: float = 0.4,
         fg_min_area: float = 0.01,
         fg_max_area: float = 0.8,
+        scene_weight: float = 1.0,
     ) -> None:
         self.labels = Path(labels)
         photos = [p for p in iter_photos(root) if not is_heldout(p)]
@@ -210,6 +217,11 @@ class RealDepthData:
         self.synth = synth
         self.layout_teacher = layout_teacher
         self.fg_min_area, self.fg_max_area = fg_min_area, fg_max_area
+        if scene_weight <= 0:
+            raise ValueError(f"scene_weight must be positive, got {scene_weight}")
+        self.scene_weight = scene_weight
+        weights = [scene_weight if p.source in SCENE_SOURCES else 1.0 for p in self.photos]
+        self._cum_weights = list(itertools.accumulate(weights))
 
     # -- pieces
     def _photo(
@@ -301,7 +313,10 @@ class RealDepthData:
         size = self.size if size is None else size
         if rng.random() < self.synth:
             return self._synth(rng, size)
-        photo = rng.choice(self.photos)
+        if self.scene_weight == 1.0:
+            photo = rng.choice(self.photos)
+        else:
+            photo = rng.choices(self.photos, cum_weights=self._cum_weights)[0]
         img, alpha, layout = self._photo(photo, rng, size)
         target = subject_target(layout, alpha) if alpha is not None else layout
         target = _normalise(target)
@@ -490,6 +505,7 @@ def train_depth(args: argparse.Namespace) -> Path:
         paste=args.paste,
         synth=args.synth,
         layout_teacher=args.layout_teacher,
+        scene_weight=args.scene_weight,
     )
     net = build_defocus_net(args.variant)
     if args.init is not None:
@@ -498,13 +514,15 @@ def train_depth(args: argparse.Namespace) -> Path:
         net.load_lite(D2F.from_checkpoint(args.init).defocus_net.state_dict())
         logger.info("defocus network initialised from %s", args.init)
     distiller = None
-    params = list(net.parameters())
+    groups = [{"params": list(net.parameters()), "lr_scale": 1.0}]
     if args.distill is not None:
         distiller = Distiller(net.encoder.channels, args.distill_channels)
-        params += list(distiller.parameters())
+        # the projection starts at zero and must catch up with a trained encoder before
+        # its gradient says anything to it: it learns ten times faster
+        groups.append({"params": list(distiller.parameters()), "lr_scale": 10.0})
         encoder_feats: list[Tensor] = []
         net.encoder.register_forward_hook(lambda _m, _i, out: encoder_feats.append(out))
-    opt = torch.optim.AdamW(params, lr=args.lr, weight_decay=1e-4)
+    opt = torch.optim.AdamW(groups, lr=args.lr, weight_decay=1e-4)
     step = 0
     last = out / "depth_last.pt"
     if last.is_file() and not args.restart:
@@ -548,7 +566,7 @@ def train_depth(args: argparse.Namespace) -> Path:
         lr = args.lr * 0.5 * (1 + math.cos(math.pi * step / args.steps))
         warm = min(1.0, (step + 1) / 200)
         for g in opt.param_groups:
-            g["lr"] = lr * warm
+            g["lr"] = lr * warm * g.get("lr_scale", 1.0)
         images, targets, relative, *teacher = next(loader)
         pred = net(images)
         loss, parts = depth_loss(pred, targets, relative, args.absolute_weight)
@@ -649,13 +667,19 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--absolute-weight", type=float, default=0.25)
     p.add_argument(
+        "--scene-weight",
+        type=float,
+        default=1.0,
+        help="draw the photos of whole scenes (SUN, Urban100, BSDS) this many times as often",
+    )
+    p.add_argument(
         "--distill",
         type=Path,
         default=None,
         metavar="ONNX",
         help="feature distillation from this teacher (the VOC teacher's ASPP features)",
     )
-    p.add_argument("--distill-weight", type=float, default=0.1)
+    p.add_argument("--distill-weight", type=float, default=0.2)
     p.add_argument("--distill-channels", type=int, default=256)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=2)

@@ -473,6 +473,39 @@ def test_training_with_feature_distillation(tmp_path, tiny_checkpoint, one_threa
         depth_train.train_depth(depth_train.build_parser().parse_args(argv))
 
 
+def test_scene_weight_draws_scenes_more_often(tmp_path):
+    """``scene_weight``: the share of whole-scene photos drawn (half of the tiny folder's
+    training photos) follows the weight."""
+    root, labels = tmp_path / "datasets", tmp_path / "labels"
+    _tiny_datasets(root, labels, n=20)
+
+    def scene_share(weight: float) -> float:
+        data = depth_train.RealDepthData(root, labels, size=(32, 32), scene_weight=weight)
+        is_scene = [p.source in depth_train.SCENE_SOURCES for p in data.photos]
+        expect = sum(is_scene) * weight / (sum(is_scene) * weight + len(is_scene) - sum(is_scene))
+        picked = []
+        original = depth_train.RealDepthData._photo
+
+        def spy(self, photo, rng, size):
+            picked.append(photo.source in depth_train.SCENE_SOURCES)
+            return original(self, photo, rng, size)
+
+        depth_train.RealDepthData._photo = spy
+        try:
+            rng = random.Random(3)
+            for _ in range(400):
+                data.sample(rng)
+        finally:
+            depth_train.RealDepthData._photo = original
+        share = float(np.mean(picked))
+        assert share == pytest.approx(expect, abs=0.08)
+        return share
+
+    assert scene_share(4.0) > scene_share(1.0) + 0.2
+    with pytest.raises(ValueError, match="scene_weight"):
+        depth_train.RealDepthData(root, labels, scene_weight=0.0)
+
+
 def _tiny_onnx_teacher(path: Path, channels: int = 4, seed: int = 0) -> tuple[np.ndarray, ...]:
     """A two-layer ONNX graph laid out like the VOC teacher (NHWC input of any size, an
     NCHW 1x1 convolution + ReLU named like its features, then a classifier), saved at
