@@ -269,6 +269,43 @@ def network_predictor(weights: str | Path | None = None) -> Predictor:
     return predict
 
 
+def teacher_predictors(folder: str | Path, threads: int = 1) -> dict[str, Predictor]:
+    """The labelling teachers as predictors, to show how good stage 0's targets are on the
+    measured photos (training only: the teachers never ship):
+
+    - ``"teacher"``: the indoor depth teacher's smoothed, ranked disparity;
+    - ``"targets"``: what stage 0 trains the network towards on a photo without a mask
+      (``--layout-teacher -1``): the ramp blended with the teacher by
+      :func:`~d2f_core.depth_train.teacher_weight`, with the VOC teacher's subject stood on
+      it by :func:`~d2f_core.depth_train.subject_target`.
+    """
+    from PIL import Image
+
+    from .depth_train import subject_target, teacher_layout, teacher_subject
+    from .teachers import Teachers, label_maps
+
+    folder = Path(folder)
+    if not (folder / "deeplabv3_mobilenetv2_voc.onnx").is_file():
+        raise FileNotFoundError(f"no teachers in {folder}")
+    net = Teachers(folder, threads)
+
+    def maps(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        # at the size the maps are scored at (the subject's ring grows with the frame)
+        rgb = Image.fromarray((np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8))
+        return label_maps(*net(rgb), _eval_size(*image.shape[:2]))
+
+    def teacher(image: np.ndarray) -> np.ndarray:
+        return maps(image)[1]
+
+    def targets(image: np.ndarray) -> np.ndarray:
+        fg, disp = maps(image)
+        layout = teacher_layout(disp)
+        alpha = teacher_subject(fg)
+        return layout if alpha is None else subject_target(layout, alpha)
+
+    return {"teacher": teacher, "targets": targets}
+
+
 # ------------------------------------------------------------------------------ evaluation
 
 
@@ -421,6 +458,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--sheet", type=Path, default=None, help="write the contact sheet here")
     p.add_argument("--json", type=Path, default=None, help="write the scores here")
     p.add_argument("--threads", type=int, default=2)
+    p.add_argument(
+        "--teachers",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="also score the labelling teachers found here and the stage-0 targets built "
+        "from them (needs .[teach])",
+    )
     args = p.parse_args(argv)
     torch.set_num_threads(args.threads)
     logging.basicConfig(level=logging.WARNING)
@@ -432,10 +477,15 @@ def main(argv: Sequence[str] | None = None) -> int:
             else:
                 name, path = ("network" if spec is None else Path(spec).stem), spec
             predictors[name] = network_predictor(path)
+        if args.teachers is not None:
+            predictors.update(teacher_predictors(args.teachers, args.threads))
         photos = measured_photos(args.data)
         masks = [] if args.no_masks else heldout_masks(args.datasets, args.masks)
     except (FileNotFoundError, ValueError) as exc:
         print(f"d2f-bench depth: error: {exc}", file=sys.stderr)
+        return 1
+    except ImportError as exc:
+        print(f"d2f-bench depth: error: --teachers needs .[teach] ({exc})", file=sys.stderr)
         return 1
     names = list(predictors)
     result = evaluate(predictors, photos, masks)

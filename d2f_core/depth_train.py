@@ -151,6 +151,26 @@ def teacher_weight(teacher: np.ndarray, cap: float = 0.8) -> float:
     return float(np.clip(c, 0.0, cap))
 
 
+def teacher_subject(
+    fg: np.ndarray, min_area: float = 0.01, max_area: float = 0.8
+) -> np.ndarray | None:
+    """The subject alpha of a photo without a mask: the VOC teacher's foreground ``fg``,
+    ramped from 0.3 to 0.7 and feathered by a pixel, where it covers ``min_area`` to
+    ``max_area`` of the frame; ``None`` elsewhere (no subject, or the whole frame)."""
+    area = float((fg >= 0.5).mean())
+    if not min_area <= area <= max_area:
+        return None
+    return feather(np.clip((fg - 0.3) / 0.4, 0, 1), 1.0)
+
+
+def teacher_layout(teacher: np.ndarray, weight: float = -1.0) -> np.ndarray:
+    """A photo's layout: the ramp blended with the depth teacher's ranked disparity, at
+    ``weight`` of the teacher, or per photo by :func:`teacher_weight` when negative."""
+    h, w = teacher.shape
+    wt = teacher_weight(teacher) if weight < 0 else weight
+    return ((1 - wt) * ramp(h, w) + wt * teacher).astype(np.float32)
+
+
 def _normalise(t: np.ndarray) -> np.ndarray:
     lo, hi = float(t.min()), float(t.max())
     return ((t - lo) / max(hi - lo, 1e-6)).astype(np.float32)
@@ -239,14 +259,8 @@ class RealDepthData:
         if mask is not None:
             alpha = feather(resize_array(mask, (rh, rw)) >= 0.5, 1.0)
         else:
-            area = float((fg >= 0.5).mean())
-            alpha = (
-                feather(np.clip((fg - 0.3) / 0.4, 0, 1), 1.0)
-                if self.fg_min_area <= area <= self.fg_max_area
-                else None
-            )
-        wt = teacher_weight(teacher) if self.layout_teacher < 0 else self.layout_teacher
-        layout = (1 - wt) * ramp(rh, rw) + wt * teacher
+            alpha = teacher_subject(fg, self.fg_min_area, self.fg_max_area)
+        layout = teacher_layout(teacher, self.layout_teacher)
         y = rng.randint(0, rh - th)
         x = rng.randint(0, rw - tw)
         sl = (slice(y, y + th), slice(x, x + tw))

@@ -31,7 +31,9 @@ from PIL import Image
 __all__ = [
     "FeatureTeacher",
     "Photo",
+    "Teachers",
     "iter_photos",
+    "label_maps",
     "label_photos",
     "read_label",
     "read_mask",
@@ -138,7 +140,10 @@ def subject_cutout(photo: Photo) -> tuple[np.ndarray, np.ndarray, float] | None:
     return rgb[box], mask[box], float(mask.mean())
 
 
-class _Teachers:
+class Teachers:
+    """The two labelling teachers: ``teachers(rgb)`` -> ``(fg, depth)`` as stored in a label
+    file (uint8 VOC foreground at 257x257, uint8 depth at 224x224)."""
+
     def __init__(self, teachers: Path, threads: int) -> None:
         import onnxruntime as ort
         from ai_edge_litert.interpreter import Interpreter
@@ -251,7 +256,7 @@ def label_photos(
     root, out = Path(root), Path(out)
     teachers = Path(teachers) if teachers is not None else root / "teachers"
     out.mkdir(parents=True, exist_ok=True)
-    net = _Teachers(teachers, threads)
+    net = Teachers(teachers, threads)
     done = 0
     t0 = time.perf_counter()
     for photo in iter_photos(root):
@@ -275,14 +280,21 @@ def label_photos(
 
 
 def read_label(path: str | Path, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
-    """``(fg, disparity)`` of a label file resized to ``size`` (``(H, W)``), float32.
+    """:func:`label_maps` of a label file written by :func:`label_photos`."""
+    with np.load(path) as z:
+        return label_maps(z["fg"], z["depth"], size)
+
+
+def label_maps(
+    fg: np.ndarray, depth: np.ndarray, size: tuple[int, int]
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(fg, disparity)`` of the teachers' raw outputs resized to ``size`` (``(H, W)``),
+    float32.
 
     ``fg`` is the foreground probability in [0, 1]; ``disparity`` is ``1 / depth`` of the depth
     teacher smoothed by a Gaussian of 4 px at its 224-px output, rank-normalised to [0, 1]
     (1 = nearest).
     """
-    with np.load(path) as z:
-        fg, depth = z["fg"], z["depth"]
     h, w = size
     fg_i = Image.fromarray(fg).resize((w, h), Image.BILINEAR)
     from skimage.filters import gaussian
@@ -293,7 +305,7 @@ def read_label(path: str | Path, size: tuple[int, int]) -> tuple[np.ndarray, np.
     order = np.argsort(np.argsort(disp.ravel(), kind="stable"), kind="stable")
     ranked = (order / max(1, order.size - 1)).reshape(disp.shape).astype(np.float32)
     disp_i = Image.fromarray(ranked).resize((w, h), Image.BILINEAR)
-    return np.asarray(fg_i, dtype=np.float32) / 255.0, np.asarray(disp_i, dtype=np.float32)
+    return np.asarray(fg_i, dtype=np.float32) / 255.0, np.array(disp_i, dtype=np.float32)
 
 
 def run_label(argv: Sequence[str] | None = None) -> int:

@@ -321,6 +321,48 @@ def test_teacher_weight_trusts_a_teacher_that_agrees_with_the_ramp():
     assert depth_train.teacher_weight(noisy) == pytest.approx(2**-0.5, abs=0.05)
 
 
+def test_teacher_layout_and_subject():
+    """The layout is the ramp blended with the teacher at its weight (a fixed one, or the
+    teacher's agreement with the ramp); the VOC foreground is a subject only where it
+    covers 1-80 % of the frame, ramped from 0.3 to 0.7."""
+    ramp = depth_train.ramp(40, 30)
+    upside = 1.0 - ramp
+    np.testing.assert_allclose(depth_train.teacher_layout(upside), ramp)  # not trusted
+    np.testing.assert_allclose(
+        depth_train.teacher_layout(upside, 0.25), 0.75 * ramp + 0.25 * upside
+    )
+    np.testing.assert_allclose(depth_train.teacher_layout(ramp), ramp, atol=1e-6)
+    fg = np.zeros((40, 30), np.float32)
+    assert depth_train.teacher_subject(fg) is None  # nothing
+    assert depth_train.teacher_subject(np.ones_like(fg)) is None  # the whole frame
+    fg[10:30, 10:20] = 0.9
+    alpha = depth_train.teacher_subject(fg)
+    assert alpha[20, 15] == pytest.approx(1.0, abs=1e-3) and alpha[2, 2] == pytest.approx(0.0)
+    fg[10:30, 10:20] = 0.5
+    assert depth_train.teacher_subject(fg)[20, 15] == pytest.approx(0.5, abs=0.01)
+
+
+@pytest.mark.shared_data
+def test_bench_depth_scores_the_teachers_and_targets(capsys):
+    """``d2f-bench depth --teachers``: on the 12 measured-depth photos the depth teacher
+    alone ranks worse than the ramp (it fails on close-ups: flowers and Aloe come out
+    upside down), and the stage-0 targets built from both teachers rank better (measured:
+    teacher 0.548, ramp 0.607, targets 0.722)."""
+    pytest.importorskip("onnxruntime", reason="onnxruntime is not installed (.[teach])")
+    pytest.importorskip("ai_edge_litert", reason="ai-edge-litert is not installed (.[teach])")
+    if not (DATASETS / "teachers").is_dir() or not SHARED_DATA.is_dir():
+        pytest.skip(f"teachers or measured photos not available: {DATASETS}, {SHARED_DATA}")
+    code = depth_bench.main(
+        ["--no-masks", "--teachers", str(DATASETS / "teachers"), "--threads", "1"]
+    )
+    assert code == 0
+    mean = next(ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("| mean"))
+    cells = [float(c.split("/")[0].strip(" *+")) for c in mean.split("|")[2:6]]
+    ramp, _network, teacher, targets = cells
+    assert teacher < ramp - 0.03 and targets > ramp + 0.08
+    assert targets == pytest.approx(0.722, abs=0.01)
+
+
 def test_ssi_align_and_gradient_loss():
     target = torch.rand(2, 1, 16, 16)
     pred = 0.5 * target + 0.2
