@@ -274,6 +274,8 @@ def teacher_predictors(folder: str | Path, threads: int = 1) -> dict[str, Predic
     measured photos (training only: the teachers never ship):
 
     - ``"teacher"``: the indoor depth teacher's smoothed, ranked disparity;
+    - ``"layout"``: the ramp blended with it by
+      :func:`~d2f_core.depth_train.teacher_weight`, the background of the targets;
     - ``"targets"``: what stage 0 trains the network towards on a photo without a mask
       (``--layout-teacher -1``): the ramp blended with the teacher by
       :func:`~d2f_core.depth_train.teacher_weight`, with the VOC teacher's subject stood on
@@ -297,13 +299,16 @@ def teacher_predictors(folder: str | Path, threads: int = 1) -> dict[str, Predic
     def teacher(image: np.ndarray) -> np.ndarray:
         return maps(image)[1]
 
+    def layout(image: np.ndarray) -> np.ndarray:
+        return teacher_layout(maps(image)[1])
+
     def targets(image: np.ndarray) -> np.ndarray:
         fg, disp = maps(image)
         layout = teacher_layout(disp)
         alpha = teacher_subject(fg)
         return layout if alpha is None else subject_target(layout, alpha)
 
-    return {"teacher": teacher, "targets": targets}
+    return {"teacher": teacher, "layout": layout, "targets": targets}
 
 
 # ------------------------------------------------------------------------------ evaluation
