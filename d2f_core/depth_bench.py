@@ -290,11 +290,14 @@ def teacher_predictors(folder: str | Path, threads: int = 1) -> dict[str, Predic
     if not (folder / "deeplabv3_mobilenetv2_voc.onnx").is_file():
         raise FileNotFoundError(f"no teachers in {folder}")
     net = Teachers(folder, threads)
+    last: list = [None, None]  # the photo last labelled and its maps: three predictors ask
 
     def maps(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        # at the size the maps are scored at (the subject's ring grows with the frame)
-        rgb = Image.fromarray((np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8))
-        return label_maps(*net(rgb), _eval_size(*image.shape[:2]))
+        if last[0] is not image:
+            # at the size the maps are scored at (the subject's ring grows with the frame)
+            rgb = Image.fromarray((np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8))
+            last[:] = [image, label_maps(*net(rgb), _eval_size(*image.shape[:2]))]
+        return last[1]
 
     def teacher(image: np.ndarray) -> np.ndarray:
         return maps(image)[1]

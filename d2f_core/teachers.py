@@ -195,8 +195,8 @@ class FeatureTeacher:
     Args:
         path: the ONNX file.
         output: name of the tensor to return.
-        side: the square input side the graph takes (inputs are resized to it).
-        layout: ``"nhwc"`` or ``"nchw"``, the graph's input layout.
+        side: the square input side the graph takes (inputs are resized to it); the graph
+            takes channels last, as the VOC teacher does.
     """
 
     def __init__(
@@ -204,14 +204,11 @@ class FeatureTeacher:
         path: str | Path,
         output: str = SEG_FEATURES,
         side: int = SEG_SIDE,
-        layout: str = "nhwc",
         threads: int = 1,
     ) -> None:
         import onnx
         import onnxruntime as ort
 
-        if layout not in ("nhwc", "nchw"):
-            raise ValueError(f"layout must be 'nhwc' or 'nchw', got {layout!r}")
         model = onnx.load(str(path))
         produced = {name for node in model.graph.node for name in node.output}
         if output not in produced:
@@ -227,7 +224,7 @@ class FeatureTeacher:
             model.SerializeToString(), sess_options=opts, providers=["CPUExecutionProvider"]
         )
         self.input = self.session.get_inputs()[0].name
-        self.side, self.layout = side, layout
+        self.side = side
 
     def __call__(self, images: np.ndarray) -> np.ndarray:
         """Features of a batch: ``images`` float ``B x H x W x 3`` in [0, 1] (each resized to
@@ -236,9 +233,7 @@ class FeatureTeacher:
             raise ValueError(f"images must be B x H x W x 3, got shape {images.shape}")
         t = torch.from_numpy(np.ascontiguousarray(images, dtype=np.float32)).permute(0, 3, 1, 2)
         t = F.interpolate(t, size=(self.side, self.side), mode="bilinear", align_corners=False)
-        x = t * 2.0 - 1.0
-        if self.layout == "nhwc":
-            x = x.permute(0, 2, 3, 1)
+        x = (t * 2.0 - 1.0).permute(0, 2, 3, 1)
         feats = [
             self.session.run(None, {self.input: x[i : i + 1].numpy()})[0] for i in range(len(x))
         ]
