@@ -79,6 +79,42 @@ class TestDefocusNet:
         with pytest.raises(ValueError, match="not a 'lite'"):
             ctx.load_lite({"nope": torch.zeros(1)})
 
+    @pytest.mark.parametrize("small_variant", ["lite", "lite-ctx"])
+    def test_wide_variant_grows_from_smaller_lite(self, small_variant):
+        torch.manual_seed(0)
+        small = DefocusNet(small_variant)
+        if small.context is not None:  # a trained context, not the zero one
+            torch.nn.init.normal_(small.context.out.weight, std=0.05)
+        # trained-looking batch-norm statistics, so copying them is checked too
+        small.train()
+        with torch.no_grad():
+            for _ in range(3):
+                small(torch.rand(4, 3, 64, 96))
+        small.eval()
+        wide = DefocusNet("lite-wide")
+        wide.load_lite(small.state_dict())
+        wide.eval()
+        x = torch.rand(2, 3, 50, 70)
+        with torch.no_grad():
+            before = small(x)
+            assert float((wide(x) - before).abs().max()) < 1e-5  # the same map
+            # the new hidden channels have inputs; their outputs start at zero, and once
+            # they are trained the map changes
+            block = wide.encoder.stages[3][0].block
+            assert float(block[6].weight[:, 96 * 4 :].abs().max()) == 0.0
+            assert float(block[0].weight[96 * 4 :].abs().max()) > 0.0
+            deepest = small.encoder(x)[3]
+            assert float((wide.encoder(x)[3] - deepest).abs().max()) < 1e-4
+            torch.nn.init.normal_(block[6].weight, std=0.2)
+            assert float((wide.encoder(x)[3] - deepest).abs().mean()) > 1e-2
+        assert 2_000_000 < count_parameters(wide) < 2 * count_parameters(small)
+        with pytest.raises(ValueError, match="not a lite"):
+            wide.load_lite({"nope": torch.zeros(1)})
+        with pytest.raises(ValueError, match="does not fit"):
+            wide.load_lite(
+                DefocusNet("lite-wide").state_dict() | {"head.2.weight": torch.zeros(1, 64, 1, 1)}
+            )
+
     def test_context_sees_the_whole_frame(self):
         """A change in one corner of the deepest map reaches the far corner, and the
         padding beyond the image neither enters the pooling nor changes the image part."""
@@ -209,7 +245,7 @@ class TestFusionNet:
 
 
 def test_registries_and_builders():
-    assert set(DEFOCUS_NETS) == {"lite", "lite-ctx", "resnext50"}
+    assert set(DEFOCUS_NETS) == {"lite", "lite-ctx", "lite-wide", "resnext50"}
     assert set(FUSION_NETS) == {"paper", "lite"}
     assert set(RADIANCE_NETS) == {"paper"}
     assert isinstance(build_defocus_net("lite"), DefocusNet)
