@@ -398,23 +398,15 @@ class DefocusNet(nn.Module):
         ``"lite"`` / ``"lite-ctx"`` into ``"lite-wide"``. The larger network computes what
         the smaller one did: a missing context module keeps its zero output, and the extra
         hidden channels of a wider block or context keep their random input weights but get
-        zero output weights (function-preserving widening, as in Net2Net)."""
-        if self.variant != "lite-wide":
-            if self.context is None:
-                self.load_state_dict(state)
-                return
-            missing, unexpected = self.load_state_dict(state, strict=False)
-            if unexpected or any(not k.startswith("context.") for k in missing):
-                raise ValueError(
-                    f"not a 'lite' defocus state dict: missing {missing}, unexpected {unexpected}"
-                )
-            return
+        zero output weights (function-preserving widening, as in Net2Net). A state dict of
+        the network's own variant loads as it is."""
         own = self.state_dict()
         unexpected = sorted(set(state) - set(own))
         missing = sorted(k for k in set(own) - set(state) if not k.startswith("context."))
         if unexpected or missing:
             raise ValueError(
-                f"not a lite defocus state dict: missing {missing[:3]}, unexpected {unexpected[:3]}"
+                f"not a 'lite' defocus state dict: missing {missing[:3]}, "
+                f"unexpected {unexpected[:3]}"
             )
         grown = dict(own)
         for key, small in state.items():

@@ -108,7 +108,7 @@ class TestDefocusNet:
             torch.nn.init.normal_(block[6].weight, std=0.2)
             assert float((wide.encoder(x)[3] - deepest).abs().mean()) > 1e-2
         assert 2_000_000 < count_parameters(wide) < 2 * count_parameters(small)
-        with pytest.raises(ValueError, match="not a lite"):
+        with pytest.raises(ValueError, match="not a 'lite'"):
             wide.load_lite({"nope": torch.zeros(1)})
         with pytest.raises(ValueError, match="does not fit"):
             wide.load_lite(
