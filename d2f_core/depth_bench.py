@@ -42,6 +42,7 @@ __all__ = [
     "main",
     "measured_photos",
     "ramp_predictor",
+    "rank_mix",
     "rankdata",
     "spearman",
     "ssi_rmse",
@@ -262,9 +263,30 @@ def network_predictor(weights: str | Path | None = None) -> Predictor:
     from .pipeline import D2F
 
     model = D2F.from_pretrained(weights)
+    last: list = [None, None]  # the photo last run and its map (a mix asks for it again)
 
     def predict(image: np.ndarray) -> np.ndarray:
-        return model.prepare(image).disparity_full()
+        if last[0] is not image:
+            last[:] = [image, model.prepare(image).disparity_full()]
+        return last[1]
+
+    return predict
+
+
+def rank_mix(*predictors: Predictor) -> Predictor:
+    """The mean of several predictors' maps after ranking each (ties averaged), resized to
+    the first one's size: a blend that neither map's scale can dominate."""
+    if not predictors:
+        raise ValueError("rank_mix needs at least one predictor")
+
+    def predict(image: np.ndarray) -> np.ndarray:
+        maps = [np.asarray(fn(image), dtype=np.float64) for fn in predictors]
+        shape = maps[0].shape
+        out = np.zeros(shape, dtype=np.float64)
+        for m in maps:
+            m = resize_array(m.astype(np.float32), shape).astype(np.float64)
+            out += rankdata(m.ravel()).reshape(shape) / m.size
+        return (out / len(maps)).astype(np.float32)
 
     return predict
 
@@ -471,8 +493,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         type=Path,
         default=None,
         metavar="DIR",
-        help="also score the labelling teachers found here and the stage-0 targets built "
-        "from them (needs .[teach])",
+        help="also score the labelling teachers found here, the stage-0 targets built "
+        "from them, and the first network's map rank-averaged with each (needs .[teach])",
     )
     args = p.parse_args(argv)
     torch.set_num_threads(args.threads)
@@ -486,7 +508,13 @@ def main(argv: Sequence[str] | None = None) -> int:
                 name, path = ("network" if spec is None else Path(spec).stem), spec
             predictors[name] = network_predictor(path)
         if args.teachers is not None:
-            predictors.update(teacher_predictors(args.teachers, args.threads))
+            found = teacher_predictors(args.teachers, args.threads)
+            predictors.update(found)
+            # how far the first network's map and the teachers' maps go together: a
+            # ceiling for what stage 0 can learn from these teachers
+            net = list(predictors)[1]
+            for key in ("layout", "targets"):
+                predictors[f"{net}+{key}"] = rank_mix(predictors[net], found[key])
         photos = measured_photos(args.data)
         masks = [] if args.no_masks else heldout_masks(args.datasets, args.masks)
     except (FileNotFoundError, ValueError) as exc:
