@@ -28,6 +28,7 @@ import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -263,14 +264,21 @@ def network_predictor(weights: str | Path | None = None) -> Predictor:
     from .pipeline import D2F
 
     model = D2F.from_pretrained(weights)
-    last: list = [None, None]  # the photo last run and its map (a mix asks for it again)
+    # a mix asks for the same photo's map again
+    return _remember_last(lambda image: model.prepare(image).disparity_full())
 
-    def predict(image: np.ndarray) -> np.ndarray:
+
+def _remember_last(fn: Callable[[np.ndarray], Any]) -> Callable[[np.ndarray], Any]:
+    """``fn`` that keeps its result for the photo it last ran on, for predictors that ask
+    for the same photo's maps in turn (photos are never changed in place)."""
+    last: list = [None, None]
+
+    def call(image: np.ndarray) -> Any:
         if last[0] is not image:
-            last[:] = [image, model.prepare(image).disparity_full()]
+            last[:] = [image, fn(image)]
         return last[1]
 
-    return predict
+    return call
 
 
 def rank_mix(*predictors: Predictor) -> Predictor:
@@ -280,13 +288,10 @@ def rank_mix(*predictors: Predictor) -> Predictor:
         raise ValueError("rank_mix needs at least one predictor")
 
     def predict(image: np.ndarray) -> np.ndarray:
-        maps = [np.asarray(fn(image), dtype=np.float64) for fn in predictors]
-        shape = maps[0].shape
-        out = np.zeros(shape, dtype=np.float64)
-        for m in maps:
-            m = resize_array(m.astype(np.float32), shape).astype(np.float64)
-            out += rankdata(m.ravel()).reshape(shape) / m.size
-        return (out / len(maps)).astype(np.float32)
+        maps = [fn(image) for fn in predictors]
+        shape = np.shape(maps[0])
+        ranks = np.mean([rankdata(resize_array(m, shape)) for m in maps], axis=0)
+        return (ranks / ranks.size).reshape(shape).astype(np.float32)
 
     return predict
 
@@ -312,14 +317,12 @@ def teacher_predictors(folder: str | Path, threads: int = 1) -> dict[str, Predic
     if not (folder / "deeplabv3_mobilenetv2_voc.onnx").is_file():
         raise FileNotFoundError(f"no teachers in {folder}")
     net = Teachers(folder, threads)
-    last: list = [None, None]  # the photo last labelled and its maps: three predictors ask
 
+    @_remember_last  # three predictors ask for each photo's maps
     def maps(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        if last[0] is not image:
-            # at the size the maps are scored at (the subject's ring grows with the frame)
-            rgb = Image.fromarray((np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8))
-            last[:] = [image, label_maps(*net(rgb), _eval_size(*image.shape[:2]))]
-        return last[1]
+        # at the size the maps are scored at (the subject's ring grows with the frame)
+        rgb = Image.fromarray((np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8))
+        return label_maps(*net(rgb), _eval_size(*image.shape[:2]))
 
     def teacher(image: np.ndarray) -> np.ndarray:
         return maps(image)[1]
@@ -501,18 +504,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     logging.basicConfig(level=logging.WARNING)
     predictors: dict[str, Predictor] = {"ramp": ramp_predictor}
     try:
+        networks = []
         for spec in args.weights or [None]:
             if spec is not None and "=" in spec:
                 name, path = spec.split("=", 1)
             else:
                 name, path = ("network" if spec is None else Path(spec).stem), spec
             predictors[name] = network_predictor(path)
+            networks.append(name)
         if args.teachers is not None:
             found = teacher_predictors(args.teachers, args.threads)
             predictors.update(found)
             # how far the first network's map and the teachers' maps go together: a
             # ceiling for what stage 0 can learn from these teachers
-            net = list(predictors)[1]
+            net = networks[0]
             for key in ("layout", "targets"):
                 predictors[f"{net}+{key}"] = rank_mix(predictors[net], found[key])
         photos = measured_photos(args.data)

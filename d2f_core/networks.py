@@ -313,6 +313,15 @@ class GlobalContext(nn.Module):
         return x + delta
 
 
+#: each lite defocus variant: its encoder's expansion (one for all stages, or one per stage)
+#: and its context module's hidden channels (None: no context module)
+LITE_VARIANTS: dict[str, tuple[int | tuple[int, ...], int | None]] = {
+    "lite": (4, None),
+    "lite-ctx": (4, 64),
+    "lite-wide": ((4, 4, 8, 8), 128),
+}
+
+
 class DefocusNet(nn.Module):
     """Monocular disparity network ``f_d`` (encoder + 4 refine blocks + head, sigmoid).
 
@@ -333,11 +342,13 @@ class DefocusNet(nn.Module):
 
     def __init__(self, variant: str = "lite") -> None:
         super().__init__()
+        context_hidden = None
         if variant == "resnext50":
             self.encoder: nn.Module = ResNeXt50Encoder()
             features, separable = 256, False
-        elif variant in ("lite", "lite-ctx", "lite-wide"):
-            self.encoder = LiteEncoder(expand=(4, 4, 8, 8) if variant == "lite-wide" else 4)
+        elif variant in LITE_VARIANTS:
+            expand, context_hidden = LITE_VARIANTS[variant]
+            self.encoder = LiteEncoder(expand)
             features, separable = 64, True
         else:
             raise ValueError(
@@ -348,11 +359,7 @@ class DefocusNet(nn.Module):
         self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
         self.project = nn.ModuleList(_conv3x3(c, features, separable, bias=False) for c in channels)
-        self.context: GlobalContext | None = None
-        if variant == "lite-ctx":
-            self.context = GlobalContext(features)
-        elif variant == "lite-wide":
-            self.context = GlobalContext(features, hidden=128)
+        self.context = None if context_hidden is None else GlobalContext(features, context_hidden)
         self.refine = nn.ModuleList(
             _FeatureFusionBlock(features, separable, has_skip=i < 3) for i in range(4)
         )
