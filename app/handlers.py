@@ -36,6 +36,7 @@ import numpy as np
 
 from app import imaging, sources
 from app.cache import SCENE_CACHE, SceneCache, content_key
+from app.uploads import NOT_AN_UPLOAD, UploadGate
 from d2f_core.kernels import PAPER_GROWING_SIZES
 
 log = logging.getLogger(__name__)
@@ -548,6 +549,9 @@ class RefocusApp:
             upload that would open one more gets a message asking to retry later.
         session_idle_s: a session unused this long is closed (default
             ``D2F_APP_SESSION_IDLE_S`` or 1800 s).
+        files: the check of the file paths that clients' payloads name (the server's
+            :class:`app.uploads.UploadGate`: Gradio's own uploads and the samples only);
+            ``None`` opens any path, for calls from Python.
     """
 
     def __init__(
@@ -558,8 +562,10 @@ class RefocusApp:
         *,
         max_sessions: int | None = None,
         session_idle_s: float | None = None,
+        files: UploadGate | None = None,
     ) -> None:
         self.model = model
+        self.files = files
         self.cache = SCENE_CACHE if cache is None else cache
         if download_root is None:
             download_root = tempfile.mkdtemp(prefix="d2f-app-")
@@ -864,7 +870,11 @@ class RefocusApp:
         behind = self._upload_behind_panel(session, path)
         if behind is not None:  # the panel shows the app's picture: load what it stands for
             path, photo_name = behind
+        else:
+            self._check_file(path)
         depth_path = _payload_path(depth)
+        if depth_path is not None:
+            self._check_file(depth_path)
         depth_name = _payload_name(depth, "depth map", ext=True)
         photo, disparity, source, depth_size = self._decode(
             path, photo_name, depth_path, depth_kind, depth_name
@@ -1033,6 +1043,12 @@ class RefocusApp:
         if isinstance(session, Session) and session.panel is not None and not session.closed:
             return gr.update(value=str(session.panel))
         return gr.skip()
+
+    def _check_file(self, path: str) -> None:
+        """Refuse a path that the client may not make the server open, with one message
+        that says nothing of the path (:class:`app.uploads.UploadGate`)."""
+        if self.files is not None and not self.files.allows(path):
+            raise user_error(NOT_AN_UPLOAD)
 
     @staticmethod
     def _upload_behind_panel(session: Session | None, path: str) -> tuple[str, str] | None:

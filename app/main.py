@@ -29,6 +29,7 @@ from app.handlers import (
     delete_session,
     one_line,
 )
+from app.uploads import UploadGate
 from d2f_core import bundled
 
 log = logging.getLogger(__name__)
@@ -198,7 +199,10 @@ def build_demo(
         model = load_model(weights)
     if concurrency is None:
         concurrency = int(os.environ.get("D2F_APP_CONCURRENCY", DEFAULT_CONCURRENCY))
-    logic = RefocusApp(model, cache)
+    # the photo and depth inputs are taken raw: only Gradio's own uploads and the samples
+    # may be opened (app/uploads.py)
+    files = UploadGate([SAMPLES_DIR])
+    logic = RefocusApp(model, cache, files=files)
     # one group for every event that runs the model, so the CPU is not oversubscribed
     heavy = {"concurrency_id": "model", "concurrency_limit": concurrency}
     quiet = {"show_progress": "hidden", "trigger_mode": "always_last"}
@@ -415,7 +419,7 @@ def build_demo(
         # the photo's own depth is offered only when the photo has some
         photo.upload(
             lambda payload: gr.update(
-                choices=depth_choice.choices(depth_choice.has_embedded_depth(payload))
+                choices=depth_choice.choices(depth_choice.has_embedded_depth(payload, files))
             ),
             [photo],
             [depth_source],
@@ -537,6 +541,7 @@ def build_demo(
 
         demo.unload(end_session)
     refuse_bad_requests(demo)
+    files.bind(demo)
     demo.queue(default_concurrency_limit=concurrency)
     return demo
 

@@ -28,12 +28,13 @@ CHOICES = (
 HUB_PLACEHOLDER = "depth-anything/Depth-Anything-V2-Small-hf"
 
 
-def has_embedded_depth(payload: Any) -> bool | None:
-    """Whether an uploaded photo carries phone depth (``None`` when that cannot be told)."""
+def has_embedded_depth(payload: Any, files: Any = None) -> bool | None:
+    """Whether an uploaded photo carries phone depth (``None`` when that cannot be told, or
+    when ``files``, an :class:`app.uploads.UploadGate`, does not allow opening the path)."""
     from d2f_core.io import read_embedded_depth
 
     path = payload.get("path") if isinstance(payload, dict) else payload
-    if not path:
+    if not path or (files is not None and not files.allows(path)):
         return None
     try:
         return read_embedded_depth(str(path)) is not None

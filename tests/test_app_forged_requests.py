@@ -2,8 +2,8 @@
 
 ``python -m app`` is started as the other app tests start it, and requests that no page
 sends are made over raw HTTP (Gradio's ``/gradio_api/call/<name>`` protocol): file paths
-that were never uploaded (missing, path traversal), an upload path inside the server's
-cache that does not exist, values of the wrong type, too few inputs, a render in a session
+that were never uploaded (missing, path traversal), a path inside the server's cache that
+Gradio never stored, values of the wrong type, too few inputs, a render in a session
 with no photo, an event that does not exist. Each caller must get an error naming the
 reason; the server log must hold exactly one line per refused request, naming the reason,
 and no traceback. A real upload still works afterwards.
@@ -96,7 +96,7 @@ def test_forged_requests_get_one_log_line(app_server, gradio_env, two_plane_scen
         ("load", [file_data("/nonexistent/x.jpg"), None, *REST], "/nonexistent/x.jpg"),
         ("load", [file_data("../../../../../../etc/passwd"), None, *REST], "/etc/passwd"),
         ("load", [file_data(photo), file_data("/etc/shadow", "d.png"), *REST], "/etc/shadow"),
-        ("load", [file_data(f"{cache}/gone.jpg", "gone.jpg"), None, *REST], "could not be found"),
+        ("load", [file_data(f"{cache}/gone.jpg", "gone.jpg"), None, *REST], "not an upload"),
         ("load", ["/etc/hostname", None, *REST], "(got str)"),
         ("load", [file_data(photo)], "needed: 15, got: 1"),
         ("load", [file_data(photo), None, KIND, "near", *REST[2:]], "focus='near'"),
