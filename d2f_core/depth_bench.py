@@ -302,41 +302,80 @@ def teacher_predictors(folder: str | Path, threads: int = 1) -> dict[str, Predic
 
     - ``"teacher"``: the indoor depth teacher's smoothed, ranked disparity;
     - ``"layout"``: the ramp blended with it by
-      :func:`~d2f_core.depth_train.teacher_weight`, the background of the targets;
-    - ``"targets"``: what stage 0 trains the network towards on a photo without a mask
-      (``--layout-teacher -1``): the ramp blended with the teacher by
-      :func:`~d2f_core.depth_train.teacher_weight`, with the VOC teacher's subject stood on
-      it by :func:`~d2f_core.depth_train.subject_target`.
+      :func:`~d2f_core.depth_train.teacher_weight`, the background of the older targets;
+    - ``"targets"``: the older targets on a photo without a mask: that layout with the VOC
+      teacher's subject stood on it by :func:`~d2f_core.depth_train.subject_target`.
+
+    With the scene teachers in ``folder`` (:mod:`d2f_core.scene_teachers`), also:
+
+    - ``"sky+ground"``: ADE20K's scene model alone (:func:`~d2f_core.scene_targets.scene_layout`:
+      sky farthest, a ground plane, things standing on it), blended with ``"layout"`` where the
+      photo shows little scene;
+    - ``"silhouette"``: the ramp with U^2-Net-p's silhouette stood on it, wherever it is found;
+    - ``"scene targets"``: what stage 0 now trains towards on a photo without a mask
+      (:func:`~d2f_core.scene_targets.scene_target`).
     """
     from PIL import Image
 
-    from .depth_train import subject_target, teacher_layout, teacher_subject
+    from .depth_train import ramp, subject_target, teacher_layout, teacher_subject, teacher_weight
+    from .scene_teachers import ADE_FILE, SceneTeachers
     from .teachers import Teachers, label_maps
 
     folder = Path(folder)
     if not (folder / "deeplabv3_mobilenetv2_voc.onnx").is_file():
         raise FileNotFoundError(f"no teachers in {folder}")
     net = Teachers(folder, threads)
+    scene_net = SceneTeachers(folder, threads) if (folder / ADE_FILE).is_file() else None
 
-    @_remember_last  # three predictors ask for each photo's maps
-    def maps(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    @_remember_last  # several predictors ask for each photo's maps
+    def maps(image: np.ndarray) -> dict[str, Any]:
         # at the size the maps are scored at (the subject's ring grows with the frame)
         rgb = Image.fromarray((np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8))
-        return label_maps(*net(rgb), _eval_size(*image.shape[:2]))
+        size = _eval_size(*image.shape[:2])
+        fg, disp = label_maps(*net(rgb), size)
+        out: dict[str, Any] = {"fg": fg, "disp": disp}
+        if scene_net is not None:
+            h, w = size
+            labels = scene_net(rgb)
+            out["ade"] = np.asarray(Image.fromarray(labels["ade"]).resize((w, h), Image.NEAREST))
+            sal = Image.fromarray(labels["sal"]).resize((w, h), Image.BILINEAR)
+            out["sal"] = np.asarray(sal, dtype=np.float32) / 255.0
+        return out
 
     def teacher(image: np.ndarray) -> np.ndarray:
-        return maps(image)[1]
+        return maps(image)["disp"]
 
     def layout(image: np.ndarray) -> np.ndarray:
-        return teacher_layout(maps(image)[1])
+        return teacher_layout(maps(image)["disp"])
 
     def targets(image: np.ndarray) -> np.ndarray:
-        fg, disp = maps(image)
-        layout = teacher_layout(disp)
-        alpha = teacher_subject(fg)
-        return layout if alpha is None else subject_target(layout, alpha)
+        m = maps(image)
+        alpha = teacher_subject(m["fg"])
+        base = teacher_layout(m["disp"])
+        return base if alpha is None else subject_target(base, alpha)
 
-    return {"teacher": teacher, "layout": layout, "targets": targets}
+    found = {"teacher": teacher, "layout": layout, "targets": targets}
+    if scene_net is None:
+        return found
+    from .scene_targets import scene_layout, scene_target
+
+    def sky_ground(image: np.ndarray) -> np.ndarray:
+        m = maps(image)
+        return scene_layout(m["ade"], teacher_layout(m["disp"]), teacher_weight(m["disp"]))[0]
+
+    def silhouette(image: np.ndarray) -> np.ndarray:
+        sal = maps(image)["sal"]
+        base = ramp(*sal.shape)
+        return subject_target(base, sal) if (sal >= 0.5).any() else base
+
+    def new_targets(image: np.ndarray) -> np.ndarray:
+        m = maps(image)
+        base, wt = teacher_layout(m["disp"]), teacher_weight(m["disp"])
+        voc = teacher_subject(m["fg"])
+        return scene_target(m["ade"], base, wt, sal=m["sal"], voc=voc)
+
+    found.update({"sky+ground": sky_ground, "silhouette": silhouette, "scene targets": new_targets})
+    return found
 
 
 # ------------------------------------------------------------------------------ evaluation
@@ -518,8 +557,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             # how far the first network's map and the teachers' maps go together: a
             # ceiling for what stage 0 can learn from these teachers
             net = networks[0]
-            for key in ("layout", "targets"):
-                predictors[f"{net}+{key}"] = rank_mix(predictors[net], found[key])
+            for key in ("layout", "targets", "scene targets"):
+                if key in found:
+                    predictors[f"{net}+{key}"] = rank_mix(predictors[net], found[key])
         photos = measured_photos(args.data)
         masks = [] if args.no_masks else heldout_masks(args.datasets, args.masks)
     except (FileNotFoundError, ValueError) as exc:

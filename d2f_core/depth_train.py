@@ -46,6 +46,7 @@ from torch import Tensor
 
 from .io import load_image
 from .networks import build_defocus_net, count_parameters
+from .scene_targets import read_scene_label, scene_target
 from .synth.photo import feather
 from .teachers import FeatureTeacher, Photo, iter_photos, read_label, read_mask, subject_cutout
 
@@ -101,6 +102,7 @@ def subject_target(
     Returns:
         ``H x W`` float32 in [0, 1], ``alpha * subject + (1 - alpha) * layout``.
     """
+    from scipy.ndimage import binary_dilation
     from skimage.measure import label
     from skimage.morphology import dilation, disk
 
@@ -126,7 +128,7 @@ def subject_target(
         around = layout[::4, ::4][ring]
         floor = float(np.percentile(around, 90)) + lift if around.size else contact
         value = min(1.0, max(contact, floor))
-        grow = dilation(part, disk(2))  # cover the soft rim of the part
+        grow = binary_dilation(part, disk(2))  # cover the soft rim of the part
         subject[grow] = value
     return (mask * subject + (1.0 - mask) * layout).astype(np.float32)
 
@@ -212,6 +214,10 @@ class RealDepthData:
             the ramp); negative: per photo, :func:`teacher_weight`.
         scene_weight: how much more often than another photo a photo of
             :data:`SCENE_SOURCES` is drawn.
+        scene: build the targets of photos whose labels hold the scene teachers' maps with
+            :func:`d2f_core.scene_targets.scene_target`.
+        rescan_every: look for label files written since every this many samples (0: never).
+        standing: share of the generated scenes drawn from :mod:`d2f_core.synth.standing`.
     """
 
     def __init__(
@@ -225,13 +231,19 @@ class RealDepthData:
         fg_min_area: float = 0.01,
         fg_max_area: float = 0.8,
         scene_weight: float = 1.0,
+        scene: bool = False,
+        rescan_every: int = 0,
+        standing: float = 0.0,
     ) -> None:
         self.labels = Path(labels)
-        photos = [p for p in iter_photos(root) if not is_heldout(p)]
-        self.photos = [p for p in photos if (self.labels / f"{p.key}.npz").is_file()]
+        self._all = [p for p in iter_photos(root) if not is_heldout(p)]
+        self.scene = scene
+        self.rescan_every = rescan_every
+        self.standing = standing
+        self._drawn = 0
+        self._scan()
         if not self.photos:
             raise ValueError(f"no labelled training photos under {root} with labels {labels}")
-        self.masked = [p for p in self.photos if p.mask is not None]
         self.size = size
         self.paste = paste
         self.synth = synth
@@ -240,7 +252,16 @@ class RealDepthData:
         if scene_weight <= 0:
             raise ValueError(f"scene_weight must be positive, got {scene_weight}")
         self.scene_weight = scene_weight
-        weights = [scene_weight if p.source in SCENE_SOURCES else 1.0 for p in self.photos]
+        self._weigh()
+
+    def _scan(self) -> None:
+        """The photos whose labels exist now (labels may still be being written)."""
+        have = {f.name for f in self.labels.iterdir()} if self.labels.is_dir() else set()
+        self.photos = [p for p in self._all if f"{p.key}.npz" in have]
+        self.masked = [p for p in self.photos if p.mask is not None]
+
+    def _weigh(self) -> None:
+        weights = [self.scene_weight if p.source in SCENE_SOURCES else 1.0 for p in self.photos]
         self._cum_weights = list(itertools.accumulate(weights))
 
     # -- pieces
@@ -255,12 +276,20 @@ class RealDepthData:
         rh, rw = max(th, round(h0 * scale)), max(tw, round(w0 * scale))
         img = resize_array(img, (rh, rw))
         mask = read_mask(photo, (h0, w0))
-        fg, teacher = read_label(self.labels / f"{photo.key}.npz", (rh, rw))
+        label = self.labels / f"{photo.key}.npz"
+        fg, teacher = read_label(label, (rh, rw))
         if mask is not None:
             alpha = feather(resize_array(mask, (rh, rw)) >= 0.5, 1.0)
         else:
             alpha = teacher_subject(fg, self.fg_min_area, self.fg_max_area)
         layout = teacher_layout(teacher, self.layout_teacher)
+        scene = read_scene_label(label, (rh, rw)) if self.scene else None
+        if scene is not None:  # the scene model's target, subjects and occluders stood on it
+            wt = teacher_weight(teacher) if self.layout_teacher < 0 else self.layout_teacher
+            voc = None if mask is not None else alpha
+            layout = scene_target(scene["ade"], layout, wt, alpha if mask is not None else None,
+                                  scene["sal"], voc)  # fmt: skip
+            alpha = None
         y = rng.randint(0, rh - th)
         x = rng.randint(0, rw - tw)
         sl = (slice(y, y + th), slice(x, x + tw))
@@ -316,8 +345,14 @@ class RealDepthData:
 
     def _synth(self, rng: random.Random, size: tuple[int, int]) -> DepthSample:
         from .synth import linear_to_srgb, make_scene, render_pinhole
+        from .synth.standing import STANDING_KINDS, make_standing_scene
 
-        scene = make_scene(size, seed=rng.randrange(1 << 30), margin=0)
+        seed = rng.randrange(1 << 30)
+        if rng.random() < self.standing:
+            kind = rng.choice(STANDING_KINDS)
+            scene = make_standing_scene(size, seed=seed, kind=kind, margin=0)
+        else:
+            scene = make_scene(size, seed=seed, margin=0)
         radiance, disp = render_pinhole(scene)
         image = linear_to_srgb(np.clip(radiance, 0.0, 1.0)).astype(np.float32)
         return DepthSample(image, disp.astype(np.float32), relative=False)
@@ -325,6 +360,10 @@ class RealDepthData:
     def sample(self, rng: random.Random, size: tuple[int, int] | None = None) -> DepthSample:
         """One sample of ``size`` (``(H, W)``; default :attr:`size`)."""
         size = self.size if size is None else size
+        self._drawn += 1
+        if self.rescan_every and self._drawn % self.rescan_every == 0:
+            self._scan()
+            self._weigh()
         if rng.random() < self.synth:
             return self._synth(rng, size)
         if self.scene_weight == 1.0:
@@ -520,6 +559,9 @@ def train_depth(args: argparse.Namespace) -> Path:
         synth=args.synth,
         layout_teacher=args.layout_teacher,
         scene_weight=args.scene_weight,
+        scene=args.scene_targets,
+        rescan_every=args.rescan_every,
+        standing=args.standing,
     )
     net = build_defocus_net(args.variant)
     if args.init is not None:
@@ -685,6 +727,26 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         default=1.0,
         help="draw the photos of whole scenes (SUN, Urban100, BSDS) this many times as often",
+    )
+    p.add_argument(
+        "--scene-targets",
+        action="store_true",
+        help="targets from the scene model (d2f_core.scene_targets) on photos whose labels "
+        "hold the scene teachers' maps (d2f-train label-scene)",
+    )
+    p.add_argument(
+        "--standing",
+        type=float,
+        default=0.0,
+        help="share of the generated scenes drawn from d2f_core.synth.standing (a near post "
+        "across the frame, a subject over a far floor, far lights at night)",
+    )
+    p.add_argument(
+        "--rescan-every",
+        type=int,
+        default=0,
+        metavar="N",
+        help="look for new label files every N samples (labelling still running)",
     )
     p.add_argument(
         "--distill",

@@ -491,6 +491,10 @@ def export(checkpoint: Path, out: Path, overrides: Sequence[str]) -> Path:
 
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["label-scene"]:  # every teacher's labels, the scene ones included
+        from .scene_teachers import run_label_scene
+
+        return run_label_scene(argv[1:])
     if argv[:1] == ["label"]:  # pseudo-labels of real photos by the teachers
         from .teachers import run_label
 
