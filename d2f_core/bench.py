@@ -539,6 +539,12 @@ def _bench_depth(args: argparse.Namespace) -> int:
     return int(depth_main(args.rest) or 0)
 
 
+def _bench_standing(args: argparse.Namespace) -> int:
+    from .standing_check import main as standing_main
+
+    return int(standing_main(args.rest) or 0)
+
+
 def _bench_peers(args: argparse.Namespace) -> int:
     from .bench_peers import main as peers_main
 
@@ -578,6 +584,7 @@ def main(argv: list[str] | None = None) -> int:
         ("accuracy", _bench_accuracy, "renderer settings against ground truth"),
         ("depth", _bench_depth, "defocus network's depth on real photos against measured depth"),
         ("peers", _bench_peers, "d2f against other renderers, by category, against ground truth"),
+        ("standing", _bench_standing, "whether a depth map puts held-out subjects in front"),
     ):
         q = sub.add_parser(name, help=text, add_help=False)
         q.set_defaults(func=func)

@@ -425,6 +425,22 @@ def _focus_from_map(disparity: np.ndarray, x: float, y: float) -> float:
     return float(np.clip(np.median(win), 0.0, 1.0))
 
 
+def _say_subject(
+    args: argparse.Namespace, src: Path, photo: Any, point: tuple[float, float], focus: float
+) -> None:
+    """Print where the automatic focus landed, in the photo's own pixels (unless ``-q``): a
+    user who gave no focus must be able to tell whether it found the right subject."""
+    if args.quiet:
+        return
+    h, w = photo.image.shape[:2]
+    oh, ow = photo.info.original_size
+    x, y = point[0] * ow / w, point[1] * oh / h
+    print(
+        f"{src}: focused on the subject at ({x:.0f}, {y:.0f}), focal disparity {focus:.3f} "
+        f"(--focus-at X,Y or --focus D to choose)"
+    )
+
+
 def _subject_from_map(disparity: np.ndarray) -> tuple[float, tuple[float, float]]:
     """``D2F.subject_focus`` for a bare disparity map (the centre when nothing stands out)."""
     from .pipeline import locate_subject
@@ -578,7 +594,7 @@ def render_file(
         scene = model.prepare(image, depth=depth, refine=not args.no_refine_depth)
         if point == "subject":
             focus, (sx, sy) = model.subject_focus(scene)
-            logger.info("%s: no focus given; focusing on the subject at (%.0f, %.0f)", src, sx, sy)
+            _say_subject(args, src, photo, (sx, sy), focus)
         elif point is not None:
             focus = model.focus_at(scene, *point)
         result = model.render(
@@ -602,7 +618,7 @@ def render_file(
     elif disparity is not None:
         if point == "subject":
             focus, (sx, sy) = _subject_from_map(disparity)
-            logger.info("%s: no focus given; focusing on the subject at (%.0f, %.0f)", src, sx, sy)
+            _say_subject(args, src, photo, (sx, sy), focus)
         elif point is not None:
             focus = _focus_from_map(disparity, *point)
         logger.info("%s: rendering with the depth map only (no D2F weights)", src)

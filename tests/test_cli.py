@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import re
 import sys
 from pathlib import Path
 
@@ -304,11 +305,19 @@ class TestRender:
         # K = 60 px puts the floor beyond the fusion gate, so the tiny model's random fusion
         # network cannot keep it sharp
         extra = ["--weights", checkpoint] if with_model else []
-        code, err = _run(
-            capsys, "render", src, "-o", tmp_path / "o.png", "--blur", 60,
-            "--depth", tmp_path / "d.png", *extra, "-v",
-        )  # fmt: skip
-        assert code == 0, err
+        argv = ["render", src, "-o", tmp_path / "o.png", "--blur", 60, "--depth",
+                tmp_path / "d.png", *extra]  # fmt: skip
+        code = main([str(a) for a in argv])
+        said = capsys.readouterr()
+        assert code == 0, said.err
+        # where it focused is said without -v: a point on the box, at the box's disparity
+        m = re.search(r"focused on the subject at \((\d+), (\d+)\), focal disparity ([\d.]+)",
+                      said.out)  # fmt: skip
+        assert m, said.out
+        x, y, focus = int(m[1]), int(m[2]), float(m[3])
+        assert 10 <= x < 50 and 20 <= y < 60 and focus > 0.85  # the box is the nearest
+        assert main([str(a) for a in argv] + ["-q"]) == 0
+        assert capsys.readouterr().out == ""
         out = np.asarray(Image.open(tmp_path / "o.png"))
         box = (slice(24, 56), slice(14, 46))
         floor = (slice(70, 96), slice(60, 128))
