@@ -14,6 +14,7 @@ from __future__ import annotations
 import io
 import logging
 import os
+import stat
 import struct
 import tempfile
 import warnings
@@ -35,6 +36,8 @@ ImageSource = Union[str, os.PathLike, bytes, bytearray, memoryview]  # noqa: UP0
 EXIF_ORIENTATION = 0x0112
 # Same threshold as Pillow's DecompressionBombError (2 x MAX_IMAGE_PIXELS, about 179 MP).
 MAX_DECODE_PIXELS = 2 * 89_478_485
+#: Largest file read (photo or depth map): 1 GiB, about a 179 MP 16-bit RGBA TIFF.
+MAX_FILE_BYTES = 1 << 30
 
 SAVE_FORMATS = {
     ".png": "PNG",
@@ -96,26 +99,67 @@ def source_name(src: ImageSource) -> str:
     return os.fspath(src)
 
 
-def read_source_bytes(src: ImageSource) -> bytes:
-    """Whole content of a path or bytes source; ``ValueError`` for empty or unreadable input."""
+def read_source_bytes(src: ImageSource, max_bytes: int = MAX_FILE_BYTES) -> bytes:
+    """Whole content of a path or bytes source.
+
+    Only regular files are read: a pipe, a device (``/dev/zero``) or a socket is refused
+    without reading from it (it is opened non-blocking, so a FIFO without a writer does not
+    hang), and so is a file larger than ``max_bytes``.
+
+    Raises:
+        FileNotFoundError: the path does not exist.
+        ValueError: a directory, not a regular file, larger than ``max_bytes``, empty or
+            unreadable.
+    """
     name = source_name(src)
     if isinstance(src, (bytes, bytearray, memoryview)):
         data = bytes(src)
+        if len(data) > max_bytes:
+            raise ValueError(f"{name}: {len(data)} bytes, more than the limit of {max_bytes}")
     else:
         if not isinstance(src, (str, os.PathLike)):
             raise InputTypeError(f"src: expected a path or bytes, got {type(src).__name__}")
-        path = Path(src)
-        if not path.exists():
-            raise FileNotFoundError(f"{name}: no such file")
-        if path.is_dir():
-            raise ValueError(f"{name}: is a directory, not an image file")
-        try:
-            data = path.read_bytes()
-        except OSError as exc:
-            raise ValueError(f"{name}: cannot read file: {exc.strerror or exc}") from exc
+        data = _read_regular_file(Path(src), name, max_bytes)
     if len(data) == 0:
         raise ValueError(f"{name}: file is empty (0 bytes)")
     return data
+
+
+def _check_regular(st: os.stat_result, name: str, max_bytes: int) -> None:
+    if stat.S_ISDIR(st.st_mode):
+        raise ValueError(f"{name}: is a directory, not an image file")
+    if not stat.S_ISREG(st.st_mode):
+        raise ValueError(f"{name}: not a regular file (a device, pipe or socket)")
+    if st.st_size > max_bytes:
+        raise ValueError(f"{name}: {st.st_size} bytes, more than the limit of {max_bytes}")
+
+
+def _read_regular_file(path: Path, name: str, max_bytes: int) -> bytes:
+    """Read a regular file, looked at (``stat``) before it is opened; opened non-blocking and
+    looked at again (``fstat``), so that a file swapped in between is refused too."""
+    flags = os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0)
+    try:
+        _check_regular(os.stat(path), name, max_bytes)
+        fd = os.open(path, flags)
+    except FileNotFoundError:
+        raise FileNotFoundError(f"{name}: no such file") from None
+    except IsADirectoryError:
+        raise ValueError(f"{name}: is a directory, not an image file") from None
+    except OSError as exc:
+        raise ValueError(f"{name}: cannot read file: {exc.strerror or exc}") from None
+    with os.fdopen(fd, "rb") as fh:
+        _check_regular(os.fstat(fd), name, max_bytes)
+        try:
+            parts = [fh.read(os.fstat(fd).st_size)]
+            total = len(parts[0])
+            while more := fh.read(1 << 16):  # a file that grew meanwhile, up to the cap
+                total += len(more)
+                if total > max_bytes:
+                    raise ValueError(f"{name}: more than the limit of {max_bytes} bytes")
+                parts.append(more)
+        except OSError as exc:
+            raise ValueError(f"{name}: cannot read file: {exc.strerror or exc}") from exc
+    return parts[0] if len(parts) == 1 else b"".join(parts)
 
 
 def is_heif(data: bytes) -> bool:
@@ -469,6 +513,11 @@ def _to_float_rgb(im: Image.Image, conv: list[str]) -> tuple[np.ndarray, bytes |
             )
             g = np.where(finite, g, 0.0)
         hi = float(g.max()) if g.size else 0.0
+        if g.size and not hi > 0.0:
+            raise ValueError(
+                "float image holds no value above 0 (every pixel is 0, negative, NaN or "
+                "infinite): it would be all black"
+            )
         if hi > 1.0:
             g = g / hi
             conv.append(f"float grayscale scaled by 1/{hi:g}")
