@@ -158,7 +158,7 @@ def _check_npy_header(data: bytes, name: str) -> None:
             shape, _, dtype = np.lib.format.read_array_header_2_0(fh)
         else:  # 3.0 (a UTF-8 header): no public reader
             shape, _, dtype = np.lib.format._read_array_header(fh, version)
-    except (ValueError, SyntaxError, TypeError, AttributeError, EOFError) as exc:
+    except Exception as exc:  # noqa: BLE001 (any failure to parse it: tokenize, literal_eval)
         raise ValueError(f"{name}: unreadable .npy header: {exc}") from None
     count = 1
     for n in shape:

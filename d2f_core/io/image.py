@@ -212,10 +212,23 @@ def open_pil(data: bytes, name: str) -> Image.Image:
 # --------------------------------------------------------------------------- orientation
 
 
-def exif_orientation(im: Image.Image) -> int:
-    """EXIF orientation (1..8) of a Pillow image; 1 when absent or invalid."""
+def exif_orientation(im: Image.Image, data: bytes | None = None) -> int:
+    """EXIF orientation (1..8) of a Pillow image; 1 when absent or invalid.
+
+    For a PNG pass its bytes as ``data``: its eXIf chunk is then found by a scan of its
+    chunks. Pillow's ``getexif`` decodes the whole image to look for an eXIf chunk after the
+    image data, before any size check could refuse it.
+    """
     try:
-        value = im.getexif().get(EXIF_ORIENTATION, 1)
+        if data is not None and im.format == "PNG":
+            raw = _png_exif(data)
+            if raw is None:
+                return 1
+            ex = Image.Exif()
+            ex.load(raw)
+            value = ex.get(EXIF_ORIENTATION, 1)
+        else:
+            value = im.getexif().get(EXIF_ORIENTATION, 1)
     except Exception:  # a malformed EXIF block must not stop the photo from loading
         return 1
     try:
@@ -287,6 +300,18 @@ def _png_chunks(data: bytes):
         pos += 12 + length
         if ctype == b"IEND":
             return
+
+
+def _png_exif(data: bytes) -> bytes | None:
+    """The eXIf chunk of a PNG as EXIF bytes (``Exif\\0\\0`` first), or None."""
+    try:
+        for ctype, body in _png_chunks(data):
+            if ctype == b"eXIf":
+                raw = bytes(body)
+                return raw if raw.startswith(b"Exif\x00\x00") else b"Exif\x00\x00" + raw
+    except (ValueError, struct.error):
+        return None
+    return None
 
 
 def png16_header(data: bytes) -> tuple[int, int, int, bool] | None:
@@ -608,7 +633,7 @@ def decode_image(
     info.mode = im.mode
     info.xmp = im.info.get("xmp") or None
     w, h = im.size
-    orientation = exif_orientation(im)
+    orientation = exif_orientation(im, data)
     info.orientation = orientation
     upright = (w, h) if orientation < 5 else (h, w)
     info.original_size = (upright[1], upright[0])
