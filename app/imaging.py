@@ -117,9 +117,7 @@ def load_photo(
             f"{image.shape[1]}x{image.shape[0]} to stay within {max_pixels / 1e6:.1f} MP."
         )
     # said to the user, not only in the server's log: pixels the file does not hold
-    notes += [
-        f"{name}: {c}; they are shown black." for c in info.conversions if "NaN" in c
-    ]
+    notes += [f"{name}: {c}; they are shown black." for c in info.conversions if "NaN" in c]
     notice = " ".join(notes) or None
     source = None
     if loaded.disparity is not None:

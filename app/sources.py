@@ -100,8 +100,7 @@ def check_hub_model(name: Any, policy: HubPolicy | None = None) -> str:
         )
     if len(text) > MAX_MODEL_NAME:
         raise ValueError(
-            f"The model name is {len(text)} characters long; at most {MAX_MODEL_NAME} are "
-            "accepted."
+            f"The model name is {len(text)} characters long; at most {MAX_MODEL_NAME} are accepted."
         )
     listed = ", ".join(policy.models)
     if not text:
