@@ -865,6 +865,7 @@ class RefocusApp:
         for what, value in (("depth map kind", depth_kind), ("Hugging Face model", hub_model)):
             if value is not None and not isinstance(value, str):
                 raise user_error(f"The {what} must be text, got {type(value).__name__}.")
+        sources.check_choice(depth_source, hub_model)  # a hub model: offered, cached (ms)
         t0 = time.perf_counter()
         photo_name = _payload_name(image, ext=True)
         behind = self._upload_behind_panel(session, path)

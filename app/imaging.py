@@ -36,7 +36,8 @@ class Photo:
             ``MAX_PIXELS``.
         shown_size: ``(width, height)`` of the upload as a browser shows it (EXIF applied,
             before any downscale): the space ``SelectData.index`` is given in.
-        notice: a sentence for the user when the image was downscaled, else None.
+        notice: what the user is told about the decode (the image was downscaled, some of
+            its pixels were NaN or infinite), else None.
         disparity: ``(H, W)`` float32 in [0, 1] depth embedded by a phone camera, or None.
         focus: the focal plane the phone recorded, or None.
         depth_source: where ``disparity`` came from (for the status line), or None.
@@ -109,12 +110,15 @@ def load_photo(
             "are needed."
         )
     image = loaded.image
-    notice = None
+    notes = []
     if image.shape[:2] != (oh, ow):
-        notice = (
+        notes.append(
             f"{name} is {ow}x{oh} ({ow * oh / 1e6:.1f} MP); it was resized to "
             f"{image.shape[1]}x{image.shape[0]} to stay within {max_pixels / 1e6:.1f} MP."
         )
+    # said to the user, not only in the server's log: pixels the file does not hold
+    notes += [f"{name}: {c}; they are shown black." for c in info.conversions if "NaN" in c]
+    notice = " ".join(notes) or None
     source = None
     if loaded.disparity is not None:
         source = str((loaded.depth_info or {}).get("source", "embedded"))

@@ -30,7 +30,7 @@ from app.handlers import (
     one_line,
 )
 from app.uploads import UploadGate
-from d2f_core import bundled
+from d2f_core import bundled, depth_sources
 
 log = logging.getLogger(__name__)
 
@@ -46,6 +46,8 @@ SESSION_TTL_S = 3600
 PANEL_HEIGHT = 360
 #: Uploads larger than this many MB are refused by Gradio (``D2F_APP_MAX_UPLOAD_MB``).
 DEFAULT_MAX_UPLOAD_MB = 100
+#: The interfaces that only this computer reaches (``--allow-any-depth-model`` needs one).
+LOCAL_HOSTS = ("127.0.0.1", "localhost", "::1")
 #: Page states (one per browser tab or API client) Gradio keeps, oldest dropped first
 #: (its default is 10000); each holds a copy of the page's component settings.
 STATE_SESSIONS = 1000
@@ -173,6 +175,32 @@ def load_model(weights: str | os.PathLike | None = None) -> Any:
     if weights is not None:
         return D2F.from_pretrained(weights)
     return D2F.from_pretrained()
+
+
+def hub_model_input() -> tuple[Any, list]:
+    """The hub model control under the depth source, and the events that load with it: the
+    operator's models in a list (``--depth-models``), or a text box for any id or folder
+    where the operator allows it (``--allow-any-depth-model``, local use only); hidden when
+    no hub model is offered."""
+    policy = depth_choice.POLICY
+    offered = any(v == "transformers" for _, v in depth_choice.choices())
+    if policy.models and not policy.any_model:
+        box = gr.Dropdown(
+            list(policy.models),
+            value=policy.models[0],
+            label="Hugging Face depth model (the models this server offers)",
+            visible=offered,
+            elem_id="hub_model",
+        )
+        return box, [box.input]
+    box = gr.Textbox(
+        label="Hugging Face depth model: id or folder on this computer (from the local "
+        "Hugging Face cache; nothing is downloaded)",
+        placeholder=policy.models[0] if policy.models else depth_choice.HUB_PLACEHOLDER,
+        visible=offered,
+        elem_id="hub_model",
+    )
+    return box, [box.submit]
 
 
 def build_demo(
@@ -308,13 +336,7 @@ def build_demo(
                         label="Depth from",
                         elem_id="depth_source",
                     )
-                    hub_model = gr.Textbox(
-                        label="Hugging Face depth model: id or folder on the server "
-                        "(downloaded once into the Hugging Face cache)",
-                        placeholder=depth_choice.HUB_PLACEHOLDER,
-                        visible=any(v == "transformers" for _, v in depth_choice.choices()),
-                        elem_id="hub_model",
-                    )
+                    hub_model, hub_events = hub_model_input()
             with gr.Column(scale=1):
                 view = gr.Radio(list(VIEWS), value=VIEWS[0], label="View", elem_id="view")
                 result = gr.Image(
@@ -387,7 +409,7 @@ def build_demo(
         # a new depth source re-prepares this photo only (.input: the user's choice, not the
         # choices offered again for a new photo)
         loading = gr.on([photo.upload, photo.clear, depth.change, depth_kind.change,
-                         depth_source.input, hub_model.submit], api_name="load",
+                         depth_source.input, *hub_events], api_name="load",
                         **load_io)  # fmt: skip
         loading.success(logic.download, [session, fmt], [download], **chained)
 
@@ -586,9 +608,32 @@ def main(argv: list[str] | None = None) -> int:
         default=int(os.environ.get("D2F_APP_THREADS", "1")),
         help="torch threads per render (default: $D2F_APP_THREADS or 1; see app/README.md)",
     )
+    parser.add_argument(
+        "--depth-models",
+        default=os.environ.get("D2F_APP_DEPTH_MODELS", ""),
+        metavar="ID,...",
+        help="Hugging Face depth models that clients may pick (hub ids or folders, comma "
+        "separated; each must be in the local Hugging Face cache: the app never downloads "
+        "one). Default: $D2F_APP_DEPTH_MODELS, else none",
+    )
+    parser.add_argument(
+        "--allow-any-depth-model",
+        action="store_true",
+        help="let clients also name any hub id or folder on this computer (local use only: "
+        "refused unless --host is 127.0.0.1, localhost or ::1)",
+    )
     args = parser.parse_args(argv)
     if args.threads < 1:
         parser.error(f"--threads must be >= 1, got {args.threads}")
+    if args.allow_any_depth_model and args.host not in LOCAL_HOSTS:
+        parser.error(
+            f"--allow-any-depth-model is for local use only; it cannot be used with "
+            f"--host {args.host} (use --depth-models ID,... to offer models to others)"
+        )
+    try:
+        models = depth_choice.parse_models(args.depth_models)
+    except ValueError as err:
+        parser.error(f"--depth-models: {err}")
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     logging.getLogger("httpx").setLevel(logging.WARNING)
     import torch
@@ -597,6 +642,15 @@ def main(argv: list[str] | None = None) -> int:
     # from stalling each other at every parallel region when cores are busy
     torch.set_num_threads(args.threads)
     imaging.steady_page_faults()
+    # the app never downloads a model: a client's request reads local files only
+    os.environ["HF_HUB_OFFLINE"] = "1"
+    policy = depth_choice.configure(models, args.allow_any_depth_model)
+    for name in policy.models:
+        if not depth_sources.hub_model_cached(name):
+            log.warning(
+                "depth model %s is not in the local Hugging Face cache; clients that pick it "
+                "are refused until it is downloaded (hf download %s)", name, name,
+            )  # fmt: skip
     try:
         model = load_model(args.weights)
     except (FileNotFoundError, ValueError) as err:

@@ -2,14 +2,20 @@
 
 The sources are those of :mod:`d2f_core.depth_sources`: the phone depth stored in the photo,
 the user's own map, the shipped network (offline) and, when ``transformers`` is installed
-(the ``hub`` extra), any Hugging Face depth-estimation model named by its id or a folder on
-the server. "Automatic" keeps the order the app always used: the user's map, else the
-photo's own depth, else the network. The scene cache keys on the source, so switching back
-to a source already computed for the photo is instant.
+(the ``hub`` extra), the Hugging Face depth-estimation models that the server's operator
+allows (:class:`HubPolicy`, ``d2f-app --depth-models``). "Automatic" keeps the order the app
+always used: the user's map, else the photo's own depth, else the network. The scene cache
+keys on the source, so switching back to a source already computed for the photo is instant.
+
+A client never makes the server download a model or look at its folders: it picks one of the
+operator's models, which must be in the local Hugging Face cache (checked in milliseconds,
+before the photo is decoded); any other name is refused. Free-text ids and folders are for
+local use only (``--allow-any-depth-model``, bound to 127.0.0.1), and still never downloaded.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -26,6 +32,109 @@ CHOICES = (
     ("Hugging Face model (id or folder below)", "transformers"),
 )
 HUB_PLACEHOLDER = "depth-anything/Depth-Anything-V2-Small-hf"
+#: Longest model id or folder name taken from a client (hub ids are at most 96 + 1 + 96).
+MAX_MODEL_NAME = 200
+
+
+@dataclass(frozen=True)
+class HubPolicy:
+    """Which Hugging Face depth models the clients of this server may use.
+
+    Attributes:
+        models: the operator's list (``d2f-app --depth-models ID,...``): hub ids or folders,
+            offered to clients in a list.
+        any_model: clients may also name any hub id or folder on the server
+            (``--allow-any-depth-model``: local use only, the server bound to 127.0.0.1).
+    """
+
+    models: tuple[str, ...] = ()
+    any_model: bool = False
+
+    @property
+    def offered(self) -> bool:
+        """Whether clients may use a hub model at all."""
+        return bool(self.models) or self.any_model
+
+
+#: The policy in force: no hub model until the operator allows some (:func:`configure`).
+POLICY = HubPolicy()
+
+
+def parse_models(text: str | None) -> tuple[str, ...]:
+    """``"a/b, c/d"`` -> ``("a/b", "c/d")`` (duplicates and empty items dropped).
+
+    Raises:
+        ValueError: a name longer than :data:`MAX_MODEL_NAME`.
+    """
+    names: list[str] = []
+    for item in (text or "").split(","):
+        name = item.strip()
+        if len(name) > MAX_MODEL_NAME:
+            raise ValueError(f"a model name is at most {MAX_MODEL_NAME} characters: {name[:60]}...")
+        if name and name not in names:
+            names.append(name)
+    return tuple(names)
+
+
+def configure(models: tuple[str, ...] | list[str] = (), any_model: bool = False) -> HubPolicy:
+    """Set the policy in force (``d2f-app`` does, from its options) and return it."""
+    global POLICY
+    POLICY = HubPolicy(tuple(models), bool(any_model))
+    return POLICY
+
+
+def check_hub_model(name: Any, policy: HubPolicy | None = None) -> str:
+    """The hub model a client named, checked: allowed by ``policy`` (default :data:`POLICY`)
+    and loadable from local files only (:func:`d2f_core.depth_sources.hub_model_cached`).
+    Takes milliseconds, touches no network and downloads nothing.
+
+    Raises:
+        ValueError: with a message for the user.
+    """
+    policy = POLICY if policy is None else policy
+    text = str(name or "").strip()
+    if not policy.offered:
+        raise ValueError(
+            "This server offers no Hugging Face depth model (its operator can offer some with "
+            "d2f-app --depth-models)."
+        )
+    if len(text) > MAX_MODEL_NAME:
+        raise ValueError(
+            f"The model name is {len(text)} characters long; at most {MAX_MODEL_NAME} are accepted."
+        )
+    listed = ", ".join(policy.models)
+    if not text:
+        if policy.any_model:
+            raise ValueError(
+                f"Name a Hugging Face depth model (for example {HUB_PLACEHOLDER}) or a folder "
+                "on the server in the box below the depth source."
+            )
+        raise ValueError(f"Choose a Hugging Face depth model from the list: {listed}.")
+    if text not in policy.models and not policy.any_model:
+        raise ValueError(f"That model is not offered here; this server offers: {listed}.")
+    if not depth_sources.hub_model_cached(text):
+        raise ValueError(
+            f"The model {text} is not available on this server: it is not in the local "
+            "Hugging Face cache (nor a folder holding a model), and the app never downloads "
+            f"one; the server's operator can fetch it with: hf download {text}"
+        )
+    return text
+
+
+def check_choice(choice: Any, hub_model: Any) -> None:
+    """Refuse at once a hub model this server does not offer or has not cached (before the
+    photo is decoded: the render slot the event holds is released in milliseconds)."""
+    if choice == "transformers":
+        _hub_extra()
+        check_hub_model(hub_model)
+
+
+def _hub_extra() -> None:
+    if not depth_sources.hub_available():
+        raise ValueError(
+            "Hugging Face models need the transformers package on the server: "
+            f"{depth_sources.HUB_EXTRA_HINT}."
+        )
 
 
 def has_embedded_depth(payload: Any, files: Any = None) -> bool | None:
@@ -44,8 +153,9 @@ def has_embedded_depth(payload: Any, files: Any = None) -> bool | None:
 
 def choices(has_embedded: bool | None = None) -> list[tuple[str, str]]:
     """The choices to offer: the photo's own depth only when it has some (``None``: not
-    known yet, offered), the hub model only when ``transformers`` is installed."""
-    hub = depth_sources.hub_available()
+    known yet, offered), the hub model only when ``transformers`` is installed and the
+    operator offers hub models (:data:`POLICY`)."""
+    hub = POLICY.offered and depth_sources.hub_available()
     return [
         (label, value)
         for label, value in CHOICES
@@ -59,8 +169,9 @@ def resolve(choice: Any, hub_model: Any, has_map: bool, has_embedded: bool) -> t
     photo cannot have (no phone depth, no map uploaded) falls back to the automatic one.
 
     Raises:
-        ValueError: a hub model chosen without a name, or without ``transformers`` installed,
-            with a message for the user.
+        ValueError: a hub model chosen without a name, one this server does not offer or has
+            not cached (:func:`check_hub_model`), or without ``transformers`` installed, with
+            a message for the user.
     """
     choice = AUTO if choice in (None, "") else str(choice)
     automatic = "file" if has_map else "embedded" if has_embedded else "d2f"
@@ -71,18 +182,8 @@ def resolve(choice: Any, hub_model: Any, has_map: bool, has_embedded: bool) -> t
     if choice == "file" and not has_map:
         return automatic, "No depth map was uploaded; " + _using(automatic)
     if choice == "transformers":
-        if not depth_sources.hub_available():
-            raise ValueError(
-                "Hugging Face models need the transformers package on the server: "
-                f"{depth_sources.HUB_EXTRA_HINT}."
-            )
-        name = str(hub_model or "").strip()
-        if not name:
-            raise ValueError(
-                f"Name a Hugging Face depth model (for example {HUB_PLACEHOLDER}) or a folder "
-                "on the server in the box below the depth source."
-            )
-        return f"transformers:{name}", ""
+        _hub_extra()
+        return f"transformers:{check_hub_model(hub_model)}", ""
     if choice not in ("embedded", "file", "d2f"):
         raise ValueError(f"Unknown depth source {choice!r}.")
     return choice, ""

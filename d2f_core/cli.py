@@ -116,7 +116,9 @@ def _point(text: str) -> tuple[float, float]:
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected X,Y pixel coordinates, got {text!r}") from None
     if not (math.isfinite(x) and math.isfinite(y)) or x < 0 or y < 0:
-        raise argparse.ArgumentTypeError(f"expected X,Y >= 0, got {text!r}")
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is outside the photo: expected pixel coordinates X,Y >= 0"
+        )
     return x, y
 
 
@@ -582,7 +584,8 @@ def render_file(
             x, y = args.focus_at
             if x > ow - 1 or y > oh - 1:
                 raise ValueError(f"--focus-at {x:g},{y:g} is outside the {ow}x{oh} photo {src}")
-            point = (x * w / ow, y * h / oh)  # into the loaded (possibly downscaled) frame
+            # into the loaded (possibly downscaled) frame, pixel area onto pixel area
+            point = ((x + 0.5) * w / ow - 0.5, (y + 0.5) * h / oh - 0.5)
         else:
             point = "subject"
 
@@ -797,9 +800,30 @@ def _message(exc: BaseException) -> str:
     return text
 
 
+def _join_negative_points(argv: list[str]) -> list[str]:
+    """``--focus-at -1,-1`` as ``--focus-at=-1,-1``: argparse takes a value that starts with
+    ``-`` (other than a plain negative number) for an option, and said "expected one
+    argument"; joined, the value reaches the option's own check and its message."""
+    out: list[str] = []
+    tokens = iter(argv)
+    for token in tokens:
+        if token == "--focus-at":
+            value = next(tokens, None)
+            if value is not None and value.startswith("-") and value[1:2] in tuple("0123456789.,"):
+                out.append(f"{token}={value}")
+                continue
+            out.append(token)
+            if value is not None:
+                out.append(value)
+            continue
+        out.append(token)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``d2f`` command. Returns the exit status."""
     parser = build_parser()
+    argv = _join_negative_points(list(sys.argv[1:] if argv is None else argv))
     try:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # argparse already printed usage and the message

@@ -61,6 +61,7 @@ __all__ = [
     "DepthSource",
     "depth_map",
     "hub_available",
+    "hub_model_cached",
     "metric_to_disparity",
     "model_output_kind",
     "parse_source",
@@ -332,6 +333,48 @@ def _offline() -> bool:
     return any(str(v).strip().upper() in ("1", "ON", "YES", "TRUE") for v in flags if v)
 
 
+#: Files a cached hub model needs besides ``config.json``: its processor's settings and one
+#: of its weight files.
+_PROCESSOR_FILE = "preprocessor_config.json"
+_WEIGHT_FILES = (
+    "model.safetensors",
+    "model.safetensors.index.json",
+    "pytorch_model.bin",
+    "pytorch_model.bin.index.json",
+)
+
+
+def hub_model_cached(model_id: str) -> bool:
+    """Whether a hub depth model can be loaded without the network: a folder holding a
+    ``config.json``, or a hub id whose config, processor settings and weights are in the
+    local Hugging Face cache. Looks at local files only (milliseconds); never downloads.
+    A name that is neither (too long, malformed) is not cached."""
+    try:
+        folder = Path(model_id).expanduser()
+        if folder.is_dir():
+            return (folder / "config.json").is_file()
+        if model_id.startswith(("/", ".", "~")) or folder.exists():
+            return False
+    except (OSError, ValueError, RuntimeError):  # a name too long for a path, a NUL byte
+        return False
+    try:
+        from huggingface_hub import try_to_load_from_cache
+    except ImportError:
+        return False
+
+    def cached(filename: str) -> bool:
+        try:
+            return isinstance(try_to_load_from_cache(model_id, filename), str)
+        except (ValueError, OSError):  # not a valid repo id
+            return False
+
+    return (
+        cached("config.json")
+        and cached(_PROCESSOR_FILE)
+        and any(cached(name) for name in _WEIGHT_FILES)
+    )
+
+
 def _import_transformers() -> Any:
     try:
         import transformers
@@ -366,8 +409,16 @@ def _load_hub_model(model_id: str, device: torch.device) -> tuple[Any, Any]:
             return _LOADED[key]
     transformers = _import_transformers()
     folder = Path(model_id).expanduser()
-    is_folder = folder.is_dir()
-    if not is_folder and (model_id.startswith(("/", ".", "~")) or folder.exists()):
+    try:
+        is_folder = folder.is_dir()
+        exists = folder.exists()
+    except OSError as exc:  # a name too long for a path
+        shown = model_id if len(model_id) <= 80 else f"{model_id[:60]}... ({len(model_id)} chars)"
+        raise ValueError(
+            f"depth source 'transformers:{shown}': neither a model id nor a folder "
+            f"({exc.strerror or exc})"
+        ) from None
+    if not is_folder and (model_id.startswith(("/", ".", "~")) or exists):
         # a path, not a hub id ("org/name"): never sent to the hub
         raise ValueError(f"depth source 'transformers:{model_id}': no such folder")
     name = str(folder) if is_folder else model_id

@@ -582,7 +582,7 @@ def train_depth(args: argparse.Namespace) -> Path:
     step = 0
     last = out / "depth_last.pt"
     if last.is_file() and not args.restart:
-        state = torch.load(last, map_location="cpu", weights_only=False)
+        state = torch.load(last, map_location="cpu", weights_only=True)
         net.load_state_dict(state["state_dict"])
         opt.load_state_dict(state["optimizer"])
         if distiller is not None:

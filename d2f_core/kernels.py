@@ -53,6 +53,25 @@ def _normalise(kernel: torch.Tensor) -> torch.Tensor:
     return kernel / total
 
 
+#: Largest blade rotation accepted, in degrees: beyond it a float32 angle is too coarse.
+MAX_ROTATION = 1e6
+
+
+def check_rotation(rotation: float) -> float:
+    """The blade rotation in degrees as a float; ``ValueError`` naming it when it is not a
+    number, not finite or larger than :data:`MAX_ROTATION` in size."""
+    try:
+        value = float(rotation)
+    except (TypeError, ValueError):
+        raise ValueError(f"rotation must be a number of degrees, got {rotation!r}") from None
+    if not math.isfinite(value) or abs(value) > MAX_ROTATION:
+        raise ValueError(
+            f"rotation must be a finite angle in degrees, at most {MAX_ROTATION:g} in size, "
+            f"got {rotation!r}"
+        )
+    return value
+
+
 def _radius_profile(x: torch.Tensor, y: torch.Tensor, blades: int, rotation: float) -> torch.Tensor:
     """Squared 'aperture radius' of each point: plain r^2 for a disk, polygon-scaled for blades."""
     rho2 = x * x + y * y
@@ -105,6 +124,7 @@ def aperture_kernel(
     r = float(size // 2) if radius is None else float(radius)
     if r < 0 or not math.isfinite(r):
         raise ValueError(f"radius must be finite and >= 0, got {radius}")
+    rotation = check_rotation(rotation)
     x, y = _grid(size, scale, device, dtype)
     rho2 = _radius_profile(x, y, blades, rotation)
     if shape == "soft":

@@ -45,6 +45,7 @@ from torch import Tensor, nn
 from . import adaptive, bundled, depth_sources, rendering
 from .errors import InputTypeError
 from .io.embedded import Photo
+from .kernels import check_rotation
 from .networks import (
     build_defocus_net,
     build_fusion_net,
@@ -715,6 +716,8 @@ class D2F(nn.Module):
             kind = type(scene).__name__
             raise InputTypeError(f"scene must be a Scene from prepare(), got {kind}")
         focus, blur = rendering.check_focus_blur(focus, blur)
+        if "rotation" in render_options:  # named even when no kernel needs it
+            render_options["rotation"] = check_rotation(render_options["rotation"])
         if max_side is not None and (isinstance(max_side, bool) or int(max_side) < 1):
             raise ValueError(f"max_side must be a positive integer or None, got {max_side!r}")
         if "radiance" in render_options:
@@ -863,11 +866,15 @@ class D2F(nn.Module):
     def focus_at(self, scene: Scene, x: float, y: float, radius: int | None = None) -> float:
         """Median disparity in a ``(2r+1)^2`` window around full-res pixel ``(x, y)``.
 
-        ``(x, y)`` is clamped into the photo; the window is clipped at its borders.
-        ``radius`` defaults to ``max(2, round(max(H, W) / 200))`` px.
+        ``(x, y)`` must lie in the photo, pixel centres at whole numbers: ``x`` in
+        ``[-0.5, W - 0.5]``, ``y`` in ``[-0.5, H - 0.5]``; the window is clipped at its
+        borders. ``radius`` defaults to ``max(2, round(max(H, W) / 200))`` px.
 
         Returns:
             Focal disparity in [0, 1] for :meth:`render`.
+
+        Raises:
+            ValueError: a point outside the photo, or not finite.
         """
         if not isinstance(scene, Scene):
             kind = type(scene).__name__
@@ -879,6 +886,11 @@ class D2F(nn.Module):
         if not (math.isfinite(xf) and math.isfinite(yf)):
             raise ValueError(f"x and y must be finite, got {x!r}, {y!r}")
         height, width = scene.size
+        if not (-0.5 <= xf <= width - 0.5 and -0.5 <= yf <= height - 0.5):
+            raise ValueError(
+                f"the point ({x!r}, {y!r}) is outside the {width}x{height} photo: x must be in "
+                f"[0, {width - 1}] and y in [0, {height - 1}]"
+            )
         r = max(2, round(max(height, width) / 200)) if radius is None else int(radius)
         if r < 0:
             raise ValueError(f"radius must be >= 0, got {radius!r}")

@@ -71,6 +71,34 @@ def png16_bytes(array: np.ndarray, filters: list[int] | None = None, exif: bytes
     return data + _chunk(b"IDAT", zlib.compress(bytes(out))) + _chunk(b"IEND", b"")
 
 
+def png16_stream(
+    width: int, height: int, channels: int = 3, *, inflated: int | None = None, ftype: int = 0
+) -> bytes:
+    """A 16-bit PNG (C = 2, 3 or 4) of a smooth pattern, written fast for large sizes: every
+    row has filter ``ftype`` and the same bytes. ``inflated`` makes the IDAT stream inflate
+    to that many bytes instead of the header's rows (a decompression bomb when larger)."""
+    ctype = {2: 4, 3: 2, 4: 6}[channels]
+    ihdr = struct.pack(">IIBBBBB", width, height, 16, ctype, 0, 0, 0)
+    pattern = np.array([0x80, 1, 0x40, 2, 0x20, 3, 0xFF, 0xFF], np.uint8)[: 2 * channels]
+    row = bytes([ftype]) + np.tile(pattern, width).tobytes()
+    total = len(row) * height if inflated is None else inflated
+    comp = zlib.compressobj(9)
+    parts = []
+    block = row * max(1, (1 << 20) // len(row))  # whole rows
+    left = total
+    while left > 0:
+        piece = block[:left] if left < len(block) else block
+        parts.append(comp.compress(piece))
+        left -= len(piece)
+    idat = b"".join(parts) + comp.flush()
+    return (
+        b"\x89PNG\r\n\x1a\n"
+        + _chunk(b"IHDR", ihdr)
+        + _chunk(b"IDAT", idat)
+        + _chunk(b"IEND", b"")
+    )
+
+
 def png_bomb_header(width: int = 100_000, height: int = 100_000) -> bytes:
     """A tiny PNG whose header claims ``width`` x ``height`` 8-bit grey pixels."""
     ihdr = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)

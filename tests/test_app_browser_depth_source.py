@@ -36,7 +36,7 @@ def wait_status(page, *parts: str) -> str:
 def test_depth_source_in_browser(app_server, chromium_launch_options, two_plane_scene, tmp_path):
     from playwright.sync_api import sync_playwright
 
-    server = app_server()
+    server = app_server("--allow-any-depth-model")  # a folder typed in: local use
     errors: list[str] = []
     with sync_playwright() as p:
         browser = p.chromium.launch(**chromium_launch_options)

@@ -421,9 +421,17 @@ class TestCli:
 class TestApp:
     """The app's "Depth source" control (app/sources.py, RefocusApp.load)."""
 
+    @pytest.fixture(autouse=True)
+    def any_model(self, monkeypatch):
+        """The server as ``d2f-app --allow-any-depth-model`` runs it (local use): any id or
+        folder may be named (tests/test_app_depth_models.py checks the other policies)."""
+        pytest.importorskip("gradio", reason="the app extra is not installed")
+        from app import sources
+
+        monkeypatch.setattr(sources, "POLICY", sources.HubPolicy(any_model=True))
+
     @pytest.fixture
     def logic(self, tiny_model, tmp_path):
-        pytest.importorskip("gradio", reason="the app extra is not installed")
         from app.cache import SceneCache
         from app.handlers import RefocusApp
 
@@ -440,9 +448,10 @@ class TestApp:
         with pytest.raises(ValueError, match=r"d2f\[hub\]"):
             sources.resolve("transformers", "x/y", False, False)
 
-    def test_resolve(self):
+    def test_resolve(self, monkeypatch):
         from app.sources import resolve
 
+        monkeypatch.setattr(ds, "hub_model_cached", lambda name: name == "org/model")
         assert resolve("auto", "", True, True) == ("file", "")
         assert resolve(None, "", False, True) == ("embedded", "")
         assert resolve("auto", "", False, False) == ("d2f", "")
@@ -479,7 +488,7 @@ class TestApp:
         args = (None, "disparity", None, 0.5, 40.0, 0, 0.0, True, True, "Bokeh", "balanced")
         with pytest.raises(gr.Error, match="Name a Hugging Face depth model"):
             logic.load(photo, *args, "transformers", "")
-        with pytest.raises(gr.Error, match="holds no depth-estimation model"):
+        with pytest.raises(gr.Error, match="nor a folder holding a model"):
             logic.load(photo, *args, "transformers", str(tmp_path))
         # the photo's own depth on a photo without any: the network, with a note
         out = logic.load(photo, *args, "embedded", "")

@@ -176,12 +176,17 @@ class TestFocusAt:
         scene = model.prepare(_image(), disparity=disp)
         assert model.focus_at(scene, 22, 12, radius=2) == pytest.approx(0.8, abs=1e-6)
 
-    def test_clamps_to_image(self, model):
+    def test_edges_and_outside(self, model):
         disp = np.full((48, 64), 0.1, np.float32)
         disp[:, -4:] = 0.9
         scene = model.prepare(_image(), disparity=disp)
-        assert model.focus_at(scene, 500, -30, radius=1) == pytest.approx(0.9, abs=1e-6)
-        assert model.focus_at(scene, -5, 100) == pytest.approx(0.1, abs=1e-6)
+        # the photo's pixel area, [-0.5, W - 0.5] x [-0.5, H - 0.5], is inside
+        assert model.focus_at(scene, 63.5, -0.5, radius=1) == pytest.approx(0.9, abs=1e-6)
+        assert model.focus_at(scene, -0.5, 47.5) == pytest.approx(0.1, abs=1e-6)
+        # a point outside is refused, not moved onto the border
+        for x, y in ((500, -30), (-5, 10), (10, 48), (-1, -1)):
+            with pytest.raises(ValueError, match=r"outside the 64x48 photo"):
+                model.focus_at(scene, x, y)
 
     def test_bad_args(self, model):
         scene = model.prepare(_image())

@@ -18,7 +18,14 @@ from typing import Literal
 import numpy as np
 from PIL import Image
 
-from .image import atomic_write, open_pil, read_source_bytes, resize_float, to_uint8
+from .image import (
+    MAX_DECODE_PIXELS,
+    atomic_write,
+    open_pil,
+    read_source_bytes,
+    resize_float,
+    to_uint8,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -67,6 +74,11 @@ def read_pfm(src: str | os.PathLike | bytes) -> np.ndarray:
     if width <= 0 or height <= 0 or scale == 0.0:
         raise ValueError(f"{name}: bad PFM size {width}x{height} or scale {scale}")
     channels = 3 if magic == b"PF" else 1
+    if width * height > MAX_DECODE_PIXELS:
+        raise ValueError(
+            f"{name}: PFM header claims {width}x{height} = {width * height} pixels, more than "
+            f"the limit of {MAX_DECODE_PIXELS}"
+        )
     count = width * height * channels
     dtype = np.dtype("<f4" if scale < 0 else ">f4")
     if len(data) - pos < count * 4:
@@ -133,6 +145,37 @@ def _grey_channels(a: np.ndarray, name: str, levels: float | None = None) -> np.
     return a.mean(axis=2)
 
 
+def _check_npy_header(data: bytes, name: str) -> None:
+    """Refuse a ``.npy`` file from its header, before anything is allocated: a shape of more
+    than :data:`~d2f_core.io.image.MAX_DECODE_PIXELS` values, or more bytes than the file
+    holds (``np.load`` allocates the header's shape first, then reads)."""
+    fh = io.BytesIO(data)
+    try:
+        version = np.lib.format.read_magic(fh)
+        if version == (1, 0):
+            shape, _, dtype = np.lib.format.read_array_header_1_0(fh)
+        elif version == (2, 0):
+            shape, _, dtype = np.lib.format.read_array_header_2_0(fh)
+        else:  # 3.0 (a UTF-8 header): no public reader
+            shape, _, dtype = np.lib.format._read_array_header(fh, version)
+    except Exception as exc:  # noqa: BLE001 (any failure to parse it: tokenize, literal_eval)
+        raise ValueError(f"{name}: unreadable .npy header: {exc}") from None
+    count = 1
+    for n in shape:
+        count *= int(n)
+    if count > MAX_DECODE_PIXELS:
+        raise ValueError(
+            f"{name}: .npy header claims shape {tuple(shape)} = {count} values, more than the "
+            f"limit of {MAX_DECODE_PIXELS}"
+        )
+    have = len(data) - fh.tell()
+    if not dtype.hasobject and count * dtype.itemsize > have:
+        raise ValueError(
+            f"{name}: truncated .npy file: shape {tuple(shape)} of {dtype} needs "
+            f"{count * dtype.itemsize} bytes, the file holds {have}"
+        )
+
+
 def read_depth_array(src: str | os.PathLike | bytes) -> np.ndarray:
     """Read the raw values of a depth/disparity file as HxW float64 (no normalisation).
 
@@ -142,6 +185,7 @@ def read_depth_array(src: str | os.PathLike | bytes) -> np.ndarray:
     name = "<bytes>" if isinstance(src, (bytes, bytearray, memoryview)) else os.fspath(src)
     data = read_source_bytes(src)
     if data.startswith(b"\x93NUMPY"):
+        _check_npy_header(data, name)
         try:
             arr = np.load(io.BytesIO(data), allow_pickle=False)
         except ValueError as exc:

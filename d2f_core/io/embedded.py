@@ -132,6 +132,9 @@ def extract_xmp(data: bytes) -> tuple[bytes | None, bytes | None]:
             wanted = m.group(1).upper()
     guid = next((g for g in chunks if g.upper() == wanted), None) or next(iter(chunks))
     entry = chunks[guid]
+    present = sum(len(part) for _, part in entry["parts"])
+    if entry["total"] > present:  # before the buffer: the total is only what the file says
+        raise ValueError(f"extended XMP is incomplete: {present} of {entry['total']} bytes present")
     buf = bytearray(entry["total"])
     covered = 0
     for offset, part in sorted(entry["parts"]):
@@ -288,7 +291,19 @@ def _finish(disp: np.ndarray, orientation: int, size: tuple[int, int], name: str
 # --------------------------------------------------------------------------- Google
 
 
-def _read_google(data: bytes, name: str, size: tuple[int, int] | None, orientation: int):
+def _check_depth_size(size: tuple[int, int], max_pixels: int, what: str) -> None:
+    """Refuse an embedded depth image larger than the photo, from its header (before Pillow
+    allocates it): a phone's depth map is never larger than its photo."""
+    w, h = size
+    if w * h > max_pixels:
+        raise ValueError(
+            f"{what}: the depth image claims {w}x{h} pixels, more than the photo's {max_pixels}"
+        )
+
+
+def _read_google(
+    data: bytes, name: str, size: tuple[int, int] | None, orientation: int, max_pixels: int
+):
     try:
         standard, extended = extract_xmp(data)
     except ValueError as exc:
@@ -302,6 +317,7 @@ def _read_google(data: bytes, name: str, size: tuple[int, int] | None, orientati
     except (binascii.Error, ValueError) as exc:
         raise ValueError(f"{name}: GDepth:Data is not valid base64: {exc}") from exc
     dim = open_pil(depth_bytes, f"{name} (GDepth:Data)")
+    _check_depth_size(dim.size, max_pixels, f"{name}: GDepth:Data")
     try:
         dim.load()
         v = np.clip(_grey_unit(dim), 0.0, 1.0)
@@ -373,6 +389,7 @@ def _read_apple_mpo(im: Image.Image, name: str, size: tuple[int, int], orientati
     n_frames = getattr(im, "n_frames", 1)
     if im.format != "MPO" or n_frames < 2:
         return None
+    max_pixels = im.size[0] * im.size[1]
     primary_xmp = im.info.get("xmp")
     depth = None
     props_depth: dict = {}
@@ -380,6 +397,7 @@ def _read_apple_mpo(im: Image.Image, name: str, size: tuple[int, int], orientati
     for index in range(1, n_frames):
         try:
             im.seek(index)
+            _check_depth_size(im.size, max_pixels, f"{name}: MPO frame {index}")
             props = xmp_properties(im.info.get("xmp"))
             aux = props.get((NS_APDI, "AuxiliaryImageType"))
             sub = props.get((NS_APDI, "AuxiliaryImageSubType"))
@@ -531,7 +549,7 @@ def read_embedded_depth(
         orientation = exif_orientation(im)
         if size is None:
             size = _upright_size(im)
-        found = _read_google(data, name, size, orientation)
+        found = _read_google(data, name, size, orientation, im.size[0] * im.size[1])
         if found is None:
             found = _read_apple_mpo(im, name, size, orientation)
     return found
@@ -595,7 +613,7 @@ def load_photo(
         else:
             if orig.shape[:2] != image.shape[:2]:
                 orig = resize_float(orig, image.shape[:2])
-            photo.image = np.clip(orig, 0.0, 1.0)
+            photo.image = np.clip(orig, 0.0, 1.0, out=orig)  # in place: no third picture
             info.conversions.append("used the embedded all-in-focus original (GImage:Data)")
             dinfo["used_original_image"] = True
             logger.info("%s: using the embedded all-in-focus original photo", name)

@@ -14,6 +14,7 @@ from __future__ import annotations
 import io
 import logging
 import os
+import stat
 import struct
 import tempfile
 import warnings
@@ -35,6 +36,8 @@ ImageSource = Union[str, os.PathLike, bytes, bytearray, memoryview]  # noqa: UP0
 EXIF_ORIENTATION = 0x0112
 # Same threshold as Pillow's DecompressionBombError (2 x MAX_IMAGE_PIXELS, about 179 MP).
 MAX_DECODE_PIXELS = 2 * 89_478_485
+#: Largest file read (photo or depth map): 1 GiB, about a 179 MP 16-bit RGBA TIFF.
+MAX_FILE_BYTES = 1 << 30
 
 SAVE_FORMATS = {
     ".png": "PNG",
@@ -96,26 +99,67 @@ def source_name(src: ImageSource) -> str:
     return os.fspath(src)
 
 
-def read_source_bytes(src: ImageSource) -> bytes:
-    """Whole content of a path or bytes source; ``ValueError`` for empty or unreadable input."""
+def read_source_bytes(src: ImageSource, max_bytes: int = MAX_FILE_BYTES) -> bytes:
+    """Whole content of a path or bytes source.
+
+    Only regular files are read: a pipe, a device (``/dev/zero``) or a socket is refused
+    without reading from it (it is opened non-blocking, so a FIFO without a writer does not
+    hang), and so is a file larger than ``max_bytes``.
+
+    Raises:
+        FileNotFoundError: the path does not exist.
+        ValueError: a directory, not a regular file, larger than ``max_bytes``, empty or
+            unreadable.
+    """
     name = source_name(src)
     if isinstance(src, (bytes, bytearray, memoryview)):
         data = bytes(src)
+        if len(data) > max_bytes:
+            raise ValueError(f"{name}: {len(data)} bytes, more than the limit of {max_bytes}")
     else:
         if not isinstance(src, (str, os.PathLike)):
             raise InputTypeError(f"src: expected a path or bytes, got {type(src).__name__}")
-        path = Path(src)
-        if not path.exists():
-            raise FileNotFoundError(f"{name}: no such file")
-        if path.is_dir():
-            raise ValueError(f"{name}: is a directory, not an image file")
-        try:
-            data = path.read_bytes()
-        except OSError as exc:
-            raise ValueError(f"{name}: cannot read file: {exc.strerror or exc}") from exc
+        data = _read_regular_file(Path(src), name, max_bytes)
     if len(data) == 0:
         raise ValueError(f"{name}: file is empty (0 bytes)")
     return data
+
+
+def _check_regular(st: os.stat_result, name: str, max_bytes: int) -> None:
+    if stat.S_ISDIR(st.st_mode):
+        raise ValueError(f"{name}: is a directory, not an image file")
+    if not stat.S_ISREG(st.st_mode):
+        raise ValueError(f"{name}: not a regular file (a device, pipe or socket)")
+    if st.st_size > max_bytes:
+        raise ValueError(f"{name}: {st.st_size} bytes, more than the limit of {max_bytes}")
+
+
+def _read_regular_file(path: Path, name: str, max_bytes: int) -> bytes:
+    """Read a regular file, looked at (``stat``) before it is opened; opened non-blocking and
+    looked at again (``fstat``), so that a file swapped in between is refused too."""
+    flags = os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0)
+    try:
+        _check_regular(os.stat(path), name, max_bytes)
+        fd = os.open(path, flags)
+    except FileNotFoundError:
+        raise FileNotFoundError(f"{name}: no such file") from None
+    except IsADirectoryError:
+        raise ValueError(f"{name}: is a directory, not an image file") from None
+    except OSError as exc:
+        raise ValueError(f"{name}: cannot read file: {exc.strerror or exc}") from None
+    with os.fdopen(fd, "rb") as fh:
+        _check_regular(os.fstat(fd), name, max_bytes)
+        try:
+            parts = [fh.read(os.fstat(fd).st_size)]
+            total = len(parts[0])
+            while more := fh.read(1 << 16):  # a file that grew meanwhile, up to the cap
+                total += len(more)
+                if total > max_bytes:
+                    raise ValueError(f"{name}: more than the limit of {max_bytes} bytes")
+                parts.append(more)
+        except OSError as exc:
+            raise ValueError(f"{name}: cannot read file: {exc.strerror or exc}") from exc
+    return parts[0] if len(parts) == 1 else b"".join(parts)
 
 
 def is_heif(data: bytes) -> bool:
@@ -168,10 +212,23 @@ def open_pil(data: bytes, name: str) -> Image.Image:
 # --------------------------------------------------------------------------- orientation
 
 
-def exif_orientation(im: Image.Image) -> int:
-    """EXIF orientation (1..8) of a Pillow image; 1 when absent or invalid."""
+def exif_orientation(im: Image.Image, data: bytes | None = None) -> int:
+    """EXIF orientation (1..8) of a Pillow image; 1 when absent or invalid.
+
+    For a PNG pass its bytes as ``data``: its eXIf chunk is then found by a scan of its
+    chunks. Pillow's ``getexif`` decodes the whole image to look for an eXIf chunk after the
+    image data, before any size check could refuse it.
+    """
     try:
-        value = im.getexif().get(EXIF_ORIENTATION, 1)
+        if data is not None and im.format == "PNG":
+            raw = _png_exif(data)
+            if raw is None:
+                return 1
+            ex = Image.Exif()
+            ex.load(raw)
+            value = ex.get(EXIF_ORIENTATION, 1)
+        else:
+            value = im.getexif().get(EXIF_ORIENTATION, 1)
     except Exception:  # a malformed EXIF block must not stop the photo from loading
         return 1
     try:
@@ -225,13 +282,18 @@ def strip_orientation(exif: bytes | Image.Exif | None) -> bytes | None:
 
 # --------------------------------------------------------------------------- 16-bit PNG
 
+#: Bytes inflated at a time: the inflater never hands out more than this in one piece.
+_INFLATE_STEP = 1 << 20
+
 
 def _png_chunks(data: bytes):
+    """``(type, body)`` of each chunk up to IEND; bodies are memoryviews (no copies)."""
+    view = memoryview(data)
     pos = 8
     while pos + 8 <= len(data):
-        (length,) = struct.unpack(">I", data[pos : pos + 4])
-        ctype = data[pos + 4 : pos + 8]
-        body = data[pos + 8 : pos + 8 + length]
+        (length,) = struct.unpack(">I", view[pos : pos + 4])
+        ctype = bytes(view[pos + 4 : pos + 8])
+        body = view[pos + 8 : pos + 8 + length]
         if len(body) < length:
             raise ValueError("truncated PNG chunk")
         yield ctype, body
@@ -240,50 +302,105 @@ def _png_chunks(data: bytes):
             return
 
 
+def _png_exif(data: bytes) -> bytes | None:
+    """The eXIf chunk of a PNG as EXIF bytes (``Exif\\0\\0`` first), or None."""
+    try:
+        for ctype, body in _png_chunks(data):
+            if ctype == b"eXIf":
+                raw = bytes(body)
+                return raw if raw.startswith(b"Exif\x00\x00") else b"Exif\x00\x00" + raw
+    except (ValueError, struct.error):
+        return None
+    return None
+
+
+def png16_header(data: bytes) -> tuple[int, int, int, bool] | None:
+    """``(width, height, channels, interlaced)`` of a 16-bit colour PNG (RGB, RGBA,
+    grey+alpha) from its IHDR chunk, or None for any other file."""
+    if not data.startswith(b"\x89PNG\r\n\x1a\n") or len(data) < 29 or data[12:16] != b"IHDR":
+        return None
+    w, h, depth, ctype, _, _, interlace = struct.unpack(">IIBBBBB", data[16:29])
+    channels = {2: 3, 4: 2, 6: 4}.get(ctype)
+    if depth != 16 or channels is None:
+        return None
+    return w, h, channels, bool(interlace)
+
+
 def _paeth(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
     p = a + b - c
     pa, pb, pc = np.abs(p - a), np.abs(p - b), np.abs(p - c)
     return np.where((pa <= pb) & (pa <= pc), a, np.where(pb <= pc, b, c))
 
 
-def _png_unfilter(raw: np.ndarray, h: int, w: int, bpp: int) -> np.ndarray:
-    """Undo PNG scanline filters. Returns (h, w, bpp) uint8.
+def _png_unfilter(rows: np.ndarray, h: int, w: int, bpp: int) -> np.ndarray:
+    """Undo PNG scanline filters in place. ``rows``: (h, 1 + w * bpp) uint8, the filter type
+    byte then the filtered bytes of each scanline. Returns the (h, w, bpp) uint8 view of
+    ``rows`` that holds the pixels' bytes.
 
     Average and Paeth depend on the left, upper and upper-left pixels, so rows cannot be
     decoded independently; sweeping anti-diagonals decodes every pixel whose neighbours are
-    done in one vectorised step (h + w steps instead of h * w).
+    done in one vectorised step (h + w steps instead of h * w). Each byte is read as filtered
+    before it is written as decoded, so no second copy of the image is made.
     """
-    stride = w * bpp
-    if raw.size < h * (stride + 1):
-        raise ValueError("truncated PNG image data")
-    rows = raw[: h * (stride + 1)].reshape(h, stride + 1)
-    ftype = rows[:, 0].astype(np.int32)
+    ftype = rows[:, 0].copy()
     if (ftype > 4).any():
         raise ValueError("corrupt PNG filter type")
-    filt = rows[:, 1:].reshape(h, w, bpp).astype(np.int32)
-    out = np.zeros((h + 1, w + 1, bpp), np.int32)  # zero row/column = PNG's "outside" pixels
+    pix = rows[:, 1:].reshape(h, w, bpp)  # a view: the decode writes into ``rows``
     if not ((ftype == 3) | (ftype == 4)).any():
         for i in range(h):
-            if ftype[i] == 0:
-                out[i + 1, 1:] = filt[i]
-            elif ftype[i] == 1:
-                out[i + 1, 1:] = np.cumsum(filt[i], axis=0) & 0xFF
-            else:
-                out[i + 1, 1:] = (filt[i] + out[i, 1:]) & 0xFF
-        return out[1:, 1:].astype(np.uint8)
+            if ftype[i] == 1:
+                pix[i] = np.cumsum(pix[i], axis=0, dtype=np.uint8)  # wraps modulo 256
+            elif ftype[i] == 2 and i > 0:
+                pix[i] += pix[i - 1]
+        return pix
+    ft = ftype.astype(np.int16)
     for t in range(h + w - 1):
         i = np.arange(max(0, t - w + 1), min(h - 1, t) + 1)
         j = t - i
-        a = out[i + 1, j]
-        b = out[i, j + 1]
-        c = out[i, j]
-        ft = ftype[i][:, None]
-        pred = np.where(ft == 1, a, np.where(ft == 2, b, np.where(ft == 3, (a + b) >> 1, 0)))
-        paeth_rows = ft[:, 0] == 4
+        left, up = j > 0, i > 0
+        a = pix[i, np.maximum(j - 1, 0)].astype(np.int16)
+        a[~left] = 0
+        b = pix[np.maximum(i - 1, 0), j].astype(np.int16)
+        b[~up] = 0
+        c = pix[np.maximum(i - 1, 0), np.maximum(j - 1, 0)].astype(np.int16)
+        c[~(left & up)] = 0
+        f = ft[i][:, None]
+        pred = np.where(f == 1, a, np.where(f == 2, b, np.where(f == 3, (a + b) >> 1, 0)))
+        paeth_rows = f[:, 0] == 4
         if paeth_rows.any():
             pred[paeth_rows] = _paeth(a[paeth_rows], b[paeth_rows], c[paeth_rows])
-        out[i + 1, j + 1] = (filt[i, j] + pred) & 0xFF
-    return out[1:, 1:].astype(np.uint8)
+        pix[i, j] = (pix[i, j] + pred) & 0xFF
+    return pix
+
+
+def _inflate_bounded(chunks, limit: int) -> np.ndarray:
+    """The zlib stream spread over ``chunks``, inflated into at most ``limit`` bytes.
+
+    The work and the memory never exceed what ``limit`` allows, whatever the stream claims:
+    it is inflated a piece at a time (:data:`_INFLATE_STEP`), and one byte past ``limit``
+    is refused as a corrupt file.
+    """
+    inflater = zlib.decompressobj()
+    out = bytearray()
+    try:
+        for body in chunks:
+            pending = body
+            while pending and not inflater.eof:
+                step = min(_INFLATE_STEP, limit + 1 - len(out))
+                out += inflater.decompress(pending, step)
+                if len(out) > limit:
+                    raise ValueError(
+                        f"corrupt PNG image data: it inflates to more than the {limit} bytes "
+                        "that its header's size needs"
+                    )
+                pending = inflater.unconsumed_tail
+            if inflater.eof:
+                break
+    except zlib.error as exc:
+        raise ValueError(f"corrupt PNG image data: {exc}") from exc
+    if not inflater.eof:
+        raise ValueError("truncated PNG image data (compressed stream ends early)")
+    return np.frombuffer(out, np.uint8)
 
 
 def decode_png16(data: bytes) -> tuple[np.ndarray, bytes | None] | None:
@@ -291,31 +408,36 @@ def decode_png16(data: bytes) -> tuple[np.ndarray, bytes | None] | None:
 
     Pillow reduces these to 8 bits. Returns (HxWxC uint16, eXIf bytes or None), or None when
     the file is not of this kind (the caller then uses Pillow).
+
+    The image data is inflated with a bound: the rows that the header's size needs (its
+    filter bytes included) and not one byte more, so the cost follows the header, never what
+    the compressed stream claims; more data is refused as a corrupt file. The memory is the
+    inflated rows (decoded in place) and the returned array.
     """
-    if not data.startswith(b"\x89PNG\r\n\x1a\n"):
+    header = png16_header(data)
+    if header is None:
         return None
-    chunks = list(_png_chunks(data))
-    if not chunks or chunks[0][0] != b"IHDR":
-        raise ValueError("PNG without IHDR chunk")
-    w, h, depth, ctype, _, _, interlace = struct.unpack(">IIBBBBB", chunks[0][1][:13])
-    channels = {2: 3, 4: 2, 6: 4}.get(ctype)
-    if depth != 16 or channels is None:
-        return None
+    w, h, channels, interlace = header
     if interlace:
         logger.info("interlaced 16-bit PNG: decoded by Pillow at 8-bit precision")
         return None
-    idat = b"".join(body for ctype_, body in chunks if ctype_ == b"IDAT")
-    exif = next((body for ctype_, body in chunks if ctype_ == b"eXIf"), None)
-    inflater = zlib.decompressobj()
-    try:
-        raw = inflater.decompress(idat)
-    except zlib.error as exc:
-        raise ValueError(f"corrupt PNG image data: {exc}") from exc
-    if not inflater.eof:
-        raise ValueError("truncated PNG image data (compressed stream ends early)")
-    bytes_ = _png_unfilter(np.frombuffer(raw, np.uint8), h, w, channels * 2)
-    pixels = bytes_.reshape(h, w, channels, 2)
-    arr = (pixels[..., 0].astype(np.uint16) << 8) | pixels[..., 1]
+    if w <= 0 or h <= 0:
+        raise ValueError(f"PNG image has no pixels ({w}x{h})")
+    bpp = channels * 2
+    needed = h * (w * bpp + 1)
+    idat = []
+    exif = None
+    for ctype, body in _png_chunks(data):
+        if ctype == b"IDAT":
+            idat.append(body)
+        elif ctype == b"eXIf" and exif is None:
+            exif = bytes(body)
+    raw = _inflate_bounded(idat, needed)
+    if raw.size < needed:
+        raise ValueError(f"truncated PNG image data ({raw.size} of {needed} bytes)")
+    pix = _png_unfilter(raw.reshape(h, w * bpp + 1), h, w, bpp)
+    arr = pix.view(">u2").astype(np.uint16)  # (h, w, channels), big-endian samples
+    del pix, raw
     if exif is not None and not exif.startswith(b"Exif\x00\x00"):
         exif = b"Exif\x00\x00" + exif
     return arr, exif
@@ -416,6 +538,11 @@ def _to_float_rgb(im: Image.Image, conv: list[str]) -> tuple[np.ndarray, bytes |
             )
             g = np.where(finite, g, 0.0)
         hi = float(g.max()) if g.size else 0.0
+        if g.size and not hi > 0.0:
+            raise ValueError(
+                "float image holds no value above 0 (every pixel is 0, negative, NaN or "
+                "infinite): it would be all black"
+            )
         if hi > 1.0:
             g = g / hi
             conv.append(f"float grayscale scaled by 1/{hi:g}")
@@ -431,7 +558,8 @@ def _to_float_rgb(im: Image.Image, conv: list[str]) -> tuple[np.ndarray, bytes |
 
 
 def _png16_to_float_rgb(arr: np.ndarray, conv: list[str]) -> np.ndarray:
-    a = arr.astype(np.float32) / 65535.0
+    a = arr.astype(np.float32)
+    a *= 1.0 / 65535.0
     if a.shape[2] == 2:
         conv.append("16-bit grayscale -> RGB")
         return _composite_over_white(np.repeat(a[..., :1], 3, axis=2), a[..., 1], conv)
@@ -505,7 +633,7 @@ def decode_image(
     info.mode = im.mode
     info.xmp = im.info.get("xmp") or None
     w, h = im.size
-    orientation = exif_orientation(im)
+    orientation = exif_orientation(im, data)
     info.orientation = orientation
     upright = (w, h) if orientation < 5 else (h, w)
     info.original_size = (upright[1], upright[0])
@@ -517,8 +645,16 @@ def decode_image(
             )
         target = fit_size(w, h, max_pixels)
 
+    png16_size = png16_header(data) if im.format == "PNG" else None
+    if png16_size is not None and target is not None:
+        # checked from the header, before any decoding: a 16-bit PNG above the cap is read
+        # by Pillow at 8 bits per channel, row by row (4 bytes a pixel, as an 8-bit PNG),
+        # and reduced to the cap; at full precision it would take several times that
+        info.bit_depth = 16
+        conv.append("16-bit PNG above max_pixels: read at 8 bits per channel, then resized")
+        png16_size = None
     try:
-        png16 = decode_png16(data) if im.format == "PNG" else None
+        png16 = decode_png16(data) if png16_size is not None else None
         if png16 is not None:
             arr16, exif_raw = png16
             info.bit_depth = 16
@@ -532,7 +668,8 @@ def decode_image(
                 warnings.simplefilter("ignore", Image.DecompressionBombWarning)
                 im.load()
             exif_raw = im.info.get("exif") or None
-            info.bit_depth = 32 if im.mode in ("I", "F") else 8
+            if info.bit_depth != 16:
+                info.bit_depth = 32 if im.mode in ("I", "F") else 8
             if im.mode.startswith("I;16"):
                 info.bit_depth = 16
             if target is not None and im.mode in ("RGB", "L", "RGBA", "LA"):
