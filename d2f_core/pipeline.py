@@ -607,10 +607,12 @@ class D2F(nn.Module):
 
         Args:
             image: ``H x W x 3`` numpy (uint8, or float32 in [0, 1]), a ``[1, 3, H, W]``
-                tensor in [0, 1], or a :class:`d2f_core.io.Photo` (whose phone depth the
-                ``"embedded"`` source reads).
+                tensor in [0, 1], or a :class:`d2f_core.io.Photo` from
+                :func:`~d2f_core.io.load_photo` (whose phone depth the ``"embedded"`` source
+                reads, and which is the default for a photo that carries some).
             depth: where the disparity comes from (:mod:`d2f_core.depth_sources`): ``None``
-                or ``"d2f"`` (this model's defocus network), ``"embedded"``, ``"file:PATH"``,
+                (the photo's phone depth when it has some, else this model's defocus network),
+                ``"d2f"`` (the network), ``"embedded"``, ``"file:PATH"``,
                 ``"transformers:MODEL"``, a :class:`~d2f_core.depth_sources.DepthMap`, or a
                 ready ``H' x W'`` map in [0, 1] (1 = nearest) of any size, resized to the
                 photo.
@@ -629,6 +631,8 @@ class D2F(nn.Module):
         photo = None
         if isinstance(image, Photo):
             photo, image = image, image.image
+            if depth is None and photo.disparity is not None:
+                depth = "embedded"  # the phone's own depth, as the CLI and the app take it
         device = self.device
         image_t = rendering.image_tensor(image).to(device)  # [1,3,H,W]
         source, output = depth_sources.DEFAULT_SOURCE, "D2F network disparity"
