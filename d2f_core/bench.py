@@ -545,6 +545,12 @@ def _bench_peers(args: argparse.Namespace) -> int:
     return int(peers_main(args.rest) or 0)
 
 
+def _bench_batch(args: argparse.Namespace) -> int:
+    from .bench_batch import main as batch_main
+
+    return int(batch_main(args.rest) or 0)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="d2f-bench", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -578,6 +584,7 @@ def main(argv: list[str] | None = None) -> int:
         ("accuracy", _bench_accuracy, "renderer settings against ground truth"),
         ("depth", _bench_depth, "defocus network's depth on real photos against measured depth"),
         ("peers", _bench_peers, "d2f against other renderers, by category, against ground truth"),
+        ("batch", _bench_batch, "d2f batch photos/s on local workers and Ray, memory at 12 MP"),
     ):
         q = sub.add_parser(name, help=text, add_help=False)
         q.set_defaults(func=func)

@@ -140,9 +140,11 @@ class PhotoWorker:
     ) -> None:
         from ..cli import Engine
 
+        self._threads = None
         if threads is not None:
             import torch
 
+            self._threads = torch.get_num_threads()  # restored by close() (one worker in-process)
             torch.set_num_threads(int(threads))
         self.args = args
         self.engine = Engine(args.weights)
@@ -174,3 +176,8 @@ class PhotoWorker:
 
     def close(self) -> None:
         self.writer.close()
+        if self._threads is not None:
+            import torch
+
+            torch.set_num_threads(self._threads)
+            self._threads = None
