@@ -519,7 +519,7 @@ def render_with_depth_only(
     )
 
 
-def _find_depth_file(folder: Path, stem: str) -> Path | None:
+def find_depth_file(folder: Path, stem: str) -> Path | None:
     for suffix in DEPTH_SUFFIXES:
         for ext in DEPTH_FILE_EXTENSIONS:
             candidate = folder / f"{stem}{suffix}{ext}"
@@ -751,7 +751,8 @@ def _cmd_render(args: argparse.Namespace) -> int:
 _EXPECTED_ERRORS = (RenderError, ValueError, OSError, RuntimeError)
 
 
-def _message(exc: BaseException) -> str:
+def error_message(exc: BaseException) -> str:
+    """One line naming what went wrong (``unexpected ...`` for a defect of d2f)."""
     text = str(exc) or type(exc).__name__
     if isinstance(exc, OSError) and exc.strerror and exc.filename:
         text = f"{exc.filename}: {exc.strerror}"
@@ -779,7 +780,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{PROG}: error: {exc}", file=sys.stderr)
         return 2
     except Exception as exc:  # expected ones name the problem; any other, one line too
-        print(f"{PROG}: error: {_message(exc)}", file=sys.stderr)
+        print(f"{PROG}: error: {error_message(exc)}", file=sys.stderr)
         logger.debug("traceback", exc_info=True)
         return 1
     except KeyboardInterrupt:

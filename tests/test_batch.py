@@ -255,7 +255,8 @@ class TestLocalEngine:
 
         rows = read_rows(out / "manifest.jsonl")  # the killed run's parts, not folded yet
         done = {r["input"] for r in rows if r["status"] == "done" and Path(r["output"]).is_file()}
-        assert 4 <= len(done) < len(names)
+        # an output renamed into place whose row was not written yet counts as not done
+        assert 1 <= len(done) < len(names)
         killed = _outputs(out)
         for data in killed.values():  # what carries an output's name is whole
             Image.open(io.BytesIO(data)).load()

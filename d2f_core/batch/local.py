@@ -24,6 +24,7 @@ from .worker import PhotoWorker, failed_row
 __all__ = ["cpu_count", "default_split", "run_local"]
 
 _WORKER: PhotoWorker | None = None
+_THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
 
 
 def cpu_count() -> int:
@@ -36,10 +37,10 @@ def cpu_count() -> int:
 
 def default_split(cpus: int, photos: int) -> tuple[int, int]:
     """``(workers, torch threads each)`` for ``photos`` photos on ``cpus`` CPUs: one thread per
-    worker and as many workers as CPUs (``d2f-bench batch``: on 2 cores, 2 workers of 1
-    thread render 1.7x the photos per second of 1 worker of 2 threads, because reading,
-    depth refinement and encoding are single-threaded), never more workers than photos;
-    a single photo gets every thread."""
+    worker and as many workers as CPUs, never more workers than photos. ``d2f-bench batch`` on
+    2 shared cores (docs/batch.md): 2 workers of 1 thread rendered 3 to 7 times the photos per
+    second of 1 worker of 2 threads (reading, depth refinement and encoding are
+    single-threaded, and two threads of one photo wait on each other on a busy machine)."""
     workers = max(1, min(cpus, photos))
     return workers, max(1, cpus // workers)
 
@@ -78,6 +79,22 @@ def run_local(
         return
     pending = list(reversed(jobs))  # popped from the end: input order
     context = multiprocessing.get_context("spawn")
+    # the workers' OpenMP and BLAS pools get their share of the CPUs from the start, as Ray
+    # gives its actors (torch.set_num_threads alone leaves numpy's and OpenMP's defaults)
+    saved = {name: os.environ.get(name) for name in _THREAD_VARIABLES}
+    if threads is not None:
+        os.environ.update({name: str(threads) for name in _THREAD_VARIABLES})
+    try:
+        yield from _pools(pending, context, args, manifest, workers, threads, level)
+    finally:
+        for name, value in saved.items():
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value
+
+
+def _pools(pending, context, args, manifest, workers, threads, level):
     while pending:
         pool = ProcessPoolExecutor(
             max_workers=min(workers, len(pending)),

@@ -156,10 +156,10 @@ def find_photos(
 
 
 def _depth_for(depth_dir: Path, rel_parent: Path, stem: str) -> Path | None:
-    from ..cli import _find_depth_file
+    from ..cli import find_depth_file
 
     for folder in dict.fromkeys((depth_dir / rel_parent, depth_dir)):
-        found = _find_depth_file(folder, stem) if folder.is_dir() else None
+        found = find_depth_file(folder, stem) if folder.is_dir() else None
         if found is not None:
             return found
     return None

@@ -80,13 +80,20 @@ def run_ray(
     import ray.data
 
     address = address or os.environ.get("RAY_ADDRESS") or None
-    ray.init(
-        address=address,
-        include_dashboard=False,
-        log_to_driver=not quiet,
-        logging_level=logging.ERROR if quiet else logging.WARNING,
-        configure_logging=True,
-    )
+    if quiet:  # the C++ core's and Ray Data's notices
+        os.environ.setdefault("RAY_BACKEND_LOG_LEVEL", "error")
+        logging.getLogger("ray").setLevel(logging.ERROR)
+    try:
+        ray.init(
+            address=address,
+            include_dashboard=False,
+            log_to_driver=not quiet,
+            logging_level=logging.ERROR if quiet else logging.WARNING,
+        )
+    except Exception as exc:  # ConnectionError, RuntimeError, ValueError: several lines
+        where = f"the Ray cluster at {address}" if address else "a local Ray cluster"
+        first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+        raise ConnectionError(f"cannot start or join {where}: {first}") from exc
     try:
         context = ray.data.DataContext.get_current()
         context.enable_progress_bars = not quiet

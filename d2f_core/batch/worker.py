@@ -115,9 +115,9 @@ def failed_row(job: Job, exc: BaseException, seconds: float = 0.0) -> dict[str, 
 
 
 def _one_line(src: Path, exc: BaseException) -> str:
-    from ..cli import _message
+    from ..cli import error_message
 
-    msg = " ".join(_message(exc).split())
+    msg = " ".join(error_message(exc).split())
     return msg if os.fspath(src) in msg or src.name in msg else f"{src}: {msg}"
 
 
