@@ -80,9 +80,6 @@ def run_ray(
     import ray.data
 
     address = address or os.environ.get("RAY_ADDRESS") or None
-    if quiet:  # the C++ core's and Ray Data's notices
-        os.environ.setdefault("RAY_BACKEND_LOG_LEVEL", "error")
-        logging.getLogger("ray").setLevel(logging.ERROR)
     try:
         ray.init(
             address=address,
@@ -94,6 +91,9 @@ def run_ray(
         where = f"the Ray cluster at {address}" if address else "a local Ray cluster"
         first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
         raise ConnectionError(f"cannot start or join {where}: {first}") from exc
+    if quiet:  # Ray Data's notices (ray.init has set up Ray's loggers by now)
+        for name in ("ray", "ray.data"):
+            logging.getLogger(name).setLevel(logging.ERROR)
     try:
         context = ray.data.DataContext.get_current()
         context.enable_progress_bars = not quiet
