@@ -551,6 +551,12 @@ def _bench_peers(args: argparse.Namespace) -> int:
     return int(peers_main(args.rest) or 0)
 
 
+def _bench_batch(args: argparse.Namespace) -> int:
+    from .bench_batch import main as batch_main
+
+    return int(batch_main(args.rest) or 0)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="d2f-bench", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -585,6 +591,7 @@ def main(argv: list[str] | None = None) -> int:
         ("depth", _bench_depth, "defocus network's depth on real photos against measured depth"),
         ("peers", _bench_peers, "d2f against other renderers, by category, against ground truth"),
         ("standing", _bench_standing, "whether a depth map puts held-out subjects in front"),
+        ("batch", _bench_batch, "d2f batch photos/s on local workers and Ray, memory at 12 MP"),
     ):
         q = sub.add_parser(name, help=text, add_help=False)
         q.set_defaults(func=func)

@@ -1,7 +1,7 @@
 """``d2f``: render bokeh from the command line.
 
     d2f render IN -o OUT [--focus F | --focus-at X,Y] --blur K [--depth FILE ...]
-    d2f batch DIR -o OUTDIR [same options]
+    d2f batch INPUT... -o OUTDIR [same options] [--recursive] [--engine local|ray] (d2f_core.batch)
 
 Depth comes from ``--depth-model SOURCE`` (:mod:`d2f_core.depth_sources`: ``embedded``,
 ``file:PATH``, ``d2f``, ``transformers:MODEL``), else, in order: ``--depth``, the phone depth
@@ -32,14 +32,12 @@ from typing import Any
 import numpy as np
 
 from .io import (
-    READ_EXTENSIONS,
     SAVE_FORMATS,
     load_photo,
     same_file,
     save_depth,
     save_image,
 )
-from .progress import logs_above_bar, progress
 
 # named explicitly: under "python -m d2f_core.cli" __name__ is "__main__"
 logger = logging.getLogger("d2f_core.cli")
@@ -94,6 +92,16 @@ def _blur_px(text: str) -> float:
     value = _non_negative_float(text)
     if value > MAX_BLUR:
         raise argparse.ArgumentTypeError(f"expected at most {MAX_BLUR:g} px, got {text!r}")
+    return value
+
+
+def _f_number(text: str) -> float:
+    from .lens import F_NUMBER_LIMITS
+
+    value = _non_negative_float(text)
+    lo, hi = F_NUMBER_LIMITS
+    if not lo <= value <= hi:
+        raise argparse.ArgumentTypeError(f"expected an f-number in [{lo:g}, {hi:g}], got {text!r}")
     return value
 
 
@@ -193,12 +201,20 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="X,Y",
         help="focus on the depth at this pixel of the (upright) input photo",
     )
-    focus.add_argument(
+    amount = focus.add_mutually_exclusive_group(required=True)
+    amount.add_argument(
         "--blur",
         type=_blur_px,
-        required=True,
         metavar="K",
         help="blur amount: CoC diameter in px at full resolution for |d - focus| = 1",
+    )
+    amount.add_argument(
+        "--f-number",
+        type=_f_number,
+        metavar="N",
+        help="blur as the f-number of the app's virtual lens (50 mm on full frame, nearest "
+        "point at 1 m): K follows from each photo's long side, so photos of any size get "
+        "the same look",
     )
     focus.add_argument(
         "--aperture-blades",
@@ -321,25 +337,16 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument(
         "-o", "--output", type=Path, required=True, metavar="OUT", help="output file or folder"
     )
+    from .batch.command import add_batch_arguments
+
     batch = sub.add_parser(
         "batch",
         parents=[common],
-        help="render every photo in a folder",
-        description="Render bokeh for every photo in a folder (not recursive).",
+        help="render a photo library (folder, glob or list) on local processes or Ray",
+        description="Render bokeh for every photo of a folder, a glob or a list of paths, "
+        "keeping their layout, with a manifest; a rerun renders only what is missing.",
     )
-    batch.add_argument("input", type=Path, metavar="DIR", help="folder of photos")
-    batch.add_argument(
-        "-o", "--output", type=Path, required=True, metavar="DIR", help="output folder"
-    )
-    batch.add_argument(
-        "--format",
-        choices=sorted({e.lstrip(".") for e in SAVE_FORMATS}),
-        default=None,
-        help="output format (default: the input's, or jpg when it cannot be written)",
-    )
-    batch.add_argument(
-        "--suffix", default="_bokeh", help="added to each output file name (default _bokeh)"
-    )
+    add_batch_arguments(batch)
     return parser
 
 
@@ -417,6 +424,28 @@ class Rendered:
     maps: dict[str, np.ndarray] = field(default_factory=dict)
 
 
+@dataclass
+class RenderInfo:
+    """What :func:`render_file` did with one photo (the columns of the batch manifest).
+
+    Attributes:
+        output: the file written.
+        size: (width, height) rendered, after any ``--max-pixels`` downscale.
+        depth_source: where the disparity came from (``d2f`` for the network).
+        focus: the focal disparity in [0, 1] (1 = nearest).
+        focus_point: (x, y) in the input photo's pixels that gave the focus (``--focus-at``
+            or the subject found), or ``None`` when the focus was a number.
+        blur: K in px at the rendered size.
+    """
+
+    output: Path
+    size: tuple[int, int]
+    depth_source: str
+    focus: float
+    focus_point: tuple[float, float] | None
+    blur: float
+
+
 def _focus_from_map(disparity: np.ndarray, x: float, y: float) -> float:
     """Median disparity around pixel (x, y); same window as ``D2F.focus_at``."""
     h, w = disparity.shape
@@ -432,8 +461,8 @@ def _say_subject(
 ) -> None:
     """Print where the automatic focus landed, in the photo's own pixels (unless ``-q``): a
     user who gave no focus must be able to tell whether it found the right subject."""
-    if args.quiet:
-        return
+    if args.quiet or getattr(args, "command", "render") != "render":
+        return  # d2f batch records the point in its manifest
     h, w = photo.image.shape[:2]
     oh, ow = photo.info.original_size
     x, y = point[0] * ow / w, point[1] * oh / h
@@ -508,13 +537,22 @@ def render_with_depth_only(
     )
 
 
-def _find_depth_file(folder: Path, stem: str) -> Path | None:
+def find_depth_file(folder: Path, stem: str) -> Path | None:
     for suffix in DEPTH_SUFFIXES:
         for ext in DEPTH_FILE_EXTENSIONS:
             candidate = folder / f"{stem}{suffix}{ext}"
             if candidate.is_file():
                 return candidate
     return None
+
+
+def _blur_of(args: argparse.Namespace, size: tuple[int, int]) -> float:
+    """K in px: ``--blur``, or ``--f-number`` on a photo of this (height, width)."""
+    if getattr(args, "f_number", None) is None:
+        return args.blur
+    from .lens import blur_px
+
+    return blur_px(args.f_number, max(size))
 
 
 def _choose_depth(src: Path, photo: Any, args: argparse.Namespace, depth_file: Path | None) -> Any:
@@ -556,7 +594,7 @@ def render_file(
     args: argparse.Namespace,
     engine: Engine,
     depth_file: Path | None,
-) -> Path:
+) -> RenderInfo:
     """Render one photo to ``dst``; raises ``ValueError``/``RenderError`` on failure."""
     cap = DEFAULT_MAX_PIXELS if args.max_pixels is None else (args.max_pixels or None)
     photo = load_photo(src, max_pixels=cap, use_embedded=not args.no_embedded_depth)
@@ -569,6 +607,7 @@ def render_file(
             "(--max-pixels 0 renders it at its size)",
             src, ow, oh, ow * oh / 1e6, w, h, DEFAULT_MAX_PIXELS / 1e6,
         )  # fmt: skip
+    blur = _blur_of(args, (h, w))
     focus = args.focus
     depth = _choose_depth(src, photo, args, depth_file)
     if depth is not None and depth.focus is not None:
@@ -598,12 +637,13 @@ def render_file(
         if point == "subject":
             focus, (sx, sy) = model.subject_focus(scene)
             _say_subject(args, src, photo, (sx, sy), focus)
+            point = (sx, sy)
         elif point is not None:
             focus = model.focus_at(scene, *point)
         result = model.render(
             scene,
             focus=focus,
-            blur=args.blur,
+            blur=blur,
             fusion=not args.no_fusion,
             budget=args.quality,
             **options,
@@ -622,6 +662,7 @@ def render_file(
         if point == "subject":
             focus, (sx, sy) = _subject_from_map(disparity)
             _say_subject(args, src, photo, (sx, sy), focus)
+            point = (sx, sy)
         elif point is not None:
             focus = _focus_from_map(disparity, *point)
         logger.info("%s: rendering with the depth map only (no D2F weights)", src)
@@ -629,7 +670,7 @@ def render_file(
             image,
             disparity,
             focus,
-            args.blur,
+            blur,
             fusion=not args.no_fusion,
             quality=args.quality,  # the renderer preset of the same name
             **options,
@@ -640,7 +681,7 @@ def render_file(
             f"given, and the D2F network weights are unavailable ({engine.error}); pass "
             "--depth FILE, --depth-model transformers:MODEL or --weights CKPT"
         )
-    logger.info("%s: focus %.3f, blur %g px", src, focus, args.blur)
+    logger.info("%s: focus %.3f, blur %g px", src, focus, blur)
 
     protect = [src] + ([depth_file] if depth_file is not None else [])
     if args.depth_model is not None and args.depth_model.kind == "file":
@@ -659,7 +700,11 @@ def render_file(
             save_depth(target, np.clip(arr, 0.0, 1.0))
         except (OSError, ValueError) as exc:
             raise RenderError(f"{dst} was written, but not its map {target}: {exc}") from exc
-    return dst
+    if point is not None:  # back into the input photo's pixels
+        oh, ow = photo.info.original_size
+        point = (round(point[0] * ow / w, 1), round(point[1] * oh / h, 1))
+    source = "d2f" if depth is None else depth.describe()
+    return RenderInfo(dst, (w, h), source, float(focus), point, float(blur))
 
 
 def _map_targets(
@@ -722,76 +767,11 @@ def _cmd_render(args: argparse.Namespace) -> int:
     return 0
 
 
-def _batch_plan(args: argparse.Namespace) -> tuple[list[tuple[Path, Path]], list[Path]]:
-    """(input, output) pairs and the files skipped for their extension."""
-    in_dir: Path = args.input
-    out_dir: Path = args.output
-    files = sorted(p for p in in_dir.iterdir() if p.is_file() and not p.name.startswith("."))
-    photos = [p for p in files if p.suffix.lower() in READ_EXTENSIONS]
-    skipped = [p for p in files if p.suffix.lower() not in READ_EXTENSIONS]
-    used: set[str] = set()
-    pairs = []
-    for p in photos:
-        if args.format:
-            ext = "." + args.format
-        else:
-            ext = p.suffix.lower() if p.suffix.lower() in SAVE_FORMATS else ".jpg"
-        name = f"{p.stem}{args.suffix}{ext}"
-        if name.lower() in used:
-            # a.jpg and a.heic would both become a_bokeh.jpg
-            name = f"{p.stem}_{p.suffix.lstrip('.').lower()}{args.suffix}{ext}"
-        used.add(name.lower())
-        pairs.append((p, out_dir / name))
-    return pairs, skipped
-
-
-def _cmd_batch(args: argparse.Namespace) -> int:
-    in_dir: Path = args.input
-    out_dir: Path = args.output
-    if not in_dir.is_dir():
-        raise UsageError(f"{os.fspath(in_dir)!r} is not a folder")
-    if out_dir.exists() and not out_dir.is_dir():
-        raise UsageError(f"-o {os.fspath(out_dir)!r} exists and is not a folder")
-    if out_dir.exists() and same_file(out_dir, in_dir):
-        raise UsageError("-o must differ from the input folder (outputs never replace inputs)")
-    if "/" in args.suffix or os.sep in args.suffix:
-        raise UsageError("--suffix must not contain a path separator")
-    if args.depth is not None and not args.depth.is_dir():
-        raise UsageError("--depth must be a folder of depth maps for 'd2f batch'")
-    if args.save_maps is not None and args.save_maps.exists() and same_file(args.save_maps, in_dir):
-        raise UsageError("--save-maps must differ from the input folder")
-    pairs, skipped = _batch_plan(args)
-    for p in skipped:
-        logger.info("skipping %s: not a photo file extension", p)
-    if not pairs:
-        raise RenderError(f"no photos found in {os.fspath(in_dir)}")
-    out_dir.mkdir(parents=True, exist_ok=True)
-    engine = Engine(args.weights)
-    failed: list[Path] = []
-
-    with logs_above_bar():
-        bar = progress(pairs, desc="d2f", unit="photo", disable=True if args.quiet else None)
-        for src, dst in bar:
-            bar.set_postfix_str(src.name, refresh=False)
-            depth_file = _find_depth_file(args.depth, src.stem) if args.depth else None
-            try:
-                render_file(src, dst, args, engine, depth_file)
-            except Exception as exc:  # one bad file must never stop the batch
-                failed.append(src)
-                msg = _message(exc)
-                logger.error("skipped %s", msg if str(src) in msg else f"{src}: {msg}")
-    done = len(pairs) - len(failed)
-    logger.info("%d of %d photos rendered into %s", done, len(pairs), out_dir)
-    if failed:
-        logger.error("%d of %d photos failed", len(failed), len(pairs))
-        return 1
-    return 0
-
-
 _EXPECTED_ERRORS = (RenderError, ValueError, OSError, RuntimeError)
 
 
-def _message(exc: BaseException) -> str:
+def error_message(exc: BaseException) -> str:
+    """One line naming what went wrong (``unexpected ...`` for a defect of d2f)."""
     text = str(exc) or type(exc).__name__
     if isinstance(exc, OSError) and exc.strerror and exc.filename:
         text = f"{exc.filename}: {exc.strerror}"
@@ -832,13 +812,15 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.command == "render":
             return _cmd_render(args)
-        return _cmd_batch(args)
+        from .batch.command import run_batch
+
+        return run_batch(args)
     except UsageError as exc:
         parser.print_usage(sys.stderr)
         print(f"{PROG}: error: {exc}", file=sys.stderr)
         return 2
     except Exception as exc:  # expected ones name the problem; any other, one line too
-        print(f"{PROG}: error: {_message(exc)}", file=sys.stderr)
+        print(f"{PROG}: error: {error_message(exc)}", file=sys.stderr)
         logger.debug("traceback", exc_info=True)
         return 1
     except KeyboardInterrupt:

@@ -59,6 +59,11 @@ def _run(capsys, *argv) -> tuple[int, str]:
     return code, err
 
 
+def _batch(capsys, *argv) -> tuple[int, str]:
+    """``d2f batch`` with one worker, in this process (tests/test_batch.py runs the pools)."""
+    return _run(capsys, "batch", "--workers", 1, *argv)
+
+
 class TestUsage:
     def test_help(self, capsys):
         assert main(["--help"]) == 0
@@ -350,10 +355,14 @@ class TestBatch:
         photos, depths = self._folder(tmp_path)
         (photos / "notes.txt").write_text("not a photo")
         out = tmp_path / "out"
-        code, err = _run(capsys, "batch", photos, "-o", out, "--blur", 6, "--depth", depths,
+        code, err = _batch(capsys, photos, "-o", out, "--blur", 6, "--depth", depths,
                          "--focus", 1, "--format", "jpg")  # fmt: skip
         assert code == 0, err
-        assert sorted(p.name for p in out.iterdir()) == ["img0_bokeh.jpg", "img1_bokeh.jpg"]
+        assert sorted(p.name for p in out.iterdir()) == [
+            "img0_bokeh.jpg",
+            "img1_bokeh.jpg",
+            "manifest.jsonl",
+        ]
 
     @pytest.mark.parametrize("tqdm", [True, False])
     def test_unreadable_file_is_skipped_and_reported(self, tmp_path, capsys, monkeypatch, tqdm):
@@ -362,10 +371,14 @@ class TestBatch:
         photos, depths = self._folder(tmp_path)
         (photos / "corrupt.jpg").write_bytes(b"\xff\xd8\xff\xe0 truncated")
         out = tmp_path / "out"
-        code, err = _run(capsys, "batch", photos, "-o", out, "--blur", 6, "--depth", depths)
+        code, err = _batch(capsys, photos, "-o", out, "--blur", 6, "--depth", depths)
         assert code == 1
         assert "corrupt.jpg" in err and "1 of 3 photos failed" in err
-        assert sorted(p.name for p in out.iterdir()) == ["img0_bokeh.png", "img1_bokeh.png"]
+        assert sorted(p.name for p in out.iterdir()) == [
+            "img0_bokeh.png",
+            "img1_bokeh.png",
+            "manifest.jsonl",
+        ]
 
     def test_an_unexpected_error_skips_one_file_only(self, tmp_path, capsys, monkeypatch):
         """A defect raising something other than ValueError (an IndexError from a reader)
@@ -382,11 +395,12 @@ class TestBatch:
 
         monkeypatch.setattr(cli, "render_file", flaky)
         out = tmp_path / "out"
-        code, err = _run(capsys, "batch", photos, "-o", out, "--blur", 6, "--depth", depths)
+        # one worker renders in this process, where the patch is
+        code, err = _batch(capsys, photos, "-o", out, "--blur", 6, "--depth", depths)
         assert code == 1
         assert "img0.png: unexpected IndexError: list index out of range" in err
         assert "1 of 2 photos failed" in err
-        assert sorted(p.name for p in out.iterdir()) == ["img1_bokeh.png"]
+        assert sorted(p.name for p in out.iterdir()) == ["img1_bokeh.png", "manifest.jsonl"]
         # the same defect in 'd2f render' is one line, without a traceback
         code, err = _run(capsys, "render", photos / "img0.png", "-o", out / "x.png", "--blur", 6,
                          "--depth", depths / "img0_depth.png")  # fmt: skip
@@ -396,7 +410,7 @@ class TestBatch:
     def test_output_folder_equal_to_input_refused(self, tmp_path, capsys):
         photos, depths = self._folder(tmp_path)
         before = sorted(p.name for p in photos.iterdir())
-        code, err = _run(capsys, "batch", photos, "-o", photos / ".", "--blur", 6)
+        code, err = _batch(capsys, photos, "-o", photos / ".", "--blur", 6)
         assert code == 2 and "differ" in err
         assert sorted(p.name for p in photos.iterdir()) == before
 
@@ -405,18 +419,18 @@ class TestBatch:
         img, _ = _scene(seed=5)
         _write_photo(photos / "img0.jpg", img, quality=95)
         out = tmp_path / "out"
-        code, err = _run(capsys, "batch", photos, "-o", out, "--blur", 6, "--depth", depths,
+        code, err = _batch(capsys, photos, "-o", out, "--blur", 6, "--depth", depths,
                          "--format", "png")  # fmt: skip
         assert code == 0, err
-        assert len(list(out.iterdir())) == 3
+        assert len(list(out.glob("*.png"))) == 3
 
     def test_empty_folder_and_missing_weights(self, tmp_path, capsys):
         empty = tmp_path / "empty"
         empty.mkdir()
-        code, err = _run(capsys, "batch", empty, "-o", tmp_path / "o", "--blur", 6)
+        code, err = _batch(capsys, empty, "-o", tmp_path / "o", "--blur", 6)
         assert code == 1 and "no photos" in err
         photos, _ = self._folder(tmp_path)
-        code, err = _run(capsys, "batch", photos, "-o", tmp_path / "o2", "--blur", 6)
+        code, err = _batch(capsys, photos, "-o", tmp_path / "o2", "--blur", 6)
         assert code == 1 and "2 of 2 photos failed" in err
 
 

@@ -1,0 +1,245 @@
+"""``d2f batch``: its own options, and the run (plan, skip what is done, render, summarise)."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import shutil
+import socket
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from ..io import SAVE_FORMATS, same_file
+from .manifest import DONE, Summary, fold_parts, last_rows, read_rows, worker_name
+from .plan import find_photos, plan_jobs
+from .worker import PARTIAL_PREFIX
+
+__all__ = ["MANIFEST_NAME", "add_batch_arguments", "run_batch"]
+
+logger = logging.getLogger("d2f_core.batch")
+
+#: The manifest's name in the output folder unless ``--manifest`` says otherwise.
+MANIFEST_NAME = "manifest.jsonl"
+
+
+def _count(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+    return value
+
+
+def add_batch_arguments(parser: argparse.ArgumentParser) -> None:
+    """``d2f batch``'s own arguments (the render options come from the parent parser)."""
+    parser.add_argument(
+        "input",
+        nargs="+",
+        metavar="INPUT",
+        help="a folder, a glob in quotes ('shoot/**/*.jpg'), a .txt/.csv file listing paths "
+        "(one a line, or a 'path' column), or photos",
+    )
+    parser.add_argument(
+        "-o", "--output", type=Path, required=True, metavar="DIR", help="output folder"
+    )
+    parser.add_argument(
+        "-r", "--recursive", action="store_true", help="also the photos in subfolders"
+    )
+    parser.add_argument(
+        "--format",
+        choices=sorted({e.lstrip(".") for e in SAVE_FORMATS}),
+        default=None,
+        help="output format (default: the input's, or jpg when it cannot be written)",
+    )
+    parser.add_argument(
+        "--suffix", default="_bokeh", help="added to each output file name (default _bokeh)"
+    )
+    run = parser.add_argument_group("run")
+    run.add_argument(
+        "--manifest",
+        type=Path,
+        metavar="FILE",
+        help=f"JSON Lines record, one row per photo (default: OUT/{MANIFEST_NAME}); a rerun "
+        "skips the photos it says are done whose output exists",
+    )
+    run.add_argument(
+        "--force", action="store_true", help="render every photo again, even those done"
+    )
+    run.add_argument(
+        "--engine",
+        choices=("local", "ray"),
+        default="local",
+        help="local: worker processes on this machine (default); ray: a Ray cluster "
+        '(pip install "d2f[scale]")',
+    )
+    run.add_argument(
+        "--workers",
+        type=_count,
+        metavar="N",
+        help="worker processes or Ray actors (default: one per CPU, local or in the cluster)",
+    )
+    run.add_argument(
+        "--threads",
+        type=_count,
+        metavar="T",
+        help="torch threads per worker (default: the CPUs shared out among the workers)",
+    )
+    run.add_argument(
+        "--ray-address",
+        metavar="ADDR",
+        help="join this Ray cluster (default: $RAY_ADDRESS, else a local one for the run)",
+    )
+
+
+def _check(args: argparse.Namespace) -> None:
+    from ..cli import UsageError
+
+    out: Path = args.output
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"-o {os.fspath(out)!r} exists and is not a folder")
+    for source in args.input:
+        path = Path(source)
+        if path.is_dir() and out.exists() and same_file(out, path):
+            raise UsageError("-o must differ from the input folder (outputs never replace inputs)")
+        if path.is_dir() and args.save_maps is not None and args.save_maps.exists():
+            if same_file(args.save_maps, path):
+                raise UsageError("--save-maps must differ from the input folder")
+    if "/" in args.suffix or os.sep in args.suffix:
+        raise UsageError("--suffix must not contain a path separator")
+    if args.depth is not None and not args.depth.is_dir():
+        raise UsageError("--depth must be a folder of depth maps for 'd2f batch'")
+    if args.weights is not None and not args.weights.is_file():
+        raise UsageError(f"--weights {os.fspath(args.weights)!r}: no such file")
+    if args.engine == "local" and args.ray_address:
+        raise UsageError("--ray-address needs --engine ray")
+
+
+def _remove_stale_partials(folders: set[Path]) -> None:
+    """Delete the partial folders that killed local workers left behind (this host's, of
+    processes that are gone)."""
+    host = socket.gethostname().replace(os.sep, "_")
+    for folder in folders:
+        if not folder.is_dir():
+            continue
+        for partial in folder.glob(f"{PARTIAL_PREFIX}{host}-*"):
+            pid = partial.name[len(PARTIAL_PREFIX) + len(host) + 1 :].split("-")[0]
+            if pid.isdigit() and not _alive(int(pid)):
+                shutil.rmtree(partial, ignore_errors=True)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _show(row: dict[str, Any], here: str) -> None:
+    if row.get("worker") != here:  # records of this process were shown as they happened
+        for level, message in row.get("log") or ():
+            logging.getLogger("d2f_core").log(level, message)
+    if row.get("status") != DONE:
+        logger.error("skipped %s", row.get("error"))
+
+
+def run_batch(args: argparse.Namespace) -> int:
+    """Run ``d2f batch``; returns the exit status (1 when a photo failed)."""
+    from ..cli import RenderError, UsageError
+    from ..progress import logs_above_bar, progress
+
+    _check(args)
+    if args.engine == "ray":
+        from .ray_engine import require_ray
+
+        try:
+            require_ray()
+        except ImportError as exc:
+            raise RenderError(str(exc)) from None
+    out: Path = args.output
+    try:
+        root, photos, skipped_files = find_photos(args.input, recursive=args.recursive, exclude=out)
+        jobs = plan_jobs(
+            root, photos, out, suffix=args.suffix, fmt=args.format, depth_dir=args.depth
+        )
+    except ValueError as exc:
+        raise UsageError(str(exc).removeprefix("input: ")) from None
+    for p in skipped_files:
+        logger.info("skipping %s: not a photo file extension", p)
+    if not jobs:
+        raise RenderError(f"no photos found in {' '.join(map(str, args.input))}")
+    for job in jobs:
+        if any(same_file(job.output, p) for p in (job.input, job.depth_file) if p):
+            raise UsageError(f"output {job.output!r} would replace an input; choose another -o")
+
+    manifest: Path = args.manifest or out / MANIFEST_NAME
+    out.mkdir(parents=True, exist_ok=True)
+    for folder in {Path(job.output).parent for job in jobs}:
+        folder.mkdir(parents=True, exist_ok=True)
+    fold_parts(manifest)  # rows a killed run left in its parts
+    _remove_stale_partials({Path(job.output).parent for job in jobs})
+    done = {} if args.force else last_rows(read_rows(manifest))
+    todo = [
+        job
+        for job in jobs
+        if not (
+            done.get(job.input, {}).get("status") == DONE
+            and done[job.input].get("output") == job.output
+            and Path(job.output).is_file()
+        )
+    ]
+    summary = Summary(total=len(jobs), skipped=len(jobs) - len(todo))
+    if summary.skipped:
+        logger.info(
+            "%d of %d photos already done (manifest %s)", summary.skipped, len(jobs), manifest
+        )
+
+    level = logging.getLogger("d2f_core").getEffectiveLevel()
+    here = worker_name()
+    start = time.perf_counter()
+    try:
+        if not todo:
+            rows = iter(())
+        elif args.engine == "ray":
+            from .ray_engine import run_ray
+
+            rows = run_ray(todo, args, manifest, workers=args.workers, threads=args.threads,
+                           address=args.ray_address, level=level, quiet=args.quiet)  # fmt: skip
+        else:
+            from .local import cpu_count, default_split, run_local
+
+            workers, threads = default_split(cpu_count(), len(todo))
+            workers = args.workers or workers
+            threads = args.threads or max(1, cpu_count() // workers)
+            logger.info("%d photos on %d workers of %d threads", len(todo), workers, threads)
+            rows = run_local(todo, args, manifest, workers=workers, threads=threads, level=level)
+        show_bar = None if args.engine == "local" and not args.quiet else True
+        with logs_above_bar():
+            bar = progress(total=len(todo), desc="d2f", unit="photo", disable=show_bar)
+            try:
+                for row in rows:
+                    summary.add(row)
+                    _show(row, here)
+                    bar.set_postfix_str(Path(row["input"]).name, refresh=False)
+                    bar.update(1)
+            finally:
+                bar.close()
+    finally:
+        summary.seconds = time.perf_counter() - start
+        fold_parts(manifest)
+    attempted = summary.done + summary.failed
+    logger.info("%d of %d photos rendered into %s", summary.done, attempted, out)
+    if not args.quiet:
+        for line in summary.lines():
+            print(f"d2f: {line}", file=sys.stderr)
+    if summary.failed:
+        logger.error("%d of %d photos failed", summary.failed, attempted)
+        return 1
+    return 0

@@ -1,0 +1,218 @@
+"""Which photos a batch renders and where each output goes.
+
+Inputs are folders (``recursive`` descends into subfolders), globs (``photos/**/*.jpg``),
+text or CSV files listing paths, or photo files; outputs keep each photo's path relative to
+the inputs' root (the folder, the glob's fixed prefix, or the deepest folder that holds every
+listed photo).
+"""
+
+from __future__ import annotations
+
+import csv
+import glob
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..io import READ_EXTENSIONS, SAVE_FORMATS
+
+__all__ = ["LIST_EXTENSIONS", "Job", "find_photos", "plan_jobs"]
+
+#: Extensions of files that list photo paths (one a line, or a CSV column).
+LIST_EXTENSIONS = (".txt", ".csv", ".lst", ".list")
+#: Columns of a CSV list that hold the path, in order of preference (else the first column).
+CSV_PATH_COLUMNS = ("path", "input", "file", "filename")
+
+
+@dataclass(frozen=True)
+class Job:
+    """One photo to render.
+
+    Attributes:
+        input: the photo's absolute path.
+        output: the output's absolute path.
+        rel: the output's path relative to the output folder (POSIX separators).
+        depth_file: the photo's depth map from ``--depth DIR``, or ``None``.
+    """
+
+    input: str
+    output: str
+    rel: str
+    depth_file: str | None = None
+
+
+def _hidden(path: Path, root: Path) -> bool:
+    return any(part.startswith(".") for part in path.relative_to(root).parts)
+
+
+def _under(path: Path, folder: Path | None) -> bool:
+    if folder is None:
+        return False
+    try:
+        path.resolve().relative_to(folder)
+    except ValueError:
+        return False
+    return True
+
+
+def _read_list(path: Path) -> list[Path]:
+    """The paths a text or CSV list names, relative ones taken from the list's folder."""
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ValueError(f"input: cannot read the list {os.fspath(path)!r} ({exc})") from exc
+    if path.suffix.lower() == ".csv":
+        rows = [r for r in csv.reader(text.splitlines()) if r and any(c.strip() for c in r)]
+        column = 0
+        if rows:
+            header = [c.strip().lower() for c in rows[0]]
+            named = [header.index(c) for c in CSV_PATH_COLUMNS if c in header]
+            if named:
+                column, rows = named[0], rows[1:]
+        entries = [r[column].strip() for r in rows if len(r) > column]
+    else:
+        entries = [line.strip() for line in text.splitlines()]
+    entries = [e for e in entries if e and not e.startswith("#")]
+    return [Path(os.path.join(path.parent, os.path.expanduser(e))) for e in entries]
+
+
+def _glob_root(pattern: str) -> Path:
+    """The folder part of ``pattern`` before its first wildcard."""
+    parts = Path(pattern).parts
+    fixed = []
+    for part in parts[:-1]:
+        if glob.has_magic(part):
+            break
+        fixed.append(part)
+    return Path(*fixed) if fixed else Path(".")
+
+
+def find_photos(
+    sources: Sequence[str | os.PathLike],
+    *,
+    recursive: bool = False,
+    exclude: str | os.PathLike | None = None,
+) -> tuple[Path, list[Path], list[Path]]:
+    """The photos named by ``sources``: ``(root, photos, skipped)``.
+
+    Args:
+        sources: folders, globs, list files (:data:`LIST_EXTENSIONS`) or photo files.
+        recursive: descend into the subfolders of folder sources (hidden ones are skipped).
+        exclude: a folder whose files are never inputs (the output folder).
+
+    Returns:
+        The root that outputs are made relative to, the photos (absolute, sorted within each
+        source, each once), and the files of folder and glob sources skipped for their
+        extension. Listed paths are kept whatever their extension or existence: a listed
+        file that cannot be read becomes a failed photo, not a silent omission.
+
+    Raises:
+        ValueError: a source is neither an existing folder, file nor a glob, or a glob or
+            folder names nothing.
+    """
+    if not sources:
+        raise ValueError("sources: expected at least one folder, glob or list of photos")
+    banned = None if exclude is None else Path(exclude).resolve()
+    roots: list[Path] = []
+    photos: list[Path] = []
+    skipped: list[Path] = []
+    for source in sources:
+        text = os.fspath(source)
+        path = Path(text).expanduser()
+        if path.is_dir():
+            root = path
+            pattern = "**/*" if recursive else "*"
+            found = sorted(p for p in path.glob(pattern) if p.is_file() and not _hidden(p, path))
+        elif path.is_file() and path.suffix.lower() in LIST_EXTENSIONS:
+            listed = _read_list(path)
+            if not listed:
+                raise ValueError(f"input: the list {text!r} names no photo")
+            photos.extend(listed)
+            roots.append(Path(os.path.commonpath([os.path.abspath(p.parent) for p in listed])))
+            continue
+        elif path.is_file():
+            photos.append(path)
+            roots.append(path.parent)
+            continue
+        elif glob.has_magic(text):
+            root = _glob_root(text)
+            found = sorted(Path(p) for p in glob.glob(text, recursive=True) if Path(p).is_file())
+            if not found:
+                raise ValueError(f"input: the glob {text!r} matches no file")
+        else:
+            raise ValueError(
+                f"input: {text!r} is not a folder, a glob or a list of photos "
+                f"({', '.join(LIST_EXTENSIONS)})"
+            )
+        found = [p for p in found if not _under(p, banned)]
+        photos.extend(p for p in found if p.suffix.lower() in READ_EXTENSIONS)
+        skipped.extend(p for p in found if p.suffix.lower() not in READ_EXTENSIONS)
+        roots.append(root)
+    absolute = [Path(os.path.abspath(p)) for p in photos]
+    unique = list(dict.fromkeys(absolute))
+    root = Path(os.path.commonpath([os.path.abspath(r) for r in roots]))
+    return root, unique, skipped
+
+
+def _depth_for(depth_dir: Path, rel_parent: Path, stem: str) -> Path | None:
+    from ..cli import find_depth_file
+
+    for folder in dict.fromkeys((depth_dir / rel_parent, depth_dir)):
+        found = find_depth_file(folder, stem) if folder.is_dir() else None
+        if found is not None:
+            return found
+    return None
+
+
+def plan_jobs(
+    root: str | os.PathLike,
+    photos: Sequence[str | os.PathLike],
+    out_dir: str | os.PathLike,
+    *,
+    suffix: str = "_bokeh",
+    fmt: str | None = None,
+    depth_dir: str | os.PathLike | None = None,
+) -> list[Job]:
+    """One :class:`Job` per photo: ``out_dir / <path relative to root> / STEM<suffix>.EXT``.
+
+    EXT is ``fmt``, else the photo's own when it can be written, else ``jpg``. Two photos that
+    would share an output (``a.jpg`` and ``a.heic``) get the input's extension in the name.
+    A depth map is looked up by the photo's stem in ``depth_dir``'s matching subfolder, then
+    in ``depth_dir`` itself.
+
+    Raises:
+        ValueError: ``suffix`` holds a path separator, ``fmt`` is not a writable format, or a
+            photo is not under ``root``.
+    """
+    if "/" in suffix or os.sep in suffix:
+        raise ValueError(f"suffix: must not contain a path separator, got {suffix!r}")
+    if fmt is not None and "." + fmt.lstrip(".").lower() not in SAVE_FORMATS:
+        raise ValueError(f"fmt: expected one of {sorted(SAVE_FORMATS)}, got {fmt!r}")
+    base = Path(os.path.abspath(root))
+    out = Path(os.path.abspath(out_dir))
+    used: set[str] = set()
+    jobs = []
+    for photo in photos:
+        src = Path(os.path.abspath(photo))
+        try:
+            rel_parent = src.parent.relative_to(base)
+        except ValueError:
+            raise ValueError(
+                f"photos: {os.fspath(src)!r} is not under {os.fspath(base)!r}"
+            ) from None
+        ext = src.suffix.lower()
+        if fmt:
+            ext = "." + fmt.lstrip(".").lower()
+        elif ext not in SAVE_FORMATS:
+            ext = ".jpg"
+        name = f"{src.stem}{suffix}{ext}"
+        if (rel_parent / name).as_posix().lower() in used:
+            name = f"{src.stem}_{src.suffix.lstrip('.').lower()}{suffix}{ext}"
+        rel = (rel_parent / name).as_posix()
+        used.add(rel.lower())
+        depth = None
+        if depth_dir is not None:
+            depth = _depth_for(Path(depth_dir), rel_parent, src.stem)
+        jobs.append(Job(os.fspath(src), os.fspath(out / rel), rel, depth and os.fspath(depth)))
+    return jobs
