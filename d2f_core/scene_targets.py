@@ -126,7 +126,7 @@ def silhouette_alpha(
     ade: np.ndarray | None = None,
     min_area: float = 0.01,
     max_area: float = 0.6,
-    min_clarity: float = 0.75,
+    min_clarity: float = 0.6,
 ) -> np.ndarray | None:
     """U^2-Net-p's silhouette as a subject alpha where it is a clear, compact subject, else
     ``None``.
@@ -199,7 +199,7 @@ def scene_target(
         sal: U^2-Net-p's silhouette in [0, 1] (:func:`silhouette_alpha` decides).
         voc: the VOC teacher's subject alpha (:func:`d2f_core.depth_train.teacher_subject`).
     """
-    from .depth_train import _normalise, subject_target
+    from .depth_train import subject_target
 
     layout, _ = scene_layout(ade, old_layout, teacher_weight)
     if mask is not None:
@@ -214,7 +214,8 @@ def scene_target(
             alpha = np.maximum(alpha, voc)
     alpha = np.maximum(alpha, occluder_alpha(ade))
     target = subject_target(layout, alpha) if alpha.max() >= 0.5 else layout
-    return _normalise(target)
+    lo, hi = float(target.min()), float(target.max())
+    return ((target - lo) / max(hi - lo, 1e-6)).astype(np.float32)
 
 
 def read_scene_label(path, size: tuple[int, int]) -> dict | None:

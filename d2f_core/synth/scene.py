@@ -84,7 +84,7 @@ def resize_image(img: np.ndarray, h: int, w: int) -> np.ndarray:
     return t[0].permute(1, 2, 0).numpy()
 
 
-def _texture(
+def texture(
     rng: np.random.Generator,
     textures: Sequence[np.ndarray],
     h: int,
@@ -111,7 +111,7 @@ def _texture(
 # --------------------------------------------------------------------------- shapes
 
 
-def _coverage(sd: np.ndarray) -> np.ndarray:
+def coverage(sd: np.ndarray) -> np.ndarray:
     """Antialiased coverage from a signed distance in px (negative inside)."""
     return np.clip(0.5 - sd, 0.0, 1.0).astype(np.float32)
 
@@ -124,7 +124,7 @@ def _segments_alpha(segs: np.ndarray, top: int, left: int, h: int, w: int) -> np
         dy, dx = y1 - y0, x1 - x0
         t = np.clip(((yy - y0) * dy + (xx - x0) * dx) / max(dy * dy + dx * dx, 1e-9), 0, 1)
         dist = np.hypot(yy - (y0 + t * dy), xx - (x0 + t * dx))
-        np.maximum(alpha, _coverage(dist - wd / 2), out=alpha)
+        np.maximum(alpha, coverage(dist - wd / 2), out=alpha)
     return alpha
 
 
@@ -140,7 +140,7 @@ def _layer_from_segments(rng, textures, segs, disparity, kind, size, margin) -> 
     if bottom - top < 2 or right - left < 2:
         return None
     alpha = _segments_alpha(segs, top, left, bottom - top, right - left)
-    colour = _texture(rng, textures, bottom - top, right - left) * rng.uniform(0.2, 1.0)
+    colour = texture(rng, textures, bottom - top, right - left) * rng.uniform(0.2, 1.0)
     return Layer(
         colour * alpha,
         alpha,
@@ -152,7 +152,7 @@ def _layer_from_segments(rng, textures, segs, disparity, kind, size, margin) -> 
     )
 
 
-def _blob(rng, textures, cy, cx, radius, disparity, size, margin, striped=False) -> Layer:
+def blob(rng, textures, cy, cx, radius, disparity, size, margin, striped=False) -> Layer:
     """A superellipse with a wavy rim, randomly stretched and rotated."""
     aspect, rot, p = rng.uniform(0.6, 1.6), rng.uniform(0, math.pi), rng.uniform(2.0, 5.0)
     k = np.arange(2, 6)
@@ -176,7 +176,7 @@ def _blob(rng, textures, cy, cx, radius, disparity, size, margin, striped=False)
     rim = radius * (
         1 + (amp[:, None, None] * np.cos(k[:, None, None] * theta + phase[:, None, None])).sum(0)
     )
-    alpha = _coverage(norm - rim)
+    alpha = coverage(norm - rim)
     if striped:
         c = srgb_to_linear(rng.uniform(0.05, 0.95, (2, 3)))
         period, ang = rng.uniform(4, 16), rng.uniform(0, math.pi)
@@ -184,7 +184,7 @@ def _blob(rng, textures, cy, cx, radius, disparity, size, margin, striped=False)
         mix = np.clip(2.5 * np.sin(2 * math.pi * phase_px) + 0.5, 0, 1)[None]
         rgb = c[0][:, None, None] * mix + c[1][:, None, None] * (1 - mix)
     else:
-        rgb = _texture(rng, textures, h, w)
+        rgb = texture(rng, textures, h, w)
     shade = np.clip(1.1 - 0.35 * (norm / np.maximum(rim, 1e-3)) ** 2, 0.6, 1.0)
     kind = "stripes" if striped else "blob"
     return Layer(
@@ -250,8 +250,8 @@ def _fence(rng, textures, disparity, size, margin) -> Layer:
     yy, xx = np.mgrid[top:bottom, left:right].astype(np.float32)
     t = (xx * math.cos(ang) + yy * math.sin(ang)) / period
     dist = np.abs(t - np.round(t)) * period
-    alpha = _coverage(dist - slat / 2)
-    rgb = _texture(rng, textures, h, w) * rng.uniform(0.3, 1.0)
+    alpha = coverage(dist - slat / 2)
+    rgb = texture(rng, textures, h, w) * rng.uniform(0.3, 1.0)
     return Layer(
         rgb * alpha,
         alpha,
@@ -263,7 +263,7 @@ def _fence(rng, textures, disparity, size, margin) -> Layer:
     )
 
 
-def _lights(rng, disparity, size, margin, group) -> list[Layer]:
+def lights(rng, disparity, size, margin, group) -> list[Layer]:
     """A group of small emitters at one disparity, one tiny layer each (a single sparse
     layer spanning the frame would cost a full-frame warp per aperture point)."""
     height, width = size
@@ -283,7 +283,7 @@ def _lights(rng, disparity, size, margin, group) -> list[Layer]:
         top, left = int(math.floor(y - r)) - 2, int(math.floor(x - r)) - 2
         side = int(math.ceil(2 * r)) + 5
         yy, xx = np.mgrid[top : top + side, left : left + side].astype(np.float32)
-        cov = _coverage(np.hypot(yy - y, xx - x) - r)
+        cov = coverage(np.hypot(yy - y, xx - x) - r)
         colour = base * rng.uniform(0.85, 1.0, 3) if rng.random() < 0.8 else rng.uniform(0.3, 1, 3)
         rgb = (cov[None] * (q * colour)[:, None, None]).astype(np.float32)
         info = {"group": group, "radiance": round(float(q), 2)}
@@ -325,7 +325,7 @@ def describe_layers(layers: Sequence[Layer]) -> list[dict]:
     return out
 
 
-def _trim(layer: Layer) -> Layer:
+def trim(layer: Layer) -> Layer:
     """Crop a layer to its non-transparent box plus a 1 px transparent rim."""
     rows, cols = np.flatnonzero(layer.alpha.any(1)), np.flatnonzero(layer.alpha.any(0))
     if rows.size == 0:
@@ -351,7 +351,7 @@ def _ground(rng, textures, horizon, d_far, d_near, cuts, size, margin) -> list[L
     rows = np.arange(top, bottom, dtype=np.float32)
     d_rows = np.maximum(d_far + slope * (rows - horizon), 1e-3)
     # Perspective texture lookup: world (X, Z) ~ ((x - cx) / d, 1 / d).
-    tex = _texture(rng, textures, 256, 256, scale=(1.0, 1.0))
+    tex = texture(rng, textures, 256, 256, scale=(1.0, 1.0))
     scale = rng.uniform(0.15, 0.5)
     xs = np.arange(left, left + w, dtype=np.float32) - (width - 1) / 2
     # Random offsets keep the mirror tiling's seams away from the vanishing point.
@@ -424,7 +424,7 @@ def make_scene(
 
     night = rng.random() < 0.3
     d_bg = rng.uniform(0.0, 0.12)
-    bg = _texture(rng, textures, height + 2 * margin, width + 2 * margin, scale=(1.0, 2.5))
+    bg = texture(rng, textures, height + 2 * margin, width + 2 * margin, scale=(1.0, 2.5))
     bg *= rng.uniform(0.05, 0.3) if night else 1.0
     layers = [
         Layer(
@@ -459,7 +459,7 @@ def make_scene(
         cy = rng.uniform(0.35, 0.65) * height
         if ground and d_far < d < d_near and rng.random() < 0.7:
             cy = base_row(d) - 0.8 * radius  # stands on the ground at its own depth
-        lay = _blob(
+        lay = blob(
             rng,
             textures,
             cy,
@@ -499,12 +499,12 @@ def make_scene(
         objects.append(_fence(rng, textures, rng.uniform(d_bg + 0.05, 1.0), size, margin))
     for group in range(int(rng.integers(0, 4)) if not night else int(rng.integers(1, 4))):
         d = rng.uniform(d_bg, d_subject - 0.1) if rng.random() < 0.8 else rng.uniform(0, 1)
-        objects += _lights(rng, d, size, margin, group)
+        objects += lights(rng, d, size, margin, group)
 
     if ground:
         layers += _ground(
             rng, textures, horizon, d_far, d_near, [o.order for o in objects], size, margin
         )
     layers += objects
-    layers[1:] = sorted((_trim(lay) for lay in layers[1:]), key=lambda lay: lay.order)
+    layers[1:] = sorted((trim(lay) for lay in layers[1:]), key=lambda lay: lay.order)
     return Scene(layers, size, margin, float(d_subject), seed)

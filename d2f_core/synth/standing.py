@@ -20,7 +20,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from .lens import Layer, Scene
-from .scene import _blob, _coverage, _lights, _texture, _trim, builtin_textures
+from .scene import blob, builtin_textures, coverage, lights, texture, trim
 
 __all__ = ["STANDING_KINDS", "make_standing_scene", "subject_mask"]
 
@@ -29,7 +29,7 @@ STANDING_KINDS = ("post", "over", "night")
 
 def _background(rng, textures, size, margin, disparity, dark: bool) -> Layer:
     h, w = size
-    bg = _texture(rng, textures, h + 2 * margin, w + 2 * margin, scale=(1.0, 2.5))
+    bg = texture(rng, textures, h + 2 * margin, w + 2 * margin, scale=(1.0, 2.5))
     bg *= rng.uniform(0.03, 0.15) if dark else 1.0
     alpha = np.ones(bg.shape[1:], np.float32)
     return Layer(bg, alpha, -margin, -margin, disparity, kind="background")
@@ -46,14 +46,14 @@ def _post(rng, textures, size, margin, disparity) -> Layer:
     hh, ww = h + 2 * margin, w + 2 * margin
     yy, xx = np.mgrid[top : top + hh, left : left + ww].astype(np.float32)
     centre = cx + tilt * (yy - h / 2)
-    alpha = _coverage(np.abs(xx - centre) - width / 2)
-    rgb = _texture(rng, textures, hh, ww, scale=(0.3, 1.0))
+    alpha = coverage(np.abs(xx - centre) - width / 2)
+    rgb = texture(rng, textures, hh, ww, scale=(0.3, 1.0))
     # a round post is lit from one side
     across = np.clip((xx - centre) / max(width / 2, 1.0), -1, 1)
     shade = 0.65 + 0.35 * np.sqrt(np.clip(1 - across**2, 0, 1)) * (1 + 0.3 * across)
     layer = Layer((rgb * shade * alpha).astype(np.float32), alpha, top, left, disparity)
     layer.kind, layer.info = "post", {"subject": True, "width_px": round(float(width), 1)}
-    return _trim(layer)
+    return trim(layer)
 
 
 def _plane(rng, textures, size, margin, d_top, d_bottom) -> Layer:
@@ -63,7 +63,7 @@ def _plane(rng, textures, size, margin, d_top, d_bottom) -> Layer:
     start = int(rng.uniform(0.2, 0.5) * h)
     top, left = start, -margin
     hh, ww = h + margin - start, w + 2 * margin
-    rgb = _texture(rng, textures, hh, ww, scale=(0.5, 1.5))
+    rgb = texture(rng, textures, hh, ww, scale=(0.5, 1.5))
     if rng.random() < 0.5:  # water: bluish, with bright ripples
         ripple = 0.5 + 0.5 * np.sin(np.arange(hh, dtype=np.float32) * rng.uniform(0.3, 1.0))
         rgb = (
@@ -115,22 +115,22 @@ def make_standing_scene(
         others.append(_plane(rng, textures, size, margin, d_top, d_bottom))
     if night or rng.random() < 0.3:
         for group in range(int(rng.integers(1, 4))):
-            others += _lights(rng, float(rng.uniform(d_bg, d_bg + 0.15)), size, margin, group)
+            others += lights(rng, float(rng.uniform(d_bg, d_bg + 0.15)), size, margin, group)
     for _ in range(int(rng.integers(0, 3))):  # things between, never nearer than the subject
         d = float(rng.uniform(d_bg + 0.05, min(0.5, d_subject - 0.2)))
         r = rng.uniform(0.05, 0.15) * min(size)
         cy, cx = rng.uniform(0.1, 0.9) * h, rng.uniform(0, 1) * w
-        others.append(_blob(rng, textures, cy, cx, r, d, size, margin))
+        others.append(blob(rng, textures, cy, cx, r, d, size, margin))
     if kind == "post":
         subject = _post(rng, textures, size, margin, d_subject)
     else:
         r = rng.uniform(0.12, 0.3) * min(size)
         # anywhere in the frame, the bottom half included (over a far floor)
         cy, cx = rng.uniform(0.3, 0.75) * h, rng.uniform(0.25, 0.75) * w
-        subject = _blob(rng, textures, cy, cx, r, d_subject, size, margin)
+        subject = blob(rng, textures, cy, cx, r, d_subject, size, margin)
         subject.info["subject"] = True
-    layers += sorted((_trim(lay) for lay in others), key=lambda lay: lay.order)
-    layers.append(_trim(subject))
+    layers += sorted((trim(lay) for lay in others), key=lambda lay: lay.order)
+    layers.append(trim(subject))
     return Scene(layers, size, margin, d_subject, seed)
 
 
