@@ -37,7 +37,7 @@ import numpy as np
 from app import imaging, sources
 from app.cache import SCENE_CACHE, SceneCache, content_key
 from app.uploads import NOT_AN_UPLOAD, UploadGate
-from d2f_core.kernels import PAPER_GROWING_SIZES
+from d2f_core.rendering.kernels import PAPER_GROWING_SIZES
 
 log = logging.getLogger(__name__)
 

@@ -18,7 +18,7 @@ The renderer alone (:mod:`d2f_core.rendering`), for a photo and a disparity map 
     options for repeated renders), :func:`render` (tensors), :func:`hdr_boost`, and the
     kernels :func:`soft_disk_kernel`, :func:`hard_disk_kernel`, :func:`polygon_kernel`,
     :func:`kernel_sizes`; :func:`coc_to_defocus` maps a blur diameter to the paper's
-    normalised defocus (:mod:`d2f_core.schedule`).
+    normalised defocus (:mod:`d2f_core.rendering.schedule`).
 
 Files (:mod:`d2f_core.io`, the only module that reads and writes them)
     :func:`load_image`, :func:`load_photo` (with its embedded depth), :func:`load_depth`,
@@ -38,7 +38,7 @@ Example::
     focus, _ = model.subject_focus(scene)
     save_image("bokeh.jpg", model.render(scene, focus, blur=40).bokeh)
 
-Other modules: :mod:`d2f_core.pipeline` (the model's stages), :mod:`d2f_core.adaptive`
+Other modules: :mod:`d2f_core.pipeline` (the model's stages), :mod:`d2f_core.rendering.adaptive`
 (renderer settings per error budget), :mod:`d2f_core.networks`, :mod:`d2f_core.refine`,
 :mod:`d2f_core.bundled` (the shipped weights and sample photos), and for training and
 evaluation :mod:`d2f_core.losses`, :mod:`d2f_core.data`, :mod:`d2f_core.train`,
@@ -70,11 +70,11 @@ _LAZY = {
     "hdr_boost": "rendering",
     "render": "rendering",
     "render_bokeh": "rendering",
-    "coc_to_defocus": "schedule",
-    "hard_disk_kernel": "kernels",
-    "kernel_sizes": "kernels",
-    "polygon_kernel": "kernels",
-    "soft_disk_kernel": "kernels",
+    "coc_to_defocus": "rendering.schedule",
+    "hard_disk_kernel": "rendering.kernels",
+    "kernel_sizes": "rendering.kernels",
+    "polygon_kernel": "rendering.kernels",
+    "soft_disk_kernel": "rendering.kernels",
     # files
     "load_depth": "io",
     "load_image": "io",

@@ -105,14 +105,14 @@ def _minor_faults() -> int:
 def _authors_render(image, disparity, focus: float, blur: float) -> torch.Tensor:
     """The authors' way: every layer over the whole frame at full resolution, one direct
     depthwise convolution per layer (no strips stacked along channels), float32."""
-    lanes = rendering.LANES
-    rendering.LANES = 1
+    lanes = rendering.blur.LANES
+    rendering.blur.LANES = 1
     try:
         return render(
             image, disparity, focus, blur, quality="exact", method="direct", full_frame=True
         )
     finally:
-        rendering.LANES = lanes
+        rendering.blur.LANES = lanes
 
 
 def _bench_render(args: argparse.Namespace) -> int:

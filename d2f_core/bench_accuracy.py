@@ -10,8 +10,8 @@ camera would store it.
 Settings vary one axis at a time around the default (depth order, 15 layers, growing schedule,
 soft disk, ``quality="balanced"``, FFT, HDR boost on), plus the paper's configuration (paper
 order, 15 layers, growing, soft, exact resolution, direct convolution), a few combined points
-and the adaptive picker of :mod:`d2f_core.adaptive`. For each it reports the median time per
-frame and PSNR/SSIM overall, in a band around occlusion edges (depth discontinuities of the
+and the adaptive picker of :mod:`d2f_core.rendering.adaptive`. For each it reports the median
+time per frame and PSNR/SSIM overall, in a band around occlusion edges (depth discontinuities of the
 ground-truth disparity) and in a band around HDR lights; it writes ``accuracy.json`` and a
 chart of time against PSNR with the Pareto front.
 
@@ -42,8 +42,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from . import adaptive
-from .rendering import PLACEMENTS, render
+from .rendering import PLACEMENTS, adaptive, render
 
 __all__ = [
     "Case",

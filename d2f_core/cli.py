@@ -453,7 +453,7 @@ def render_with_depth_only(
     import torch.nn.functional as F
 
     from .rendering import render
-    from .schedule import coc_to_defocus
+    from .rendering.schedule import coc_to_defocus
     from .sizing import resize
 
     h, w = image.shape[:2]

@@ -34,7 +34,7 @@ import torch.nn.functional as F
 from . import metrics
 from .data import EBBDataset
 from .pipeline import D2F, D2FConfig
-from .schedule import coc_to_defocus
+from .rendering.schedule import coc_to_defocus
 
 __all__ = [
     "FUSION_METHODS",

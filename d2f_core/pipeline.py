@@ -42,7 +42,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from . import adaptive, bundled, depth_sources, rendering
+from . import bundled, depth_sources, rendering
 from .errors import InputTypeError
 from .io.embedded import Photo
 from .networks import (
@@ -53,7 +53,8 @@ from .networks import (
     rgb_to_gray,
 )
 from .refine import harden_edges, snap_edges
-from .schedule import coc_to_defocus, defocus_to_coc
+from .rendering import adaptive
+from .rendering.schedule import coc_to_defocus, defocus_to_coc
 from .sizing import resize, scaled_size, size_ratio
 
 __all__ = [
@@ -697,7 +698,7 @@ class D2F(nn.Module):
             fusion: apply deep Poisson fusion at full resolution (else plain upsampling; a
                 pass at the photo's own size needs none and has none).
             max_side: preview mode: render at this long side, no fusion.
-            budget: error budget of the adaptive settings (:mod:`d2f_core.adaptive`):
+            budget: error budget of the adaptive settings (:mod:`d2f_core.rendering.adaptive`):
                 ``"high"``, ``"balanced"`` or ``"fast"`` (45, 40, 30 dB against the exact
                 renderer), or a PSNR in dB. The layer count and reduced-resolution preset are
                 picked per focus and blur; when every CoC is under a pixel the input is

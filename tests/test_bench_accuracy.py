@@ -95,14 +95,16 @@ class TestPieces:
 
         image, disp = bench.bench_scene(40, 60)
         calls = []
-        conv = rendering.F.conv2d
+        conv = rendering.blur.F.conv2d
         monkeypatch.setattr(
-            rendering.F, "conv2d", lambda x, w, **k: calls.append(x.shape[1]) or conv(x, w, **k)
+            rendering.blur.F,
+            "conv2d",
+            lambda x, w, **k: calls.append(x.shape[1]) or conv(x, w, **k),
         )
         with torch.no_grad():
             base = bench._authors_render(image, disp, 0.6, 30.0)
             (c,) = set(calls)  # alpha and colour (and the weight, with highlights)
-            assert c in (4, 5) and rendering.LANES == 16
+            assert c in (4, 5) and rendering.blur.LANES == 16
             calls.clear()
             ours = rendering.render(
                 image, disp, 0.6, 30.0, quality="exact", method="direct", full_frame=True

@@ -41,7 +41,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..errors import InputTypeError
-from ..kernels import PAPER_GROWING_SIZES, coarse_kernel, kernel_sizes
+from ..rendering.kernels import PAPER_GROWING_SIZES, coarse_kernel, kernel_sizes
 
 __all__ = [
     "PLACEMENTS",

@@ -26,7 +26,10 @@ from dataclasses import asdict, dataclass, field
 import torch
 import torch.nn.functional as F
 
-from .rendering import check_focus_blur, grid_factor, layer_plan, render
+from .api import render
+from .blur import grid_factor
+from .inputs import check_focus_blur
+from .plan import layer_plan
 
 __all__ = [
     "BUDGETS",

@@ -11,7 +11,7 @@ import math
 
 import torch
 
-from .errors import InputTypeError
+from ..errors import InputTypeError
 
 __all__ = [
     "PAPER_GROWING_SIZES",

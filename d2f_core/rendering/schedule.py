@@ -2,7 +2,7 @@
 
 D2F describes how blurred a pixel is by its normalised defocus ``D`` in [0, 1]: the
 position of its circle of confusion (CoC, diameter in px at the render pass) on the
-paper's growing schedule of kernel sizes (:data:`~d2f_core.kernels.PAPER_GROWING_SIZES`,
+paper's growing schedule of kernel sizes (:data:`~d2f_core.rendering.kernels.PAPER_GROWING_SIZES`,
 1 px -> 0, 23 px -> 0.5, 69 px or more -> 1), linear between two sizes. The fusion network
 reads ``D``; the fusion gate is a value of ``D``. This module owns that map both ways.
 """
