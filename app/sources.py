@@ -1,6 +1,6 @@
 """The app's "Depth source" control: the sources a photo offers and the map ``prepare`` gets.
 
-The sources are those of :mod:`d2f_core.depth_sources`: the phone depth stored in the photo,
+The sources are those of :mod:`d2f_core.depth.sources`: the phone depth stored in the photo,
 the user's own map, the shipped network (offline) and, when ``transformers`` is installed
 (the ``hub`` extra), any Hugging Face depth-estimation model named by its id or a folder on
 the server. "Automatic" keeps the order the app always used: the user's map, else the
@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from d2f_core import depth_sources
+from d2f_core.depth import sources as depth_sources
 
 AUTO = "auto"
 #: ``(label, value)`` of every choice, in the order shown.

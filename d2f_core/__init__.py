@@ -7,7 +7,7 @@ The model
     :class:`D2FConfig`, a prepared photo :class:`Scene` (``model.prepare(image)``) and a
     refocused render :class:`Result` (``model.render(scene, focus, blur)``).
 
-Depth sources (:mod:`d2f_core.depth_sources`)
+Depth sources (:mod:`d2f_core.depth.sources`)
     :func:`depth_map` turns a source (``"embedded"`` phone depth, ``"file:PATH"``, ``"d2f"``,
     ``"transformers:MODEL"``) into a :class:`DepthMap`; :data:`SOURCES` lists them,
     :func:`parse_source` reads one as a :class:`DepthSource`. ``D2F.prepare(image,
@@ -38,11 +38,12 @@ Example::
     focus, _ = model.subject_focus(scene)
     save_image("bokeh.jpg", model.render(scene, focus, blur=40).bokeh)
 
-Other modules: :mod:`d2f_core.pipeline` (the model's stages), :mod:`d2f_core.rendering.adaptive`
-(renderer settings per error budget), :mod:`d2f_core.networks`, :mod:`d2f_core.refine`,
-:mod:`d2f_core.bundled` (the shipped weights and sample photos), and for training and
-evaluation :mod:`d2f_core.losses`, :mod:`d2f_core.data`, :mod:`d2f_core.train`,
-:mod:`d2f_core.evaluate`, :mod:`d2f_core.synth`.
+Other modules: :mod:`d2f_core.pipeline` (the model's stages), :mod:`d2f_core.networks`,
+:mod:`d2f_core.rendering` (the renderer's stages; :mod:`d2f_core.rendering.adaptive`, renderer
+settings per error budget), :mod:`d2f_core.depth` (depth sources and refinement),
+:mod:`d2f_core.bundled` (the shipped weights and sample photos); for training
+:mod:`d2f_core.train` (losses, data, synth, the two stages, stage 0), for evaluation
+:mod:`d2f_core.evaluate` and for benchmarks :mod:`d2f_core.bench`.
 
 Names are imported on first use, so ``import d2f_core`` (and ``d2f --help``) stays fast.
 """
@@ -60,11 +61,11 @@ _LAZY = {
     "Scene": "pipeline",
     "Result": "pipeline",
     # depth sources
-    "DepthMap": "depth_sources",
-    "DepthSource": "depth_sources",
-    "SOURCES": "depth_sources",
-    "depth_map": "depth_sources",
-    "parse_source": "depth_sources",
+    "DepthMap": "depth.sources",
+    "DepthSource": "depth.sources",
+    "SOURCES": "depth.sources",
+    "depth_map": "depth.sources",
+    "parse_source": "depth.sources",
     # the renderer
     "LayeredRenderer": "rendering",
     "hdr_boost": "rendering",

@@ -12,7 +12,7 @@
 - **Pasted subjects**: a subject cut out of another masked photo with its feathered alpha is
   placed over the photo, in front of everything it covers. Its disparity is exact, and it
   teaches that what looks like a subject is near wherever it lies in the frame.
-- **Generated layered scenes** (:mod:`d2f_core.synth`) with their exact disparity, so the
+- **Generated layered scenes** (:mod:`d2f_core.train.synth`) with their exact disparity, so the
   network stays calibrated on the scenes the bokeh stages and the held-out set use.
 
 Real targets are relative (0 = farthest, 1 = nearest in each photo), so their loss is a
@@ -46,8 +46,8 @@ from torch import Tensor
 
 from .io import load_image
 from .networks import build_defocus_net, count_parameters
-from .synth.photo import feather
 from .teachers import FeatureTeacher, Photo, iter_photos, read_label, read_mask, subject_cutout
+from .train.synth.photo import feather
 
 __all__ = [
     "DepthSample",
@@ -315,7 +315,7 @@ class RealDepthData:
         return img, _normalise(target)
 
     def _synth(self, rng: random.Random, size: tuple[int, int]) -> DepthSample:
-        from .synth import linear_to_srgb, make_scene, render_pinhole
+        from .train.synth import linear_to_srgb, make_scene, render_pinhole
 
         scene = make_scene(size, seed=rng.randrange(1 << 30), margin=0)
         radiance, disp = render_pinhole(scene)
@@ -634,7 +634,7 @@ def export_checkpoint(
     """A D2F checkpoint: ``base`` with its defocus network replaced by the stage-0 weights
     in ``depth`` (a ``depth_*.pt`` file) and ``KEY=VALUE`` config overrides applied."""
     from .pipeline import D2F
-    from .train import apply_overrides
+    from .train.two_stage import apply_overrides
 
     model = D2F.from_checkpoint(base)
     config = apply_overrides(model.config.to_dict(), overrides)

@@ -42,7 +42,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from . import bundled, depth_sources, rendering
+from . import bundled, rendering
+from .depth import sources as depth_sources
+from .depth.refine import harden_edges, snap_edges
 from .errors import InputTypeError
 from .io.embedded import Photo
 from .networks import (
@@ -52,7 +54,6 @@ from .networks import (
     read_torch_file,
     rgb_to_gray,
 )
-from .refine import harden_edges, snap_edges
 from .rendering import adaptive
 from .rendering.schedule import coc_to_defocus, defocus_to_coc
 from .sizing import resize, scaled_size, size_ratio
@@ -210,7 +211,7 @@ class Scene:
         disparity_lr: ``[1, 1, h, w]`` in [0, 1], 1 = nearest.
         radiance_lr: ``R0`` before the HDR boost, ``[1, 1, h, w]`` in (0, 1).
         size: ``(H, W)`` of the full-resolution photo.
-        disparity_source: the depth source (:mod:`d2f_core.depth_sources`): ``"d2f"``,
+        disparity_source: the depth source (:mod:`d2f_core.depth.sources`): ``"d2f"``,
             ``"embedded"``, ``"file:PATH"``, ``"transformers:MODEL"``, or ``"given"`` for a
             bare map passed to :meth:`D2F.prepare`.
         disparity_output: what that source gave (``"relative inverse depth"``, ``"metric
@@ -609,9 +610,9 @@ class D2F(nn.Module):
             image: ``H x W x 3`` numpy (uint8, or float32 in [0, 1]), a ``[1, 3, H, W]``
                 tensor in [0, 1], or a :class:`d2f_core.io.Photo` (whose phone depth the
                 ``"embedded"`` source reads).
-            depth: where the disparity comes from (:mod:`d2f_core.depth_sources`): ``None``
+            depth: where the disparity comes from (:mod:`d2f_core.depth.sources`): ``None``
                 or ``"d2f"`` (this model's defocus network), ``"embedded"``, ``"file:PATH"``,
-                ``"transformers:MODEL"``, a :class:`~d2f_core.depth_sources.DepthMap`, or a
+                ``"transformers:MODEL"``, a :class:`~d2f_core.depth.sources.DepthMap`, or a
                 ready ``H' x W'`` map in [0, 1] (1 = nearest) of any size, resized to the
                 photo.
             disparity: a ready map, as ``depth`` (its older name).

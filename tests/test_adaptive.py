@@ -12,7 +12,7 @@ import d2f_core.rendering as rendering
 import d2f_core.rendering.adaptive as adaptive
 from d2f_core.metrics import psnr
 from d2f_core.rendering.adaptive import BUDGETS, choose_settings, render_adaptive
-from d2f_core.synth import linear_to_srgb, make_scene, render_pinhole
+from d2f_core.train.synth import linear_to_srgb, make_scene, render_pinhole
 
 pytestmark = pytest.mark.usefixtures("two_threads")
 

@@ -2,7 +2,7 @@
 
 The photo shows only the near object there; a thin lens sees past its rim, up to its CoC
 radius inside it, to the background behind. Checked against the accumulation-buffer ground
-truth of ``d2f_core.synth``.
+truth of ``d2f_core.train.synth``.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from scipy import ndimage
 
 from d2f_core import rendering
 from d2f_core.metrics import psnr
-from d2f_core.synth import Layer, Scene, render_pinhole, render_thin_lens
+from d2f_core.train.synth import Layer, Scene, render_pinhole, render_thin_lens
 
 
 def _occluder_scene(near: float = 0.9, far: float = 0.2, focus: float = 0.2):

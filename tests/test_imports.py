@@ -133,7 +133,9 @@ def import_problems(module: str, source: str, modules: set[str], is_package: boo
 @pytest.fixture(scope="module")
 def all_problems() -> list[Problem]:
     modules = project_modules()
-    assert {"d2f_core.pipeline", "d2f_core.io", "d2f_core.synth.scene", "app.main"} <= set(modules)
+    assert {"d2f_core.pipeline", "d2f_core.io", "d2f_core.train.synth.scene", "app.main"} <= set(
+        modules
+    )
     out: list[Problem] = []
     for name, path in modules.items():
         out += import_problems(name, path.read_text(), set(modules), path.stem == "__init__")

@@ -10,7 +10,7 @@ from d2f_core import rendering
 from d2f_core.metrics import psnr
 from d2f_core.pipeline import D2F, D2FConfig, Result, Scene
 from d2f_core.rendering.adaptive import BUDGETS
-from d2f_core.synth import linear_to_srgb, make_scene, render_pinhole
+from d2f_core.train.synth import linear_to_srgb, make_scene, render_pinhole
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

@@ -11,7 +11,7 @@ import torch
 from d2f_core.io import load_image
 from d2f_core.metrics import psnr
 from d2f_core.pipeline import D2F, default_weights_path
-from d2f_core.synth.dataset import make_pair
+from d2f_core.train.synth.dataset import make_pair
 
 ASSETS = Path(__file__).resolve().parents[1] / "assets"
 
@@ -104,8 +104,8 @@ def test_generated_scenes_rank_subject_first(model):
     """Generated scenes (seeds never used in training) with their exact disparity: the
     network's map ranks depth like the truth, and the main subject above the rest."""
     from d2f_core.depth_bench import spearman, subject_auc
-    from d2f_core.synth import make_scene, render_pinhole
-    from d2f_core.synth.lens import linear_to_srgb
+    from d2f_core.train.synth import make_scene, render_pinhole
+    from d2f_core.train.synth.lens import linear_to_srgb
 
     rhos, aucs = [], []
     for seed in range(7100, 7106):

@@ -59,7 +59,7 @@ COC_BINS: tuple[float, ...] = (4.0, 8.0, 16.0, 32.0, 64.0, 128.0)
 #: Worst-case PSNR (dB) against the exact 15-layer reference, per largest-CoC bin (one value
 #: per bin of :data:`COC_BINS` plus the open bin; ``None`` = not measured), depth order, soft
 #: disk, growing schedule, either layer placement. The minimum over these runs of
-#: ``d2f-bench accuracy --calibrate`` (:func:`d2f_core.bench_accuracy.calibrate`; three focal
+#: ``d2f-bench accuracy --calibrate`` (:func:`d2f_core.bench.accuracy.calibrate`; three focal
 #: planes per scene, both placements):
 #: ``--sizes 512x768 --seeds 207 208 --k-fracs 0.02 0.05 0.1 0.17``,
 #: ``--sizes 256x384 --seeds 201 202 --k-fracs 0.005 0.01 0.03 0.3``,

@@ -1,6 +1,6 @@
 """Speed against accuracy: ``d2f-bench accuracy`` (``python -m d2f_core.bench accuracy``).
 
-Renders a fixed, seeded set of generated layered scenes (:mod:`d2f_core.synth`) with a grid of
+Renders a fixed, seeded set of generated layered scenes (:mod:`d2f_core.train.synth`) with a grid of
 renderer settings and compares each result with the accumulation-buffer thin-lens ground truth
 of the same scene, focus and ``K``. The renderer gets what a user would have: the pinhole
 photo (sRGB, highlights clipped at 1) and the exact disparity; the ground truth is the
@@ -42,7 +42,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from .rendering import PLACEMENTS, adaptive, render
+from ..rendering import PLACEMENTS, adaptive, render
 
 __all__ = [
     "Case",
@@ -203,7 +203,7 @@ def _focus_for(scene, mode: str) -> float:
 def _make_case(
     size: tuple[int, int], seed: int, k_frac: float, mode: str, samples: int, cache: Path | None
 ) -> Case:
-    from .synth import linear_to_srgb, make_scene, render_pinhole, render_thin_lens
+    from ..train.synth import linear_to_srgb, make_scene, render_pinhole, render_thin_lens
 
     blur = round(k_frac * size[1], 2)
     key = f"s{seed}_{size[0]}x{size[1]}_k{blur:g}_{mode}_n{samples}_v{CACHE_VERSION}"
@@ -645,7 +645,7 @@ def calibrate(
     (``rendering.layer_plan``; the candidate against the reference of the same placement). No
     ground truth is needed.
     """
-    from .synth import linear_to_srgb, make_scene, render_pinhole
+    from ..train.synth import linear_to_srgb, make_scene, render_pinhole
 
     nbins = len(adaptive.COC_BINS) + 1
     table: dict[tuple[int, str], list[float | None]] = {
@@ -721,7 +721,7 @@ def run_e2e(
     defocus network) with the first variant's radiance and fusion networks, which isolates
     renderer and fusion. Returns rows and the weights used per variant.
     """
-    from .pipeline import D2F, D2FConfig, default_weights_path
+    from ..pipeline import D2F, D2FConfig, default_weights_path
 
     path = Path(weights) if weights else default_weights_path()
     loaded = None

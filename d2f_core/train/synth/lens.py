@@ -12,7 +12,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..errors import InputTypeError
+from ...errors import InputTypeError
 
 logger = logging.getLogger(__name__)
 

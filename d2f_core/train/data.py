@@ -38,7 +38,7 @@ import torch.nn.functional as F
 from torch import Tensor
 from torch.utils.data import Dataset
 
-from . import io as d2f_io
+from .. import io as d2f_io
 
 __all__ = ["EBB_SIZE", "SPLITS", "EBBDataset", "PairFiles", "find_pairs", "split_pairs"]
 

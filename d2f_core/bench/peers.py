@@ -1,6 +1,6 @@
 """d2f against other renderers, by where renderers fail: ``d2f-bench peers``.
 
-On seeded generated layered scenes (:mod:`d2f_core.synth`) with their accumulation-buffer
+On seeded generated layered scenes (:mod:`d2f_core.train.synth`) with their accumulation-buffer
 thin-lens ground truth (the cases of ``d2f-bench accuracy``, cached alike), every method gets
 the pinhole photo and the exact disparity, and is scored by PSNR:
 
@@ -47,8 +47,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from .bench_accuracy import Case, dilate, jump_pixels, load_cases, masked_metrics, reach_px
-from .rendering import render
+from ..rendering import render
+from .accuracy import Case, dilate, jump_pixels, load_cases, masked_metrics, reach_px
 
 __all__ = ["CATEGORIES", "edge_sides", "gather_render", "main", "run_peers", "thin_band"]
 
@@ -116,7 +116,7 @@ def edge_sides(disparity: np.ndarray, width: int = EDGE_PX, jump: float = 0.02):
 def thin_band(case: Case) -> np.ndarray:
     """Where the scene's thin structures are (fence and striped layers), grown by ``K / 4``;
     rebuilt from the case's seed (scenes are deterministic)."""
-    from .synth import make_scene
+    from ..train.synth import make_scene
 
     scene = make_scene(case.size, seed=case.seed, margin=math.ceil(case.blur / 2) + 2)
     h, w = case.size
@@ -200,7 +200,7 @@ def blender_render(image: np.ndarray, disparity: np.ndarray, focus: float, blur:
 
 
 def _methods(weights: str | Path | None, with_blender: bool) -> dict[str, Callable]:
-    from .pipeline import D2F
+    from ..pipeline import D2F
 
     model = D2F.from_pretrained(weights)
 

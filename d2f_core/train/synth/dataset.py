@@ -70,7 +70,7 @@ def make_pair(
     ``K`` in ``[0.02, 0.12] * max(size)``.
 
     ``scene_fn(size, seed, margin)``, when given, makes the scene instead of
-    :func:`make_scene` (for example :class:`~d2f_core.synth.photo.PhotoScenes`).
+    :func:`make_scene` (for example :class:`~d2f_core.train.synth.photo.PhotoScenes`).
 
     Returns:
         :class:`SynthPair`; ``params["blur"]`` is K in px at ``size``.
@@ -242,7 +242,7 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         metavar="DATASETS",
         help="make the scenes of real photos from this datasets folder (cut-out subjects on "
-        "photo backgrounds, d2f_core.synth.photo) instead of generated shapes",
+        "photo backgrounds, d2f_core.train.synth.photo) instead of generated shapes",
     )
     parser.add_argument(
         "--photo-split",

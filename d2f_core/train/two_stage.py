@@ -38,14 +38,14 @@ import torch.distributed as dist
 from torch import Tensor, nn
 from torch.utils.data import DataLoader, DistributedSampler, Sampler
 
-from . import metrics
+from .. import metrics
+from ..networks import read_torch_file
+from ..pipeline import D2F, D2FConfig
+from ..progress import progress
+from ..rendering import PLACEMENTS
+from ..sizing import resize, scaled_size, size_ratio
 from .data import EBBDataset
 from .losses import D2FLoss
-from .networks import read_torch_file
-from .pipeline import D2F, D2FConfig
-from .progress import progress
-from .rendering import PLACEMENTS
-from .sizing import resize, scaled_size, size_ratio
 
 __all__ = ["TrainResult", "build_parser", "main", "train"]
 
@@ -151,7 +151,7 @@ def batch_loss(
     """Loss terms of one batch (``"total"`` included) for ``stage`` 1 or 2.
 
     ``forward`` is a :class:`_StageForward` (possibly DDP-wrapped); ``batch`` comes from
-    :class:`~d2f_core.data.EBBDataset` through a ``DataLoader``.
+    :class:`~d2f_core.train.data.EBBDataset` through a ``DataLoader``.
     """
     model: D2F = forward.module.model if hasattr(forward, "module") else forward.model
     image = batch["image"].to(device, non_blocking=True)  # [B,3,H,W]
@@ -492,11 +492,11 @@ def export(checkpoint: Path, out: Path, overrides: Sequence[str]) -> Path:
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv[:1] == ["label"]:  # pseudo-labels of real photos by the teachers
-        from .teachers import run_label
+        from ..teachers import run_label
 
         return run_label(argv[1:])
     if argv[:1] == ["depth"]:  # stage 0: depth from real photos
-        from .depth_train import main as depth_main
+        from ..depth_train import main as depth_main
 
         return depth_main(argv[1:])
     args = build_parser().parse_args(argv)

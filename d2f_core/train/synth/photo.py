@@ -1,8 +1,8 @@
 """Layered scenes made of real photos: a real subject cut out with its mask, standing on a
 real background photo that slopes away in depth, with exact thin-lens ground truth.
 
-The scene is still a stack of planar layers (:class:`~d2f_core.synth.lens.Layer`), so
-:func:`~d2f_core.synth.lens.render_thin_lens` gives its exact bokeh; but the textures,
+The scene is still a stack of planar layers (:class:`~d2f_core.train.synth.lens.Layer`), so
+:func:`~d2f_core.train.synth.lens.render_thin_lens` gives its exact bokeh; but the textures,
 silhouettes and edges are real: hair, fur, petals and thin limbs keep their soft alpha.
 
 - The background photo is a plane whose disparity grows from the top of the view to the
@@ -131,7 +131,7 @@ def make_photo_scene(
 
 
 class PhotoScenes:
-    """``scene_fn`` for :func:`~d2f_core.synth.dataset.make_pair`: photo scenes from a
+    """``scene_fn`` for :func:`~d2f_core.train.synth.dataset.make_pair`: photo scenes from a
     datasets folder (``../shared/datasets``), subjects from its masked photos and
     backgrounds from its scene collections (:data:`SCENE_SOURCES`), limited to one side of
     the depth-training split.
@@ -143,8 +143,8 @@ class PhotoScenes:
     """
 
     def __init__(self, root, split: str = "heldout", occluder_share: float = 0.3) -> None:
-        from ..depth_train import is_heldout
-        from ..teachers import iter_photos
+        from ...depth_train import is_heldout
+        from ...teachers import iter_photos
 
         if split not in ("heldout", "train"):
             raise ValueError(f"split must be 'heldout' or 'train', got {split!r}")
@@ -160,7 +160,7 @@ class PhotoScenes:
         self.occluder_share = occluder_share
 
     def _pick_cutout(self, rng: np.random.Generator) -> Cutout:
-        from ..teachers import subject_cutout
+        from ...teachers import subject_cutout
 
         for _ in range(20):
             cut = subject_cutout(self.subjects[int(rng.integers(len(self.subjects)))])
@@ -169,7 +169,7 @@ class PhotoScenes:
         raise ValueError("no usable subject mask (2-80 % of its photo) found in 20 draws")
 
     def __call__(self, size: tuple[int, int], seed: int, margin: int) -> Scene:
-        from ..io import load_image
+        from ...io import load_image
 
         rng = np.random.default_rng([int(seed), 0xC0FFEE])
         bg_photo = self.backgrounds[int(rng.integers(len(self.backgrounds)))]

@@ -51,7 +51,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from .errors import InputTypeError
+from ..errors import InputTypeError
 
 __all__ = [
     "DEFAULT_SOURCE",
@@ -176,7 +176,7 @@ def relative_to_disparity(prediction: Any, *, robust: bool = True) -> np.ndarray
 
     Shape: ``H x W`` -> ``H x W`` float32, 1 = nearest.
     """
-    from .io.depth import depth_to_disparity
+    from ..io.depth import depth_to_disparity
 
     return depth_to_disparity(_as_map(prediction), kind="disparity", robust=robust, name="model")
 
@@ -189,7 +189,7 @@ def metric_to_disparity(depth: Any, *, robust: bool = True) -> np.ndarray:
 
     Shape: ``H x W`` -> ``H x W`` float32, 1 = nearest.
     """
-    from .io.depth import depth_to_disparity
+    from ..io.depth import depth_to_disparity
 
     return depth_to_disparity(_as_map(depth), kind="depth", robust=robust, name="model")
 
@@ -274,7 +274,7 @@ def depth_map(
         kind = info.get("source", "phone")
         return DepthMap(d, spec.name, f"{kind} phone depth", getattr(photo, "focus", None))
     if spec.kind == "file":
-        from .io.depth import load_depth
+        from ..io.depth import load_depth
 
         path = Path(spec.arg).expanduser()
         if not path.is_file():
@@ -295,7 +295,7 @@ def depth_map(
 
 def _image_array(image: Any) -> np.ndarray:
     """``H x W x 3`` float32 in [0, 1] from anything ``rendering.image_tensor`` accepts."""
-    from .rendering import image_tensor
+    from ..rendering import image_tensor
 
     return image_tensor(image)[0].permute(1, 2, 0).contiguous().cpu().numpy()
 
@@ -304,7 +304,7 @@ def _fit(disparity: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     """Resize a map to ``size`` bilinearly (antialiased when shrinking), clipped to [0, 1]."""
     if disparity.shape == tuple(size):
         return np.clip(disparity, 0.0, 1.0).astype(np.float32, copy=False)
-    from .sizing import resize
+    from ..sizing import resize
 
     t = torch.from_numpy(np.ascontiguousarray(disparity, dtype=np.float32))[None, None]
     return resize(t, tuple(size))[0, 0].clamp_(0, 1).numpy()
@@ -312,7 +312,7 @@ def _fit(disparity: np.ndarray, size: tuple[int, int]) -> np.ndarray:
 
 def _d2f_map(model: Any, image: np.ndarray) -> np.ndarray:
     """The D2F network's map at the pass ``D2F.prepare`` would use, at the photo's size."""
-    from .sizing import resize  # the pipeline's own resize, for the same map
+    from ..sizing import resize  # the pipeline's own resize, for the same map
 
     size = image.shape[:2]
     with torch.no_grad():
@@ -431,7 +431,7 @@ def _first_line(exc: BaseException) -> str:
 def _hub_map(model_id: str, image: np.ndarray, device: torch.device) -> tuple[np.ndarray, str]:
     """Run a hub depth model on ``image`` (``H x W x 3`` float in [0, 1]); returns the
     disparity at the photo's size and the kind of output the model gave."""
-    from .io.image import resize_float
+    from ..io.image import resize_float
 
     processor, net = _load_hub_model(model_id, device)
     kind = model_output_kind(net.config)

@@ -21,10 +21,10 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
-from . import rendering
-from .bench_baseline import rendering as baseline
-from .metrics import psnr
-from .rendering import render
+from .. import rendering
+from ..bench_baseline import rendering as baseline
+from ..metrics import psnr
+from ..rendering import render
 
 __all__ = ["bench_scene", "machine_speed", "main", "plot_render", "time_call"]
 
@@ -476,7 +476,7 @@ def plot_render(rows: list[dict], path: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from .bench_accuracy import log_axis
+    from .accuracy import log_axis
 
     sizes = list(dict.fromkeys(r["size"] for r in rows))
     fig, axes = plt.subplots(1, len(sizes), figsize=(4.6 * len(sizes), 4.2), squeeze=False)
@@ -528,19 +528,19 @@ def plot_render(rows: list[dict], path: str) -> None:
 
 
 def _bench_accuracy(args: argparse.Namespace) -> int:
-    from .bench_accuracy import main as accuracy_main
+    from .accuracy import main as accuracy_main
 
     return int(accuracy_main(args.rest) or 0)
 
 
 def _bench_depth(args: argparse.Namespace) -> int:
-    from .depth_bench import main as depth_main
+    from ..depth_bench import main as depth_main
 
     return int(depth_main(args.rest) or 0)
 
 
 def _bench_peers(args: argparse.Namespace) -> int:
-    from .bench_peers import main as peers_main
+    from .peers import main as peers_main
 
     return int(peers_main(args.rest) or 0)
 

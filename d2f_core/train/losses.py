@@ -21,8 +21,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .errors import InputTypeError
-from .networks import IMAGENET_MEAN, IMAGENET_STD, load_local_state_dict
+from ..errors import InputTypeError
+from ..networks import IMAGENET_MEAN, IMAGENET_STD, load_local_state_dict
 
 __all__ = [
     "D2FLoss",
