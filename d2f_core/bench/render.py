@@ -534,7 +534,7 @@ def _bench_accuracy(args: argparse.Namespace) -> int:
 
 
 def _bench_depth(args: argparse.Namespace) -> int:
-    from ..depth_bench import main as depth_main
+    from .depth_bench import main as depth_main
 
     return int(depth_main(args.rest) or 0)
 

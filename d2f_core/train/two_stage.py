@@ -492,11 +492,11 @@ def export(checkpoint: Path, out: Path, overrides: Sequence[str]) -> Path:
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv[:1] == ["label"]:  # pseudo-labels of real photos by the teachers
-        from ..teachers import run_label
+        from .teachers import run_label
 
         return run_label(argv[1:])
     if argv[:1] == ["depth"]:  # stage 0: depth from real photos
-        from ..depth_train import main as depth_main
+        from .depth_train import main as depth_main
 
         return depth_main(argv[1:])
     args = build_parser().parse_args(argv)

@@ -143,8 +143,8 @@ class PhotoScenes:
     """
 
     def __init__(self, root, split: str = "heldout", occluder_share: float = 0.3) -> None:
-        from ...depth_train import is_heldout
-        from ...teachers import iter_photos
+        from ..depth_train import is_heldout
+        from ..teachers import iter_photos
 
         if split not in ("heldout", "train"):
             raise ValueError(f"split must be 'heldout' or 'train', got {split!r}")
@@ -160,7 +160,7 @@ class PhotoScenes:
         self.occluder_share = occluder_share
 
     def _pick_cutout(self, rng: np.random.Generator) -> Cutout:
-        from ...teachers import subject_cutout
+        from ..teachers import subject_cutout
 
         for _ in range(20):
             cut = subject_cutout(self.subjects[int(rng.integers(len(self.subjects)))])

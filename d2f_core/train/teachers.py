@@ -127,7 +127,7 @@ def subject_cutout(photo: Photo) -> tuple[np.ndarray, np.ndarray, float] | None:
     as float32 ``h x w x 3`` in [0, 1], its mask ``h x w`` in {0, 1}, and the share of the
     whole photo the subject covers; ``None`` for a photo without a mask or with an empty one.
     """
-    from .io import load_image
+    from ..io import load_image
 
     if photo.mask is None:
         return None

@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from .depth_train import resize_array
+from ..train.depth_train import resize_array
 
 __all__ = [
     "MeasuredPhoto",
@@ -52,7 +52,7 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-_REPO = Path(__file__).resolve().parents[1]
+_REPO = Path(__file__).resolve().parents[2]
 DEFAULT_DATA = _REPO.parent / "shared" / "data"
 DEFAULT_DATASETS = _REPO.parent / "shared" / "datasets"
 #: long side (px) at which maps are compared
@@ -161,7 +161,7 @@ def measured_photos(root: str | Path = DEFAULT_DATA) -> list[MeasuredPhoto]:
     """
     from PIL import Image
 
-    from .io import load_image, load_photo
+    from ..io import load_image, load_photo
 
     root = Path(root)
     if not root.is_dir():
@@ -225,9 +225,9 @@ def heldout_masks(
 ) -> list[tuple[str, np.ndarray, np.ndarray]]:
     """``(name, image, subject mask)`` of the held-out masked photos, masks at
     :data:`EVAL_SIDE`; photos whose subject covers under 1 % or over 90 % are left out."""
-    from .depth_train import is_heldout
-    from .io import load_image
-    from .teachers import iter_photos, read_mask
+    from ..io import load_image
+    from ..train.depth_train import is_heldout
+    from ..train.teachers import iter_photos, read_mask
 
     root = Path(root)
     if not root.is_dir():
@@ -261,7 +261,7 @@ def ramp_predictor(image: np.ndarray) -> np.ndarray:
 
 def network_predictor(weights: str | Path | None = None) -> Predictor:
     """The disparity :meth:`D2F.prepare` gives a photo with no depth (the app's path)."""
-    from .pipeline import D2F
+    from ..pipeline import D2F
 
     model = D2F.from_pretrained(weights)
     # a mix asks for the same photo's map again
@@ -310,8 +310,8 @@ def teacher_predictors(folder: str | Path, threads: int = 1) -> dict[str, Predic
     """
     from PIL import Image
 
-    from .depth_train import subject_target, teacher_layout, teacher_subject
-    from .teachers import Teachers, label_maps
+    from ..train.depth_train import subject_target, teacher_layout, teacher_subject
+    from ..train.teachers import Teachers, label_maps
 
     folder = Path(folder)
     if not (folder / "deeplabv3_mobilenetv2_voc.onnx").is_file():

@@ -44,10 +44,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .io import load_image
-from .networks import build_defocus_net, count_parameters
+from ..io import load_image
+from ..networks import build_defocus_net, count_parameters
+from .synth.photo import feather
 from .teachers import FeatureTeacher, Photo, iter_photos, read_label, read_mask, subject_cutout
-from .train.synth.photo import feather
 
 __all__ = [
     "DepthSample",
@@ -315,7 +315,7 @@ class RealDepthData:
         return img, _normalise(target)
 
     def _synth(self, rng: random.Random, size: tuple[int, int]) -> DepthSample:
-        from .train.synth import linear_to_srgb, make_scene, render_pinhole
+        from .synth import linear_to_srgb, make_scene, render_pinhole
 
         scene = make_scene(size, seed=rng.randrange(1 << 30), margin=0)
         radiance, disp = render_pinhole(scene)
@@ -523,7 +523,7 @@ def train_depth(args: argparse.Namespace) -> Path:
     )
     net = build_defocus_net(args.variant)
     if args.init is not None:
-        from .pipeline import D2F
+        from ..pipeline import D2F
 
         net.load_lite(D2F.from_checkpoint(args.init).defocus_net.state_dict())
         logger.info("defocus network initialised from %s", args.init)
@@ -633,8 +633,8 @@ def export_checkpoint(
 ) -> Path:
     """A D2F checkpoint: ``base`` with its defocus network replaced by the stage-0 weights
     in ``depth`` (a ``depth_*.pt`` file) and ``KEY=VALUE`` config overrides applied."""
-    from .pipeline import D2F
-    from .train.two_stage import apply_overrides
+    from ..pipeline import D2F
+    from .two_stage import apply_overrides
 
     model = D2F.from_checkpoint(base)
     config = apply_overrides(model.config.to_dict(), overrides)
