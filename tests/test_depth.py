@@ -13,9 +13,10 @@ import pytest
 import torch
 from PIL import Image
 
-from d2f_core import depth_bench, depth_train, teachers
+from d2f_core.bench import depth_bench
 from d2f_core.depth.refine import box_mean, harden_edges, snap_edges
 from d2f_core.pipeline import D2F, find_subject
+from d2f_core.train import depth_train, teachers
 
 # ------------------------------------------------------------------------------ metrics
 

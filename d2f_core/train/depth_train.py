@@ -34,7 +34,6 @@ import math
 import random
 import sys
 import time
-import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -46,6 +45,7 @@ from torch import Tensor
 
 from ..io import load_image
 from ..networks import build_defocus_net, count_parameters
+from .heldout import is_heldout
 from .synth.photo import feather
 from .teachers import FeatureTeacher, Photo, iter_photos, read_label, read_mask, subject_cutout
 
@@ -62,18 +62,11 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-#: one photo in HELDOUT_MODULUS is held out (by a CRC of its key)
-HELDOUT_MODULUS = 10
 #: folders of whole scenes (streets, rooms, landscapes): the layouts that the depth teacher
 #: knows; ``scene_weight`` draws them more often
 SCENE_SOURCES = ("photos/sun_hays80", "photos/urban100", "photos/bsds500")
 #: the encoder map that feature distillation reads (with the next one upsampled onto it)
 DISTILL_STRIDE = 16
-
-
-def is_heldout(photo: Photo) -> bool:
-    """True for the photos that depth training never sees (about one in ten, fixed by name)."""
-    return zlib.crc32(photo.key.encode()) % HELDOUT_MODULUS == 0
 
 
 # ------------------------------------------------------------------------------ targets
@@ -634,7 +627,7 @@ def export_checkpoint(
     """A D2F checkpoint: ``base`` with its defocus network replaced by the stage-0 weights
     in ``depth`` (a ``depth_*.pt`` file) and ``KEY=VALUE`` config overrides applied."""
     from ..pipeline import D2F
-    from .two_stage import apply_overrides
+    from .overrides import apply_overrides
 
     model = D2F.from_checkpoint(base)
     config = apply_overrides(model.config.to_dict(), overrides)

@@ -46,6 +46,7 @@ from ..rendering import PLACEMENTS
 from ..sizing import resize, scaled_size, size_ratio
 from .data import EBBDataset
 from .losses import D2FLoss
+from .overrides import apply_overrides
 
 __all__ = ["TrainResult", "build_parser", "main", "train"]
 
@@ -457,25 +458,6 @@ def build_parser() -> argparse.ArgumentParser:
     )  # fmt: skip
     p.add_argument("-v", "--verbose", action="store_true")
     return parser
-
-
-def apply_overrides(config: dict[str, Any], overrides: Sequence[str]) -> dict[str, Any]:
-    """``config`` with ``KEY=VALUE`` items applied, each value cast to the key's type."""
-    config = dict(config)
-    for item in overrides:
-        key, sep, value = item.partition("=")
-        if not sep or key not in config:
-            raise ValueError(
-                f"--set needs KEY=VALUE with KEY one of {sorted(config)}, got {item!r}"
-            )
-        kind = type(config[key])
-        if kind is bool:
-            if value.lower() not in ("true", "false", "1", "0"):
-                raise ValueError(f"--set {key}= needs true or false, got {value!r}")
-            config[key] = value.lower() in ("true", "1")
-        else:
-            config[key] = kind(value)
-    return config
 
 
 def export(checkpoint: Path, out: Path, overrides: Sequence[str]) -> Path:

@@ -143,7 +143,7 @@ class PhotoScenes:
     """
 
     def __init__(self, root, split: str = "heldout", occluder_share: float = 0.3) -> None:
-        from ..depth_train import is_heldout
+        from ..heldout import is_heldout
         from ..teachers import iter_photos
 
         if split not in ("heldout", "train"):
