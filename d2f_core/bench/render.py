@@ -8,6 +8,8 @@ nothing here asserts a time.
 from __future__ import annotations
 
 import argparse
+import functools
+import importlib.util
 import json
 import logging
 import os
@@ -17,12 +19,12 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 import torch
 
 from .. import rendering
-from ..bench_baseline import rendering as baseline
 from ..metrics import psnr
 from ..rendering import render
 
@@ -36,6 +38,9 @@ RENDER_SIZES = ((384, 576), (512, 768), (1024, 1536))
 RENDER_SECTIONS = ("sizes", "ksweep", "12mp", "contention")
 K_SWEEP_PX = (10, 30, 100, 200, 300)
 BASELINE_COMMIT = "00e22a4"
+#: The renderer at BASELINE_COMMIT, frozen: a file of the repository's benchmarks/ folder,
+#: which the installed package does not carry.
+FROZEN_RENDERER = Path(__file__).resolve().parents[2] / "benchmarks" / "rendering_00e22a4.py"
 #: Slider re-render targets (ms) of the default preset, by frame size.
 RENDER_TARGETS_MS = {"384x576": 40.0, "512x768": 120.0}
 #: The least PSNR (dB) against the exact reference a reduced-resolution preset may reach.
@@ -92,6 +97,25 @@ def bench_scene(height: int, width: int) -> tuple[torch.Tensor, torch.Tensor]:
     return img_t, torch.from_numpy(disp)[None, None].contiguous()
 
 
+@functools.cache
+def frozen_renderer():
+    """The module :data:`FROZEN_RENDERER` (its ``render`` is the baseline's), loaded by path.
+
+    Raises:
+        FileNotFoundError: not a checkout of the repository (an installed package).
+    """
+    if not FROZEN_RENDERER.is_file():
+        raise FileNotFoundError(
+            f"d2f-bench render compares with the frozen renderer {FROZEN_RENDERER}, "
+            "found in a checkout of the repository only"
+        )
+    spec = importlib.util.spec_from_file_location("d2f_frozen_rendering", FROZEN_RENDERER)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # its dataclasses look their module up there
+    spec.loader.exec_module(module)
+    return module
+
+
 def _minor_faults() -> int:
     """Minor page faults of this process so far (0 where ``resource`` is missing): memory the
     kernel mapped and zero-filled afresh, a cost that moves render times between runs."""
@@ -116,6 +140,7 @@ def _authors_render(image, disparity, focus: float, blur: float) -> torch.Tensor
 
 
 def _bench_render(args: argparse.Namespace) -> int:
+    baseline = frozen_renderer()
     torch.set_num_threads(args.threads)
     rows = []
     sizes = [tuple(int(v) for v in s.lower().split("x")) for s in args.sizes]
@@ -253,6 +278,7 @@ def _ratio(times: dict[str, list[float]], a: str, b: str) -> float:
 def _bench_k_sweep(args: argparse.Namespace) -> list[dict]:
     """The default preset at 1024x1536 for K from 10 to 300 px, against today's renderer
     and the exact (float32) reference."""
+    baseline = frozen_renderer()
     height, width = 1024, 1536
     image, disp = bench_scene(height, width)
     print(f"\n# K sweep at {height}x{width}, {args.sweep_quality} preset, focus {args.focus}")
@@ -298,7 +324,11 @@ import json, resource, sys, time
 import numpy as np, torch
 torch.set_num_threads(int(sys.argv[5]))
 if sys.argv[1] == "today":
-    from d2f_core.bench_baseline.rendering import render
+    import importlib.util, os
+    spec = importlib.util.spec_from_file_location("frozen", os.environ["D2F_FROZEN_RENDERER"])
+    frozen = sys.modules["frozen"] = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(frozen)
+    render = frozen.render
 else:
     from d2f_core.rendering import render
 scene = np.load(sys.argv[2])
@@ -329,7 +359,8 @@ def _child_render(
 ) -> dict:
     command = [sys.executable, "-c", _CHILD, which, scene, str(focus), str(blur), str(threads)]
     command += [quality] + ([save] if save else [])
-    done = subprocess.run(command, capture_output=True, text=True, check=False)
+    env = dict(os.environ, D2F_FROZEN_RENDERER=str(FROZEN_RENDERER))
+    done = subprocess.run(command, capture_output=True, text=True, check=False, env=env)
     if done.returncode:
         raise RuntimeError(f"render child failed: {done.stderr.strip().splitlines()[-1:]}")
     return json.loads(done.stdout.strip().splitlines()[-1])
@@ -401,6 +432,7 @@ _BUSY = "import time\nend = time.monotonic() + {seconds}\nwhile time.monotonic()
 def _bench_contention(args: argparse.Namespace) -> list[dict]:
     """1 against 2 threads with one busy loop beside the render (a child process on one
     core, which stops by itself after ``--busy-seconds``), this renderer and today's."""
+    baseline = frozen_renderer()
     height, width = (int(v) for v in args.contention_size.lower().split("x"))
     image, disp = bench_scene(height, width)
     blur = args.blur_frac * width

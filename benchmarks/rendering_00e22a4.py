@@ -40,8 +40,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ..errors import InputTypeError
-from ..rendering.kernels import PAPER_GROWING_SIZES, coarse_kernel, kernel_sizes
+from d2f_core.errors import InputTypeError
+from d2f_core.rendering.kernels import PAPER_GROWING_SIZES, coarse_kernel, kernel_sizes
 
 __all__ = [
     "PLACEMENTS",
