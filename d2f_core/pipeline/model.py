@@ -1,323 +1,34 @@
-"""The D2F pipeline: networks once per image (:meth:`D2F.prepare`), then cheap refocus renders.
-
-Inference (:meth:`D2F.render`), numbered as in the paper:
-
-1. ``I_lr``: the photo at ``render_scale`` (0.5), long side capped at ``max_render_side``.
-2. Disparity ``d`` from the defocus network at ``network_size`` (or a given map), upsampled
-   to ``I_lr``'s size. Unlike the paper, which bakes the training focus into ``D = |D_d - f|``,
-   the signed disparity is cached, so refocusing is a change of ``focus`` only.
-3. ``R0`` from the radiance network on ``I_lr``.
-4.-5. ``B_lr = rendering.render(I_lr, d, focus, K_lr, radiance=R0)`` (HDR boost inside,
-   depth-ordered compositing by default).
-6. Deep Poisson fusion at full resolution: ``B_up = bilinear(B_lr)``,
-   ``M = max(M_s, P)``, ``B_hr = M * I_hr + (1 - M) * B_up``.
-
-About the mask ``M``:
-
-* ``M_s = f_p(1 - D, gray(I_hr)) * [D < fusion_gate]`` where ``D = coc_to_defocus(CoC at the
-  low-res pass)``. The hard gate is part of the model (training uses it too), so running
-  ``f_p`` only on the image tiles that hold pixels with ``D < fusion_gate`` is exact, and a
-  12 MP fusion costs only what the in-focus part of the frame costs.
-* ``P`` is an in-focus prior: 1 where the full-resolution CoC is at most ``sharp_coc`` px
-  (default 1 px), falling linearly to 0 at twice that. The paper's thresholded/learned mask
-  can leave no sharp region at all; with ``P`` every pixel whose CoC is below a pixel is
-  guaranteed to show the sharp input, whatever ``f_p`` predicts.
-
-Checkpoints are ``{"config", "state_dict", "version"}`` files written by :meth:`D2F.save`.
+"""The model, D2F end to end: ``prepare`` runs the networks once per photo (steps 1-3,
+``d = f_d(I_lr)``, ``R0 = f_r(I_lr)``), ``render`` refocuses it (steps 4-6) as often as asked.
 """
 
 from __future__ import annotations
 
-import logging
 import math
-import os
 import time
-from collections.abc import Callable
-from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch import Tensor, nn
 
-from . import bundled, rendering
-from .depth import sources as depth_sources
-from .depth.refine import harden_edges, snap_edges
-from .errors import InputTypeError
-from .io.embedded import Photo
-from .networks import (
-    build_defocus_net,
-    build_fusion_net,
-    build_radiance_net,
-    read_torch_file,
-    rgb_to_gray,
-)
-from .rendering import adaptive
-from .rendering.schedule import coc_to_defocus, defocus_to_coc
-from .sizing import resize, scaled_size, size_ratio
-
-__all__ = [
-    "CHECKPOINT_VERSION",
-    "D2F",
-    "D2FConfig",
-    "Result",
-    "Scene",
-    "default_weights_path",
-    "find_subject",
-    "locate_subject",
-]
-
-logger = logging.getLogger(__name__)
-
-CHECKPOINT_VERSION = 1
-_FUSION_TILE = 256
+from .. import rendering
+from ..depth import sources as depth_sources
+from ..depth.refine import harden_edges, snap_edges
+from ..depth.subject import locate_subject
+from ..errors import InputTypeError
+from ..io.embedded import Photo
+from ..networks import build_defocus_net, build_fusion_net, build_radiance_net, read_torch_file
+from ..rendering import adaptive
+from ..rendering.schedule import coc_to_defocus, defocus_to_coc
+from ..sizing import resize, scaled_size, size_ratio
+from .config import CHECKPOINT_VERSION, D2FConfig, default_weights_path
+from .fusion import FUSION_TILE, FusionStage, ms_since, per_sample, to_numpy_image
+from .outputs import Result, Scene
 
 
-def default_weights_path() -> Path:
-    """``$D2F_WEIGHTS`` if set, else the shipped weights (:func:`bundled.shipped_weights`)."""
-    env = os.environ.get("D2F_WEIGHTS")
-    if env:
-        return Path(env)
-    return bundled.shipped_weights()
-
-
-@dataclass
-class D2FConfig:
-    """Architecture and inference settings; saved inside every checkpoint.
-
-    Attributes:
-        defocus: defocus network variant (``"lite"`` or ``"resnext50"``).
-        radiance: radiance network variant (``"paper"``).
-        fusion: fusion network variant (``"lite"`` or ``"paper"``).
-        network_size: long side (px) the defocus network runs at in :meth:`D2F.prepare`.
-        render_scale: scale of the low-resolution rendering pass (paper: 0.5).
-        max_render_side: cap on the long side of the low-resolution pass (px).
-        full_pass_side: a photo prepared with a given disparity map (a phone's depth, a
-            user's map) whose long side is at most this (px) is rendered at its own size,
-            and the fusion step, which only restores the detail a smaller pass loses, is
-            skipped. With exact maps of generated scenes at 384x576 the half-size pass with
-            fusion is 2.5 dB under this, 2.7 dB near depth edges. The network's own maps
-            keep ``render_scale``: with them the half-size pass and fusion forgive the map's
-            errors (on the held-out photo scenes 28.06 dB, against 26.86 dB at full size).
-            0 keeps ``render_scale`` for every photo.
-        order: compositing order passed to ``rendering.render`` (``"depth"`` or ``"paper"``).
-        placement: layer placement passed to ``rendering.render`` (``"paper"`` or
-            ``"nearest"``, see ``rendering.layer_plan``). A model renders with the placement
-            it was trained with: the shipped ``lite`` weights use ``"paper"``.
-        train_focus: focal disparity used for training pairs without ``params`` (EBB!
-            focuses on the nearest subject, so 1.0 = nearest).
-        train_blur: ``K`` (px at the pair's full resolution) for pairs without ``params``;
-            138 px at EBB!'s 1024x1536 is the paper's 69-px largest kernel at half size.
-        fusion_theta: threshold on ``D`` of the binary in-focus mask ``M_b`` (stage-2 target).
-        fusion_gate: ``M_s`` is forced to 0 where ``D >= fusion_gate``.
-        sharp_coc: full-res CoC (px) below which a pixel always stays sharp.
-        refine: ``"none"`` (the network's map upsampled bilinearly) or ``"snap"`` (its soft
-            edges moved onto the photo's colour edges at the render pass's size,
-            :func:`refine.snap_edges`).
-        refine_radius: the snapping window's radius as a fraction of that size's long side.
-        refine_eps: squared colour distance below which two regions count as alike.
-        flip_average: average the network's map with its map of the mirrored photo (one
-            batch of two: about twice the network's time, a steadier map).
-        edge_step: in :meth:`D2F.prepare`, every pixel of a depth edge (a window spanning at
-            least this much disparity) is put on one side of it, given or predicted map
-            alike (:func:`refine.harden_edges`): the pixels of a soft silhouette otherwise
-            get a blur neither side has and draw a rim of the subject's colour over the
-            background. 0 keeps the map as it is.
-        edge_radius: that window's radius as a fraction of the render pass's long side (at
-            least 3 px).
-    """
-
-    defocus: str = "lite"
-    radiance: str = "paper"
-    fusion: str = "lite"
-    network_size: int = 768
-    render_scale: float = 0.5
-    max_render_side: int = 1024
-    full_pass_side: int = 0
-    order: str = "depth"
-    placement: str = "paper"
-    train_focus: float = 1.0
-    train_blur: float = 138.0
-    fusion_theta: float = 0.25
-    fusion_gate: float = 0.3
-    sharp_coc: float = 1.0
-    refine: str = "none"
-    refine_radius: float = 0.03
-    refine_eps: float = 1e-3
-    flip_average: bool = False
-    edge_step: float = 0.1
-    edge_radius: float = 0.004
-
-    def __post_init__(self) -> None:
-        for f in fields(self):
-            value = getattr(self, f.name)
-            kind = (
-                f.type
-                if isinstance(f.type, type)
-                else {"str": str, "int": int, "bool": bool}.get(str(f.type), float)
-            )
-            if kind is float and isinstance(value, int) and not isinstance(value, bool):
-                value = float(value)
-                setattr(self, f.name, value)
-            if not isinstance(value, kind) or (isinstance(value, bool) and kind is not bool):
-                raise InputTypeError(f"config.{f.name} must be {kind.__name__}, got {value!r}")
-        if self.order not in ("depth", "paper"):
-            raise ValueError(f"config.order must be 'depth' or 'paper', got {self.order!r}")
-        if self.placement not in rendering.PLACEMENTS:
-            raise ValueError(
-                f"config.placement must be one of {rendering.PLACEMENTS}, got {self.placement!r}"
-            )
-        if self.refine not in ("none", "snap"):
-            raise ValueError(f"config.refine must be 'none' or 'snap', got {self.refine!r}")
-        if not (0 <= self.refine_radius <= 0.25 and self.refine_eps > 0):
-            raise ValueError("config.refine_radius must be in [0, 0.25] and refine_eps > 0")
-        if not (0 <= self.edge_step <= 1 and 0 <= self.edge_radius <= 0.05):
-            raise ValueError("config.edge_step must be in [0, 1] and edge_radius in [0, 0.05]")
-        if not 0 < self.render_scale <= 1:
-            raise ValueError(f"config.render_scale must be in (0, 1], got {self.render_scale}")
-        if self.full_pass_side < 0:
-            raise ValueError(f"config.full_pass_side must be >= 0, got {self.full_pass_side}")
-        if self.network_size < 32 or self.max_render_side < 16:
-            raise ValueError("config.network_size must be >= 32 and max_render_side >= 16")
-        if not 0 <= self.train_focus <= 1:
-            raise ValueError(f"config.train_focus must be in [0, 1], got {self.train_focus}")
-        if not (self.train_blur >= 0 and self.sharp_coc > 0 and 0 < self.fusion_gate <= 1):
-            raise ValueError("config.train_blur >= 0, sharp_coc > 0, 0 < fusion_gate <= 1")
-
-    @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> D2FConfig:
-        """Build from a dict; unknown keys raise ``ValueError``."""
-        if not isinstance(data, dict):
-            raise InputTypeError(f"config must be a dict, got {type(data).__name__}")
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(data) - known)
-        if unknown:
-            raise ValueError(f"unknown config keys {unknown}; known keys are {sorted(known)}")
-        return cls(**data)
-
-    def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
-
-
-@dataclass
-class Scene:
-    """Everything :meth:`D2F.render` needs for one photo, computed once by :meth:`D2F.prepare`.
-
-    Attributes:
-        image: full-resolution photo, ``[1, 3, H, W]`` float32 in [0, 1].
-        image_lr: low-resolution pass input, ``[1, 3, h, w]`` in [0, 1].
-        disparity_lr: ``[1, 1, h, w]`` in [0, 1], 1 = nearest.
-        radiance_lr: ``R0`` before the HDR boost, ``[1, 1, h, w]`` in (0, 1).
-        size: ``(H, W)`` of the full-resolution photo.
-        disparity_source: the depth source (:mod:`d2f_core.depth.sources`): ``"d2f"``,
-            ``"embedded"``, ``"file:PATH"``, ``"transformers:MODEL"``, or ``"given"`` for a
-            bare map passed to :meth:`D2F.prepare`.
-        disparity_output: what that source gave (``"relative inverse depth"``, ``"metric
-            depth"``, ``"apple_mpo phone depth"``, ``"D2F network disparity"``, ...).
-        refined: whether :meth:`D2F.refine_disparity` ran on the map.
-        cache: derived tensors (full-res disparity, preview-size inputs), filled lazily.
-    """
-
-    image: Tensor
-    image_lr: Tensor
-    disparity_lr: Tensor
-    radiance_lr: Tensor
-    size: tuple[int, int]
-    disparity_source: str = "d2f"
-    disparity_output: str = "D2F network disparity"
-    refined: bool = True
-    given_disparity: Tensor | None = field(default=None, repr=False)
-    cache: dict[Any, Any] = field(default_factory=dict, repr=False)
-
-    def disparity_full_tensor(self) -> Tensor:
-        """Disparity at full resolution, ``[1, 1, H, W]`` in [0, 1] (cached).
-
-        The given map when one was passed to ``prepare`` (resized to the photo), else the
-        network's map upsampled bilinearly.
-        """
-        if "disparity_full" not in self.cache:
-            src = self.given_disparity if self.given_disparity is not None else self.disparity_lr
-            with torch.no_grad():
-                self.cache["disparity_full"] = resize(src, self.size).clamp(0, 1)
-        return self.cache["disparity_full"]
-
-    def disparity_tile_range(self, tile: int) -> tuple[Tensor, Tensor]:
-        """Min and max of the full-res disparity over ``tile`` x ``tile`` blocks (cached).
-
-        Shape: two ``[ceil(H / tile), ceil(W / tile)]`` tensors.
-        """
-        key = ("tile_range", tile)
-        if key not in self.cache:
-            with torch.no_grad():
-                d = self.disparity_full_tensor()
-                hi = F.max_pool2d(d, tile, tile, ceil_mode=True)[0, 0]
-                lo = -F.max_pool2d(-d, tile, tile, ceil_mode=True)[0, 0]
-            self.cache[key] = (lo, hi)
-        return self.cache[key]
-
-    def disparity_full(self) -> np.ndarray:
-        """Disparity at full resolution as ``H x W`` float32 numpy in [0, 1] (1 = nearest)."""
-        return self.disparity_full_tensor()[0, 0].detach().cpu().numpy()
-
-
-@dataclass
-class Result:
-    """One render (numpy, float32).
-
-    Attributes:
-        bokeh: ``H x W x 3`` in [0, 1] (preview size when ``max_side`` was given).
-        bokeh_lr: ``h x w x 3`` in [0, 1], the low-resolution rendering pass.
-        disparity: ``h x w`` in [0, 1], 1 = nearest.
-        defocus: ``h x w`` in [0, 1], the paper's normalised defocus of each pixel
-            (``schedule.coc_to_defocus`` of its CoC at the low-res pass).
-        fusion_mask: ``H x W`` in [0, 1], weight of the sharp input in ``bokeh`` (zeros when
-            fusion is off or in preview).
-        timings: milliseconds per stage.
-        settings: what the adaptive picker chose for this focus and blur
-            (:class:`adaptive.RenderSettings`: layer count, reduced-resolution preset,
-            identity path, predicted PSNR), ``None`` when the settings were fixed.
-    """
-
-    bokeh: np.ndarray
-    bokeh_lr: np.ndarray
-    disparity: np.ndarray
-    defocus: np.ndarray
-    fusion_mask: np.ndarray
-    timings: dict[str, float]
-    settings: adaptive.RenderSettings | None = None
-
-
-# --------------------------------------------------------------------------------------
-# helpers
-# --------------------------------------------------------------------------------------
-
-
-def _per_sample(value: float | Tensor, batch: int, ref: Tensor) -> Tensor:
-    """Scalar or ``[B]`` -> ``[B, 1, 1, 1]`` on ``ref``'s device and dtype."""
-    t = torch.as_tensor(value, dtype=ref.dtype, device=ref.device).reshape(-1)
-    if t.numel() == 1:
-        t = t.expand(batch)
-    if t.numel() != batch:
-        raise ValueError(f"expected a scalar or {batch} values, got {t.numel()}")
-    return t.reshape(batch, 1, 1, 1)
-
-
-def _to_numpy_image(x: Tensor) -> np.ndarray:
-    return x[0].permute(1, 2, 0).contiguous().cpu().numpy()
-
-
-def _ms(t0: float) -> float:
-    return (time.perf_counter() - t0) * 1000.0
-
-
-# --------------------------------------------------------------------------------------
-# the model
-# --------------------------------------------------------------------------------------
-
-
-class D2F(nn.Module):
+class D2F(FusionStage, nn.Module):
     """Defocus-to-Focus: defocus, radiance and fusion networks plus the layered renderer.
 
     Use :meth:`from_pretrained`, :meth:`from_checkpoint` or :meth:`from_config`; all return
@@ -474,121 +185,6 @@ class D2F(nn.Module):
             return disparity
         radius = max(3, round(self.config.edge_radius * max(image.shape[-2:])))
         return harden_edges(image, disparity, radius, self.config.edge_step)
-
-    def fusion_mask(
-        self,
-        image: Tensor,
-        disparity: Tensor,
-        focus: float | Tensor,
-        blur: float | Tensor,
-        lr_ratio: float,
-    ) -> tuple[Tensor, Tensor]:
-        """Soft fusion mask ``M = max(M_s, P)`` at full resolution (dense, differentiable).
-
-        Args:
-            image: ``I_hr``, ``(B, 3, H, W)`` in [0, 1].
-            disparity: full-resolution disparity ``(B, 1, H, W)`` in [0, 1].
-            focus: focal disparity, float or ``[B]``.
-            blur: ``K`` in px at full resolution, float or ``[B]``.
-            lr_ratio: size of the low-res pass over full size (the defocus ``D`` fed to
-                ``f_p`` is the paper's normalised defocus of the CoC at the low-res pass).
-
-        Returns:
-            ``(M, M_s)``, both ``(B, 1, H, W)`` in [0, 1].
-        """
-        cfg = self.config
-        b = image.shape[0]
-        f = _per_sample(focus, b, image)
-        k = _per_sample(blur, b, image)
-        coc = k * (disparity - f).abs()  # [B,1,H,W] full-res px
-        prior = ((2.0 * cfg.sharp_coc - coc) / cfg.sharp_coc).clamp(0, 1)
-        defocus = coc_to_defocus(coc * lr_ratio)
-        gate = (defocus < cfg.fusion_gate).to(image.dtype)
-        m_s = self.fusion_net(1.0 - defocus, rgb_to_gray(image)) * gate
-        return torch.maximum(m_s, prior), m_s
-
-    def _fuse_tiled(
-        self,
-        scene: Scene,
-        bokeh_up: Tensor,
-        focus: float,
-        blur: float,
-        lr_ratio: float,
-        behind: tuple[Tensor, Tensor] | None = None,
-    ) -> tuple[Tensor, Tensor]:
-        """``B_hr = lerp(B_up, I_hr, M)`` computed tile by tile (inference), in place.
-
-        Each 256-px tile is classified from the range of the disparity inside it (cached per
-        scene): far from focus (``M = 0``: keep ``B_up``), entirely sharp (``CoC <= sharp_coc``
-        everywhere: ``M = 1``), or mixed, where ``M`` is computed per pixel, running ``f_p``
-        only if some pixel can pass its gate. The result equals the dense
-        :meth:`fusion_mask` blend; the cost follows the in-focus part of the frame.
-
-        ``behind`` (full size, from ``rendering.render(..., behind=True)``): the share of
-        each pixel that the layers at and behind the focal plane make, and their colour.
-        Where a blurred foreground covers an in-focus pixel, only that part is sharpened,
-        ``B_hr = B_up + M * share * (I_hr - colour)``, so the foreground's blur stays over
-        it (a plain lerp pasted the sharp background over the blur of a near object, which
-        then ended in a hard edge); where nothing is in front this is the lerp. The mask
-        returned is then ``M * share``, the weight of the sharp photo in the result.
-
-        Returns:
-            ``(bokeh, mask)``: ``(1, 3, H, W)`` (``bokeh_up``, modified) and ``(1, 1, H, W)``.
-        """
-        cfg = self.config
-        height, width = scene.size
-        t = _FUSION_TILE
-        lo, hi = scene.disparity_tile_range(t)  # [gh,gw]
-        # CoC range of each tile: distance of [lo, hi] to the focal plane
-        coc_lo = blur * torch.clamp(torch.maximum(lo - focus, focus - hi), min=0.0)
-        coc_hi = blur * torch.maximum((hi - focus).abs(), (lo - focus).abs())
-        gate_coc = defocus_to_coc(cfg.fusion_gate) / lr_ratio * 1.01
-        sharp = cfg.sharp_coc
-        all_sharp = coc_hi <= sharp
-        needs_net = (coc_lo < gate_coc) & (coc_hi > sharp)
-        needs_pixels = ((coc_lo < 2 * sharp) | needs_net) & ~all_sharp
-        mask = torch.zeros((1, 1, height, width), device=bokeh_up.device, dtype=bokeh_up.dtype)
-        image, d_full = scene.image, scene.disparity_full_tensor()
-        halo = self.fusion_net.halo
-
-        def sharpen(y0: int, y1: int, x0: int, x1: int, m: Tensor | float) -> None:
-            """Put the photo back into ``bokeh_up`` with weight ``m`` over one region."""
-            region, photo = bokeh_up[..., y0:y1, x0:x1], image[..., y0:y1, x0:x1]
-            if behind is None:
-                mask[..., y0:y1, x0:x1] = m
-                if isinstance(m, float):  # m = 1: the photo itself
-                    region.copy_(photo)
-                else:
-                    region.copy_(torch.lerp(region, photo, m))
-                return
-            m = behind[0][..., y0:y1, x0:x1] * m
-            mask[..., y0:y1, x0:x1] = m
-            region.addcmul_(m, photo - behind[1][..., y0:y1, x0:x1])
-
-        for row in range(lo.shape[0]):
-            y0, y1 = row * t, min(height, (row + 1) * t)
-            for c in torch.nonzero(all_sharp[row]).flatten().tolist():
-                sharpen(y0, y1, c * t, min(width, (c + 1) * t), 1.0)
-            for c0, c1 in _runs(torch.nonzero(needs_pixels[row]).flatten().tolist()):
-                x0, x1 = c0 * t, min(width, (c1 + 1) * t)
-                use_net = bool(needs_net[row, c0 : c1 + 1].any())
-                pad = halo if use_net else 0
-                ya, yb = max(0, y0 - pad), min(height, y1 + pad)
-                xa, xb = max(0, x0 - pad), min(width, x1 + pad)
-                coc = blur * (d_full[..., ya:yb, xa:xb] - focus).abs()  # [1,1,h',w']
-                m = ((2.0 * sharp - coc) / sharp).clamp_(0, 1)
-                if use_net:
-                    defocus = coc_to_defocus(coc * lr_ratio)
-                    m_s = self.fusion_net(
-                        (1.0 - defocus).contiguous(memory_format=torch.channels_last),
-                        rgb_to_gray(image[..., ya:yb, xa:xb]).contiguous(
-                            memory_format=torch.channels_last
-                        ),
-                    )
-                    m_s = m_s * (defocus < cfg.fusion_gate).to(m_s.dtype)
-                    m = torch.maximum(m, m_s)
-                sharpen(y0, y1, x0, x1, m[..., y0 - ya : y1 - ya, x0 - xa : x1 - xa])
-        return bokeh_up, mask
 
     # ---------------------------------------------------------------- inference
 
@@ -784,12 +380,12 @@ class D2F(nn.Module):
                 # decide from the full-resolution map (a given map can hold finer extremes
                 # than its low-res copy): identity when every output CoC is under a pixel,
                 # fusion when some pixel is near enough to focus for _fuse_tiled to touch it
-                lo, hi = scene.disparity_tile_range(_FUSION_TILE)
+                lo, hi = scene.disparity_tile_range(FUSION_TILE)
                 far = float(torch.maximum((hi - focus).abs(), (lo - focus).abs()).max())
                 near = float(torch.clamp(torch.maximum(lo - focus, focus - hi), min=0.0).min())
                 settings.identity = blur * far < 1.0
                 settings.fusion = blur * near < max(gate_coc, 2.0 * self.config.sharp_coc)
-            timings["pick"] = _ms(t0)
+            timings["pick"] = ms_since(t0)
         t0 = time.perf_counter()
         fuse = (
             fusion
@@ -822,7 +418,7 @@ class D2F(nn.Module):
                 bokeh_lr, share_lr, colour_lr = bokeh_lr
                 if bool((share_lr < 1.0 - 1e-4).any()):
                     behind_lr = (share_lr, colour_lr)
-        timings["render_lr"] = _ms(t0)
+        timings["render_lr"] = ms_since(t0)
         defocus_lr = coc_to_defocus(blur_lr * (disparity_lr - focus).abs())
 
         # 3. upsample + deep Poisson fusion at full resolution
@@ -837,29 +433,29 @@ class D2F(nn.Module):
             bokeh = resize(bokeh_lr, scene.size)  # [1,3,H,W]
             if bokeh is bokeh_lr:
                 bokeh = bokeh.clone()  # fusion writes into it; bokeh_lr is returned too
-            timings["upsample"] = _ms(t0)
+            timings["upsample"] = ms_since(t0)
             if fuse:
                 t0 = time.perf_counter()
                 behind = None
                 if behind_lr is not None:
                     behind = tuple(resize(t, scene.size).clamp_(0, 1) for t in behind_lr)
                 bokeh, mask = self._fuse_tiled(scene, bokeh, focus, blur, lr_ratio, behind)
-                timings["fusion"] = _ms(t0)
+                timings["fusion"] = ms_since(t0)
             else:
                 mask = torch.zeros((1, 1, *scene.size), device=bokeh.device)
 
         t0 = time.perf_counter()
         result = Result(
-            bokeh=_to_numpy_image(bokeh.clamp_(0, 1)),
-            bokeh_lr=_to_numpy_image(bokeh_lr),
+            bokeh=to_numpy_image(bokeh.clamp_(0, 1)),
+            bokeh_lr=to_numpy_image(bokeh_lr),
             disparity=disparity_lr[0, 0].cpu().numpy(),
             defocus=defocus_lr[0, 0].cpu().numpy(),
             fusion_mask=mask[0, 0].cpu().numpy(),
             timings=timings,
             settings=settings,
         )
-        timings["to_numpy"] = _ms(t0)
-        timings["total"] = _ms(t_all)
+        timings["to_numpy"] = ms_since(t0)
+        timings["total"] = ms_since(t_all)
         return result
 
     def focus_at(self, scene: Scene, x: float, y: float, radius: int | None = None) -> float:
@@ -955,8 +551,8 @@ class D2F(nn.Module):
         options.setdefault("placement", self.config.placement)
         disparity = self.defocus_net(image_lr)  # [B,1,h,w]
         radiance = self.radiance_net(image_lr)  # [B,1,h,w]
-        f = _per_sample(focus, b, image_lr).reshape(-1)
-        k = _per_sample(blur_lr, b, image_lr).reshape(-1)
+        f = per_sample(focus, b, image_lr).reshape(-1)
+        k = per_sample(blur_lr, b, image_lr).reshape(-1)
         bokeh = self._render_batch(image_lr, disparity, f, k, radiance, **options)
         return {"bokeh_lr": bokeh, "disparity": disparity, "radiance": radiance}
 
@@ -979,8 +575,8 @@ class D2F(nn.Module):
         size = (int(image.shape[-2]), int(image.shape[-1]))
         lr_size = scaled_size(size, self.config.render_scale, None)
         lr_ratio = size_ratio(lr_size, size)
-        k = _per_sample(blur, b, image)
-        f = _per_sample(focus, b, image)
+        k = per_sample(blur, b, image)
+        f = per_sample(focus, b, image)
         frozen = (self.defocus_net, self.radiance_net)
         modes = [m.training for m in frozen]
         with torch.no_grad():
@@ -1008,76 +604,3 @@ class D2F(nn.Module):
             "mask": mask,
             "mask_soft": mask_soft,
         }
-
-
-def find_subject(
-    disparity: np.ndarray, min_prominence: float = 0.02
-) -> tuple[float, tuple[float, float]] | None:
-    """Where the subject of a disparity map is, and its focal disparity.
-
-    A subject is what stands out nearer than the rest of its rows: the map minus each row's
-    30th percentile (a floor or a wall sloping away in depth stands out from nothing), box
-    smoothed over a fortieth of the frame and weighted by a broad centre prior. The
-    subject's pixels are those within half the strongest score; the focus is their
-    score-weighted median disparity and the point is the strongest of them.
-
-    Args:
-        disparity: ``H x W`` in [0, 1], 1 = nearest (any size; 128 px is plenty).
-        min_prominence: below this strongest score nothing stands out.
-
-    Returns:
-        ``(focus, (x, y))`` with ``x, y`` as fractions of the width and height (pixel
-        centres), or ``None`` when nothing stands out.
-    """
-    d = np.asarray(disparity, dtype=np.float64)
-    if d.ndim != 2 or d.size == 0:
-        raise ValueError(f"disparity must be a non-empty H x W map, got shape {d.shape}")
-    h, w = d.shape
-    prominence = d - np.percentile(d, 30, axis=1, keepdims=True)
-    k = max(1, round(max(h, w) / 40))
-    n = 2 * k + 1
-    cs = np.pad(np.pad(prominence, k, mode="edge").cumsum(0).cumsum(1), ((1, 0), (1, 0)))
-    smooth = (cs[n:, n:] - cs[:-n, n:] - cs[n:, :-n] + cs[:-n, :-n]) / (n * n)
-    yy, xx = np.mgrid[0:h, 0:w]
-    centre = np.exp(-(((yy + 0.5) / h - 0.5) ** 2 + ((xx + 0.5) / w - 0.5) ** 2) / 0.18)
-    score = np.clip(smooth, 0, None) * centre
-    top = float(score.max())
-    if not top >= min_prominence:
-        return None
-    region = score >= 0.5 * top
-    values, weights = d[region], score[region]
-    order = np.argsort(values, kind="stable")
-    cum = np.cumsum(weights[order])
-    focus = float(values[order][np.searchsorted(cum, 0.5 * cum[-1])])
-    iy, ix = np.unravel_index(int(np.argmax(score)), score.shape)
-    return float(np.clip(focus, 0.0, 1.0)), ((ix + 0.5) / w, (iy + 0.5) / h)
-
-
-def locate_subject(
-    disparity: np.ndarray, size: tuple[int, int], focus_at: Callable[[float, float], float]
-) -> tuple[float, tuple[float, float]]:
-    """:func:`find_subject` on a small ``disparity`` map of a photo of ``size`` = ``(H, W)``,
-    the point in that photo's pixels; where nothing stands out, the centre and
-    ``focus_at(x, y)`` there.
-
-    Returns:
-        ``(focus, (x, y))``.
-    """
-    height, width = size
-    found = find_subject(disparity)
-    if found is None:
-        cx, cy = (width - 1) / 2.0, (height - 1) / 2.0
-        return focus_at(cx, cy), (cx, cy)
-    focus, (fx, fy) = found
-    return focus, (fx * width - 0.5, fy * height - 0.5)
-
-
-def _runs(columns: list[int]) -> list[tuple[int, int]]:
-    """Merge sorted column indices into inclusive runs: [1, 2, 3, 7] -> [(1, 3), (7, 7)]."""
-    runs: list[list[int]] = []
-    for c in columns:
-        if runs and c == runs[-1][1] + 1:
-            runs[-1][1] = c
-        else:
-            runs.append([c, c])
-    return [(a, b) for a, b in runs]
