@@ -9,14 +9,8 @@ import pytest
 import torch
 
 from d2f_core.bench import render as bench
-from d2f_core.bench.accuracy import (
-    edge_band,
-    light_band,
-    load_cases,
-    main,
-    masked_metrics,
-    pareto_front,
-)
+from d2f_core.bench.accuracy import main, pareto_front
+from d2f_core.bench.cases import edge_band, light_band, load_cases, masked_metrics
 from d2f_core.metrics import psnr
 from d2f_core.rendering import render
 from d2f_core.train.synth import Layer, Scene, render_pinhole, render_thin_lens

@@ -31,40 +31,31 @@ import math
 import os
 import platform
 import statistics
-import textwrap
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from ..rendering import PLACEMENTS, adaptive, render
+from .cases import PAPER_GPU_SECONDS, Case, load_cases, masked_metrics
+from .charts import plot_accuracy, plot_e2e
 
 __all__ = [
-    "Case",
     "Setting",
     "calibrate",
     "default_settings",
-    "dilate",
-    "edge_band",
-    "jump_pixels",
-    "light_band",
-    "load_cases",
-    "log_axis",
     "main",
-    "masked_metrics",
     "pareto_front",
-    "reach_px",
     "run_grid",
 ]
 
-logger = logging.getLogger(__name__)
+logger = logging.getLogger("d2f_core.bench.accuracy")
 
-CACHE_VERSION = 1
+
 DEFAULT_OPTIONS: dict[str, Any] = {
     "order": "depth",
     "num_layers": 15,
@@ -74,6 +65,8 @@ DEFAULT_OPTIONS: dict[str, Any] = {
     "method": "fft",
     "highlight_boost": True,
 }
+
+
 PAPER_OPTIONS: dict[str, Any] = {
     "order": "paper",
     "num_layers": 15,
@@ -83,8 +76,7 @@ PAPER_OPTIONS: dict[str, Any] = {
     "method": "direct",
     "highlight_boost": True,
 }
-#: The paper's runtime for a 1024x1536 frame on a GTX 1080 GPU (Luo et al. 2022, table 5).
-PAPER_GPU_SECONDS = 0.58
+
 
 FULL = {
     "sizes": ((128, 192), (256, 384), (384, 576)),
@@ -93,6 +85,8 @@ FULL = {
     "samples": 192,
     "repeat": 3,
 }
+
+
 QUICK = {
     "sizes": ((40, 56),),
     "seeds": (11,),
@@ -100,230 +94,12 @@ QUICK = {
     "samples": 24,
     "repeat": 1,
 }
+
+
 E2E_FULL = {"size": (384, 576), "seeds": (101, 102, 103), "k_frac": 0.06, "samples": 192}
+
+
 E2E_QUICK = {"size": (48, 64), "seeds": (101,), "k_frac": 0.1, "samples": 16}
-
-
-# --------------------------------------------------------------------------------------
-# cases: generated scenes with ground truth, cached on disk
-# --------------------------------------------------------------------------------------
-
-
-@dataclass
-class Case:
-    """One scene, focus and ``K`` with its ground truth.
-
-    Attributes:
-        key: unique name (seed, size, K, focus mode).
-        image: pinhole view, float32 ``(H, W, 3)`` sRGB in [0, 1] (renderer input).
-        disparity: ground-truth disparity, float32 ``(H, W)`` in [0, 1], 1 = nearest.
-        target: thin-lens ground truth, float32 ``(H, W, 3)`` sRGB in [0, 1].
-        lights: HDR lights of the pinhole view (linear radiance above 1), bool ``(H, W)``.
-        focus: focal disparity in [0, 1]; blur: ``K`` in px at this size.
-    """
-
-    key: str
-    image: np.ndarray
-    disparity: np.ndarray
-    target: np.ndarray
-    lights: np.ndarray
-    focus: float
-    blur: float
-    size: tuple[int, int]
-    seed: int
-    mode: str
-    bands: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
-
-    def tensors(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """``image (1, 3, H, W)`` and ``disparity (1, 1, H, W)``."""
-        img = torch.from_numpy(np.ascontiguousarray(self.image)).permute(2, 0, 1)[None]
-        disp = torch.from_numpy(np.ascontiguousarray(self.disparity))[None, None]
-        return img.contiguous(), disp.contiguous()
-
-
-def dilate(mask: np.ndarray, radius: int) -> np.ndarray:
-    """Binary dilation with a (2r+1)-px disk. Shape: ``(H, W) -> (H, W)``."""
-    if radius <= 0 or not mask.any():
-        return mask.copy()
-    t = torch.from_numpy(mask.astype(np.float32))[None, None]
-    y, x = torch.meshgrid(
-        torch.arange(-radius, radius + 1.0), torch.arange(-radius, radius + 1.0), indexing="ij"
-    )
-    disk = ((x * x + y * y) <= radius * radius + 0.5).float()[None, None]
-    out = F.conv2d(t, disk, padding=radius)
-    return (out[0, 0] > 0.5).numpy()
-
-
-def reach_px(blur: float, divisor: int, cap: int) -> int:
-    """How far (px) a band grows around what it marks: ``clamp(K / divisor, 2, cap)``."""
-    return int(min(cap, max(2, math.ceil(blur / divisor))))
-
-
-def jump_pixels(disparity: np.ndarray, jump: float = 0.02) -> np.ndarray:
-    """Both pixels of every neighbour pair whose disparities differ by more than ``jump``.
-
-    Shape: ``(H, W) -> (H, W)`` bool.
-    """
-    d = disparity.astype(np.float32)
-    edges = np.zeros(d.shape, bool)
-    dy = np.abs(np.diff(d, axis=0)) > jump
-    dx = np.abs(np.diff(d, axis=1)) > jump
-    edges[:-1] |= dy
-    edges[1:] |= dy
-    edges[:, :-1] |= dx
-    edges[:, 1:] |= dx
-    return edges
-
-
-def edge_band(disparity: np.ndarray, blur: float, *, jump: float = 0.02) -> np.ndarray:
-    """Pixels near an occlusion edge: a disparity jump above ``jump`` between neighbours,
-    grown by ``clamp(K / 4, 2, 24)`` px, where a wrong layer order or a mask leak shows.
-
-    Shape: ``(H, W) -> (H, W)`` bool.
-    """
-    return dilate(jump_pixels(disparity, jump), reach_px(blur, 4, 24))
-
-
-def light_band(lights: np.ndarray, blur: float) -> np.ndarray:
-    """Pixels a blurred HDR light can reach: the lights grown by ``clamp(K / 2, 2, 48)`` px.
-
-    Shape: ``(H, W) -> (H, W)`` bool.
-    """
-    return dilate(lights, reach_px(blur, 2, 48))
-
-
-def _focus_for(scene, mode: str) -> float:
-    if mode == "subject":
-        return float(scene.subject)
-    # "far": the farthest object in front of the background, so nearer objects blur over it
-    orders = sorted(float(lay.order) for lay in scene.layers[1:] if lay.kind != "ground")
-    return orders[0] if orders else float(scene.layers[0].order)
-
-
-def _make_case(
-    size: tuple[int, int], seed: int, k_frac: float, mode: str, samples: int, cache: Path | None
-) -> Case:
-    from ..train.synth import linear_to_srgb, make_scene, render_pinhole, render_thin_lens
-
-    blur = round(k_frac * size[1], 2)
-    key = f"s{seed}_{size[0]}x{size[1]}_k{blur:g}_{mode}_n{samples}_v{CACHE_VERSION}"
-    path = None if cache is None else cache / f"{key}.npz"
-    if path is not None and path.is_file():
-        data = np.load(path)
-        return Case(
-            key,
-            data["image"],
-            data["disparity"],
-            data["target"],
-            data["lights"],
-            float(data["focus"]),
-            float(data["blur"]),
-            size,
-            seed,
-            mode,
-        )
-    scene = make_scene(size, seed=seed, margin=math.ceil(blur / 2) + 2)
-    focus = _focus_for(scene, mode)
-    radiance, disparity = render_pinhole(scene)
-    target = render_thin_lens(scene, focus, blur, samples=samples)
-    case = Case(
-        key,
-        linear_to_srgb(radiance),
-        disparity.astype(np.float32),
-        linear_to_srgb(target),
-        (radiance > 1.0).any(axis=2),
-        focus,
-        blur,
-        size,
-        seed,
-        mode,
-    )
-    if path is not None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(".tmp.npz")
-        np.savez_compressed(
-            tmp,
-            image=case.image,
-            disparity=case.disparity,
-            target=case.target,
-            lights=case.lights,
-            focus=focus,
-            blur=blur,
-        )
-        os.replace(tmp, path)
-    return case
-
-
-def load_cases(
-    sizes: Sequence[tuple[int, int]],
-    seeds: Sequence[int],
-    k_fracs: Sequence[float],
-    *,
-    samples: int = 256,
-    cache: str | Path | None = None,
-) -> list[Case]:
-    """Generated scenes with thin-lens ground truth, cached as ``.npz`` under ``cache``.
-
-    Even seeds focus on the main subject, odd seeds on the farthest object (so nearer objects
-    blur over a sharp region). ``K = k_frac * width``.
-    """
-    cache_path = None if cache is None else Path(cache)
-    cases = []
-    for size in sizes:
-        for seed in seeds:
-            mode = "subject" if seed % 2 == 0 else "far"
-            for k_frac in k_fracs:
-                t0 = time.perf_counter()
-                case = _make_case(tuple(size), seed, k_frac, mode, samples, cache_path)
-                case.bands = {
-                    "edges": edge_band(case.disparity, case.blur),
-                    "lights": light_band(case.lights, case.blur),
-                }
-                logger.info("case %s ready (%.1f s)", case.key, time.perf_counter() - t0)
-                cases.append(case)
-    return cases
-
-
-# --------------------------------------------------------------------------------------
-# metrics
-# --------------------------------------------------------------------------------------
-
-
-def masked_metrics(
-    pred: np.ndarray, target: np.ndarray, bands: dict[str, np.ndarray]
-) -> dict[str, float | None]:
-    """PSNR (dB) and SSIM overall and inside each band (``None`` for an empty band).
-
-    Shape: ``pred, target (H, W, 3)`` in [0, 1]; ``bands`` maps a name to ``(H, W)`` bool.
-    SSIM uses a Gaussian window (sigma 1.5); a band's SSIM is the mean of the SSIM map there.
-    """
-    from skimage.metrics import structural_similarity
-
-    a, b = pred.astype(np.float64), target.astype(np.float64)
-    err = ((a - b) ** 2).mean(axis=2)
-    win = min(7, min(a.shape[:2]) | 1) if min(a.shape[:2]) < 7 else None
-    kw = {"win_size": win} if win else {"gaussian_weights": True, "sigma": 1.5}
-    mean_ssim, smap = structural_similarity(
-        a, b, data_range=1.0, channel_axis=-1, full=True, use_sample_covariance=False, **kw
-    )
-    smap = smap.mean(axis=2)
-
-    def _psnr(mse: float) -> float:
-        return 100.0 if mse <= 1e-10 else 10.0 * math.log10(1.0 / mse)
-
-    out: dict[str, float | None] = {"psnr": _psnr(float(err.mean())), "ssim": float(mean_ssim)}
-    for name, band in bands.items():
-        if band.any():
-            out[f"psnr_{name}"] = _psnr(float(err[band].mean()))
-            out[f"ssim_{name}"] = float(smap[band].mean())
-        else:
-            out[f"psnr_{name}"] = out[f"ssim_{name}"] = None
-    return out
-
-
-# --------------------------------------------------------------------------------------
-# settings
-# --------------------------------------------------------------------------------------
 
 
 @dataclass(frozen=True)
@@ -399,11 +175,6 @@ def _runner(setting: Setting, case: Case) -> Callable[[], torch.Tensor]:
         return render(image, disparity, case.focus, case.blur, **kwargs)
 
     return run_fixed
-
-
-# --------------------------------------------------------------------------------------
-# the grid
-# --------------------------------------------------------------------------------------
 
 
 def run_grid(
@@ -513,125 +284,6 @@ def pareto_front(points: Sequence[tuple[float, float]]) -> list[int]:
     return sorted(front, key=lambda i: points[i][0])
 
 
-# --------------------------------------------------------------------------------------
-# charts
-# --------------------------------------------------------------------------------------
-
-_AXIS_COLOURS = {
-    "default": "black",
-    "layers": "tab:blue",
-    "schedule": "tab:olive",
-    "kernel": "tab:cyan",
-    "resolution": "tab:green",
-    "method": "tab:brown",
-    "order": "tab:red",
-    "placement": "tab:gray",
-    "hdr": "tab:pink",
-    "paper": "tab:red",
-    "combined": "tab:purple",
-    "adaptive": "tab:orange",
-}
-
-
-def log_axis(axis) -> None:
-    """Log x scale labelled with plain numbers: at 1-9 x 10^k over less than a decade (so a
-    narrow range still gets ticks), at 1, 2, 5 x 10^k over more."""
-    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
-
-    axis.axes.set_xscale("log")
-    lo, hi = axis.axes.get_xlim()
-    subs = tuple(range(1, 10)) if hi < 10 * lo else (1.0, 2.0, 5.0)
-    axis.set_major_locator(LogLocator(base=10, subs=subs))
-    axis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
-    axis.set_minor_formatter(NullFormatter())
-
-
-def plot_accuracy(summary: Sequence[dict[str, Any]], path: Path, title: str) -> None:
-    """Time against PSNR per resolution, Pareto front, paper and default marked."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    sizes = sorted({e["size"] for e in summary}, key=lambda s: int(s.split("x")[0]))
-    fig, axes = plt.subplots(
-        1, len(sizes), figsize=(max(7.0, 5.2 * len(sizes)), 4.8), squeeze=False
-    )
-    for ax, size in zip(axes[0], sizes, strict=True):
-        rows = [e for e in summary if e["size"] == size and e["axis"] != "baseline"]
-        for e in rows:
-            marker, ms = "o", 5
-            if e["setting"] == "paper":
-                marker, ms = "*", 15
-            elif e["setting"] == "default":
-                marker, ms = "D", 8
-            elif e["axis"] == "adaptive":
-                marker, ms = "^", 9
-            ax.plot(
-                e["ms"],
-                e["psnr"],
-                marker=marker,
-                ms=ms,
-                ls="none",
-                color=_AXIS_COLOURS.get(e["axis"], "grey"),
-                mec="black" if marker != "o" else "none",
-                zorder=3,
-            )
-            if e["setting"] in ("paper", "default", "adaptive") or (
-                e.get("pareto") and e["axis"] not in ("adaptive", "default")
-            ):
-                ax.annotate(
-                    e["setting"],
-                    (e["ms"], e["psnr"]),
-                    textcoords="offset points",
-                    xytext=(4, 3),
-                    fontsize=7,
-                )
-        front = sorted((e for e in rows if e.get("pareto")), key=lambda e: e["ms"])
-        if front:
-            ax.step(
-                [e["ms"] for e in front],
-                [e["psnr"] for e in front],
-                where="post",
-                color="grey",
-                lw=1,
-                ls="--",
-                zorder=2,
-                label="Pareto front",
-            )
-        base = [e for e in summary if e["size"] == size and e["axis"] == "baseline"]
-        if base:
-            ax.axhline(base[0]["psnr"], color="grey", lw=0.8, ls=":", label="input (no blur)")
-        log_axis(ax.xaxis)
-        ax.set_xlabel("ms per frame (median, log scale)")
-        ax.set_ylabel("PSNR vs thin-lens ground truth (dB)")
-        ax.set_title(f"{size}, {rows[0]['cases'] if rows else 0} scene/K cases", fontsize=9)
-        ax.grid(True, which="both", alpha=0.3)
-    handles = [
-        plt.Line2D([], [], marker="*", ms=12, ls="none", color="tab:red", mec="black"),
-        plt.Line2D([], [], marker="D", ms=7, ls="none", color="black"),
-        plt.Line2D([], [], marker="^", ms=8, ls="none", color="tab:orange", mec="black"),
-        plt.Line2D([], [], color="grey", ls="--"),
-    ]
-    labels = ["paper configuration", "default", "adaptive", "Pareto front"]
-    for axis in ("layers", "resolution", "order", "placement", "combined"):
-        handles.append(plt.Line2D([], [], marker="o", ls="none", color=_AXIS_COLOURS[axis]))
-        labels.append(axis)
-    fig.legend(
-        handles, labels, loc="lower center", ncol=min(8, 4 * len(sizes)), fontsize=8, frameon=False
-    )
-    fig.suptitle(textwrap.fill(title, 60 * len(sizes)), fontsize=9)
-    fig.tight_layout(rect=(0, 0.08 if len(sizes) > 1 else 0.12, 1, 0.93))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-
-
-# --------------------------------------------------------------------------------------
-# calibration of the adaptive picker
-# --------------------------------------------------------------------------------------
-
-
 def calibrate(
     sizes: Sequence[tuple[int, int]],
     seeds: Sequence[int],
@@ -697,11 +349,6 @@ def calibrate(
         for (n, q), row in table.items()
     }
     return {"coc_bins": list(adaptive.COC_BINS), "table": rounded, "points": points}
-
-
-# --------------------------------------------------------------------------------------
-# end to end: prepare + render of the whole pipeline
-# --------------------------------------------------------------------------------------
 
 
 def run_e2e(
@@ -779,65 +426,6 @@ def run_e2e(
                     )
                 logger.info("e2e %s scale %.2f done", name, scale)
     return rows, sources
-
-
-def plot_e2e(rows: Sequence[dict[str, Any]], path: Path, title: str) -> None:
-    """Time (prepare + render) against PSNR per series, one point per pass scale."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(7.0, 4.6))
-    colours = {"lite": "tab:blue", "lite-ctx": "tab:blue", "resnext50": "tab:red"}
-    colours["given disparity"] = "tab:green"
-    for series in dict.fromkeys(r["series"] for r in rows):
-        pts = []
-        for scale in sorted({r["scale"] for r in rows if r["series"] == series}):
-            group = [r for r in rows if r["series"] == series and r["scale"] == scale]
-            pts.append(
-                (
-                    float(np.mean([r["ms"] for r in group])),
-                    float(np.mean([r["psnr"] for r in group])),
-                    scale,
-                )
-            )
-        ax.plot(
-            [p[0] / 1000 for p in pts],
-            [p[1] for p in pts],
-            marker="o",
-            color=colours.get(series, "grey"),
-            label=series,
-        )
-        for t, q, scale in pts:
-            ax.annotate(
-                f"x{scale:g}", (t / 1000, q), textcoords="offset points", xytext=(4, 3), fontsize=7
-            )
-    ax.axvline(PAPER_GPU_SECONDS, color="black", lw=0.8, ls=":")
-    ax.text(
-        PAPER_GPU_SECONDS,
-        ax.get_ylim()[0],
-        " paper: 0.58 s (GTX 1080 GPU, 1024x1536)",
-        rotation=90,
-        va="bottom",
-        ha="right",
-        fontsize=7,
-    )
-    log_axis(ax.xaxis)
-    ax.set_xlabel("prepare + render, s per photo (median, CPU, log scale)")
-    ax.set_ylabel("PSNR vs thin-lens ground truth (dB)")
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8, title="defocus network (x = low-res pass scale)", title_fontsize=8)
-    ax.set_title(textwrap.fill(title, 90), fontsize=9)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-
-
-# --------------------------------------------------------------------------------------
-# CLI
-# --------------------------------------------------------------------------------------
 
 
 def _parse_size(text: str) -> tuple[int, int]:

@@ -48,7 +48,7 @@ import torch
 import torch.nn.functional as F
 
 from ..rendering import render
-from .accuracy import Case, dilate, jump_pixels, load_cases, masked_metrics, reach_px
+from .cases import Case, dilate, jump_pixels, load_cases, masked_metrics, reach_px
 
 __all__ = ["CATEGORIES", "edge_sides", "gather_render", "main", "run_peers", "thin_band"]
 
