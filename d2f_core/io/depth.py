@@ -18,7 +18,8 @@ from typing import Literal
 import numpy as np
 from PIL import Image
 
-from .image import atomic_write, open_pil, read_source_bytes, resize_float, to_uint8
+from .image import open_pil, read_source_bytes, resize_float
+from .save import atomic_write, to_uint8
 
 logger = logging.getLogger(__name__)
 
