@@ -23,17 +23,22 @@ ROOT = Path(__file__).resolve().parents[1]
 
 #: (step, public entry, module(s), equation), in the order a render runs
 STEPS = [
-    ("load", "load_image, load_photo", "io/image.py, io/embedded.py", "I_hr, H x W x 3 in [0, 1]"),
+    (
+        "load",
+        "load_image, load_photo",
+        "io/image.py, formats.py, embedded.py",
+        "I_hr, H x W x 3 in [0, 1]",
+    ),
     (
         "depth source",
         "depth_map, D2F.prepare(depth=)",
-        "depth/sources.py, depth/refine.py",
+        "depth/sources.py, refine.py, subject.py",
         "step 2: disparity d (1 = near), D = |d - f|",
     ),
     (
         "networks",
         "D2F.prepare",
-        "networks.py, pipeline.py",
+        "networks.py, pipeline/model.py",
         "steps 1-3: I_lr = resize(I_hr), d = f_d(I_lr), R0 = f_r(I_lr)",
     ),
     (
@@ -57,10 +62,10 @@ STEPS = [
     (
         "fusion",
         "D2F.render",
-        "pipeline.py (f_p: networks.py)",
+        "pipeline/fusion.py (f_p: networks.py)",
         "step 6: B_hr = M_s I_hr + (1 - M_s) upsample(B_lr)",
     ),
-    ("save", "save_image", "io/image.py", "Result.bokeh -> PNG / JPEG"),
+    ("save", "save_image", "io/save.py", "Result.bokeh -> PNG / JPEG"),
 ]
 
 
