@@ -1,4 +1,5 @@
-"""Adaptive render settings: no more model than a scene needs.
+"""Adaptive render settings beside the plan: no more model than a scene needs (the layer count
+``L`` of ``f_l`` and the reduced-resolution preset, per error budget).
 
 :func:`choose_settings` looks at the disparity map, the focal plane and the requested blur
 ``K`` and picks the cheapest renderer settings whose expected error stays within a budget

@@ -1,4 +1,6 @@
-"""Aperture kernels and the layer kernel-size schedules of D2F.
+"""Aperture kernels and the layer kernel-size schedules of D2F: the soft disk
+``k(x, y) = 0.5 + 0.5 tanh(sigma (r^2 - x^2 - y^2) + phi)`` and the growing sizes
+``1, 3, 5, ..., 69`` of the kernels ``K(s_l)``.
 
 Every kernel is a 2-D tensor of shape ``(size, size)`` (``size`` odd) that sums to 1.
 Builders take keyword-only ``device`` and ``dtype`` so a renderer can build them where its

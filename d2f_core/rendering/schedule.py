@@ -1,4 +1,5 @@
-"""The paper's growing kernel schedule read as a map between CoC and normalised defocus.
+"""The paper's growing kernel schedule read as a map between CoC and normalised defocus ``D``
+(layer ``l`` covers ``D = l / (L - 1)``), for the plan and the fusion network.
 
 D2F describes how blurred a pixel is by its normalised defocus ``D`` in [0, 1]: the
 position of its circle of confusion (CoC, diameter in px at the render pass) on the
