@@ -13,7 +13,7 @@ and without HTTP, next to the core calls they wrap:
 * ``display``: JPEG encoding of the picture the browser gets (``app.imaging.write_display``);
   ``display_png``: the same picture as a level-1 PNG, as it was sent before.
 
-The photo is the Middlebury 'motorcycle' pair of ``d2f_core.bench.bench_scene`` resized to
+The photo is the Middlebury 'motorcycle' pair of ``d2f_core.bench.render.bench_scene`` resized to
 the asked size; its measured disparity is used unless ``--network-disparity`` is given (a
 random-init model predicts an almost flat map, which would flatter the renderer). Nothing
 here asserts a time; targets on the 2-core CPU are printed next to the figures.
@@ -37,7 +37,8 @@ from PIL import Image
 
 from app import imaging
 from app.cache import SceneCache
-from app.handlers import PREVIEW_MAX_SIDE, RefocusApp, f_number_for
+from app.handlers import RefocusApp
+from app.settings import PREVIEW_MAX_SIDE, f_number_for
 
 #: Targets on the project's 2-core CPU, in ms (see the issue).
 TARGETS_MS = {"preview_core": 60.0, "full_core": 1500.0, "prepare": 3000.0}
@@ -79,7 +80,7 @@ def app_latency_benchmark(
     """
     import torch
 
-    from d2f_core.bench import bench_scene
+    from d2f_core.bench.render import bench_scene
     from d2f_core.pipeline import D2F
 
     if threads is not None:

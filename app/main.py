@@ -18,17 +18,10 @@ from gradio.route_utils import FnIndexInferError
 from app import imaging
 from app import sources as depth_choice
 from app.cache import SceneCache
-from app.handlers import (
-    DEFAULT_F_NUMBER,
-    DEPTH_KINDS,
-    F_NUMBER_RANGE,
-    FORMATS,
-    QUALITIES,
-    VIEWS,
-    RefocusApp,
-    delete_session,
-    one_line,
-)
+from app.handlers import RefocusApp
+from app.reporting import one_line
+from app.sessions import delete_session
+from app.settings import DEFAULT_F_NUMBER, DEPTH_KINDS, F_NUMBER_RANGE, FORMATS, QUALITIES, VIEWS
 from app.uploads import UploadGate
 from d2f_core import bundled, depth_sources
 

@@ -1,6 +1,6 @@
 """The app's "Depth source" control: the sources a photo offers and the map ``prepare`` gets.
 
-The sources are those of :mod:`d2f_core.depth_sources`: the phone depth stored in the photo,
+The sources are those of :mod:`d2f_core.depth.sources`: the phone depth stored in the photo,
 the user's own map, the shipped network (offline) and, when ``transformers`` is installed
 (the ``hub`` extra), the Hugging Face depth-estimation models that the server's operator
 allows (:class:`HubPolicy`, ``d2f-app --depth-models``). "Automatic" keeps the order the app
@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from d2f_core import depth_sources
+from d2f_core.depth import sources as depth_sources
 
 AUTO = "auto"
 #: ``(label, value)`` of every choice, in the order shown.

@@ -7,7 +7,7 @@ The model
     :class:`D2FConfig`, a prepared photo :class:`Scene` (``model.prepare(image)``) and a
     refocused render :class:`Result` (``model.render(scene, focus, blur)``).
 
-Depth sources (:mod:`d2f_core.depth_sources`)
+Depth sources (:mod:`d2f_core.depth.sources`)
     :func:`depth_map` turns a source (``"embedded"`` phone depth, ``"file:PATH"``, ``"d2f"``,
     ``"transformers:MODEL"``) into a :class:`DepthMap`; :data:`SOURCES` lists them,
     :func:`parse_source` reads one as a :class:`DepthSource`. ``D2F.prepare(image,
@@ -18,7 +18,7 @@ The renderer alone (:mod:`d2f_core.rendering`), for a photo and a disparity map 
     options for repeated renders), :func:`render` (tensors), :func:`hdr_boost`, and the
     kernels :func:`soft_disk_kernel`, :func:`hard_disk_kernel`, :func:`polygon_kernel`,
     :func:`kernel_sizes`; :func:`coc_to_defocus` maps a blur diameter to the paper's
-    normalised defocus (:mod:`d2f_core.schedule`).
+    normalised defocus (:mod:`d2f_core.rendering.schedule`).
 
 Files (:mod:`d2f_core.io`, the only module that reads and writes them)
     :func:`load_image`, :func:`load_photo` (with its embedded depth), :func:`load_depth`,
@@ -38,11 +38,12 @@ Example::
     focus, _ = model.subject_focus(scene)
     save_image("bokeh.jpg", model.render(scene, focus, blur=40).bokeh)
 
-Other modules: :mod:`d2f_core.pipeline` (the model's stages), :mod:`d2f_core.adaptive`
-(renderer settings per error budget), :mod:`d2f_core.networks`, :mod:`d2f_core.refine`,
-:mod:`d2f_core.bundled` (the shipped weights and sample photos), and for training and
-evaluation :mod:`d2f_core.losses`, :mod:`d2f_core.data`, :mod:`d2f_core.train`,
-:mod:`d2f_core.evaluate`, :mod:`d2f_core.synth`.
+Other modules: :mod:`d2f_core.pipeline` (the model's stages), :mod:`d2f_core.networks`,
+:mod:`d2f_core.rendering` (the renderer's stages; :mod:`d2f_core.rendering.adaptive`, renderer
+settings per error budget), :mod:`d2f_core.depth` (depth sources and refinement),
+:mod:`d2f_core.bundled` (the shipped weights and sample photos); for training
+:mod:`d2f_core.train` (losses, data, synth, the two stages, stage 0), for evaluation
+:mod:`d2f_core.evaluate` and for benchmarks :mod:`d2f_core.bench`.
 
 Names are imported on first use, so ``import d2f_core`` (and ``d2f --help``) stays fast.
 """
@@ -60,21 +61,21 @@ _LAZY = {
     "Scene": "pipeline",
     "Result": "pipeline",
     # depth sources
-    "DepthMap": "depth_sources",
-    "DepthSource": "depth_sources",
-    "SOURCES": "depth_sources",
-    "depth_map": "depth_sources",
-    "parse_source": "depth_sources",
+    "DepthMap": "depth.sources",
+    "DepthSource": "depth.sources",
+    "SOURCES": "depth.sources",
+    "depth_map": "depth.sources",
+    "parse_source": "depth.sources",
     # the renderer
     "LayeredRenderer": "rendering",
     "hdr_boost": "rendering",
     "render": "rendering",
     "render_bokeh": "rendering",
-    "coc_to_defocus": "schedule",
-    "hard_disk_kernel": "kernels",
-    "kernel_sizes": "kernels",
-    "polygon_kernel": "kernels",
-    "soft_disk_kernel": "kernels",
+    "coc_to_defocus": "rendering.schedule",
+    "hard_disk_kernel": "rendering.kernels",
+    "kernel_sizes": "rendering.kernels",
+    "polygon_kernel": "rendering.kernels",
+    "soft_disk_kernel": "rendering.kernels",
     # files
     "load_depth": "io",
     "load_image": "io",

@@ -3,7 +3,7 @@
     d2f render IN -o OUT [--focus F | --focus-at X,Y] --blur K [--depth FILE ...]
     d2f batch INPUT... -o OUTDIR [same options] [--recursive] [--engine local|ray] (d2f_core.batch)
 
-Depth comes from ``--depth-model SOURCE`` (:mod:`d2f_core.depth_sources`: ``embedded``,
+Depth comes from ``--depth-model SOURCE`` (:mod:`d2f_core.depth.sources`: ``embedded``,
 ``file:PATH``, ``d2f``, ``transformers:MODEL``), else, in order: ``--depth``, the phone depth
 embedded in the photo (Google Lens Blur, Apple portrait JPEG/HEIC), or the D2F defocus
 network. Every map is refined to the photo's edges (``--no-refine-depth`` keeps it as the
@@ -162,7 +162,7 @@ def _pixel_limit(text: str) -> int:
 
 
 def _depth_source(text: str) -> Any:
-    from .depth_sources import parse_source
+    from .depth.sources import parse_source
 
     try:
         return parse_source(text)
@@ -500,7 +500,7 @@ def render_with_depth_only(
     import torch.nn.functional as F
 
     from .rendering import render
-    from .schedule import coc_to_defocus
+    from .rendering.schedule import coc_to_defocus
     from .sizing import resize
 
     h, w = image.shape[:2]
@@ -556,10 +556,10 @@ def _blur_of(args: argparse.Namespace, size: tuple[int, int]) -> float:
 
 
 def _choose_depth(src: Path, photo: Any, args: argparse.Namespace, depth_file: Path | None) -> Any:
-    """The photo's :class:`~d2f_core.depth_sources.DepthMap` from the source the command line
+    """The photo's :class:`~d2f_core.depth.sources.DepthMap` from the source the command line
     names (``--depth-model``, else ``--depth``, else the phone's depth), or ``None`` for the
     D2F network; logs the source (``-v``)."""
-    from .depth_sources import DepthSource, depth_map
+    from .depth.sources import DepthSource, depth_map
 
     source = args.depth_model
     if source is None:

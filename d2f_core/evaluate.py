@@ -32,9 +32,9 @@ import torch
 import torch.nn.functional as F
 
 from . import metrics
-from .data import EBBDataset
 from .pipeline import D2F, D2FConfig
-from .schedule import coc_to_defocus
+from .rendering.schedule import coc_to_defocus
+from .train.data import EBBDataset
 
 __all__ = [
     "FUSION_METHODS",

@@ -2,7 +2,7 @@
 
     python docs/hidden_surface_chart.py [--data ../shared/data] [--out PATH]
 
-Top row, a generated scene (``d2f_core.synth``): a near box blurred to a 28 px CoC in front
+Top row, a generated scene (``d2f_core.train.synth``): a near box blurred to a 28 px CoC in front
 of a sharp striped wall, as the thin-lens ground truth sees it, then d2f's renderer without
 and with the hidden surface (``rendering.render(..., hidden=False / True)``). Bottom row,
 when the Google Lens Blur sample of ``--data`` is there: a crop of the photo around its near
@@ -20,7 +20,7 @@ import torch
 from PIL import Image
 
 from d2f_core import D2F, load_photo, rendering
-from d2f_core.synth import Layer, Scene, render_pinhole, render_thin_lens
+from d2f_core.train.synth import Layer, Scene, render_pinhole, render_thin_lens
 
 ROOT = Path(__file__).resolve().parents[1]
 GAP = 6

@@ -25,8 +25,9 @@ from PIL import Image
 
 # Debian's Chromium and the launch flags that work with it as root
 # (../shared/BROWSER_TESTING.md), shared with the app's browser latency bench
-from app.latency_bench import CHROMIUM, CHROMIUM_ARGS, BenchError, Server, app_env, wait_ready
-from app.latency_bench import free_port as find_free_port
+from app.latency_probe import CHROMIUM, CHROMIUM_ARGS
+from app.latency_server import BenchError, Server, app_env, wait_ready
+from app.latency_server import free_port as find_free_port
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 #: Small networks and a small render pass keep model-backed tests fast on 2 cores.

@@ -1,4 +1,4 @@
-"""Adaptive render settings (d2f_core.adaptive): budget, identity path, fusion decision."""
+"""Adaptive render settings (d2f_core.rendering.adaptive): budget, identity path, fusion."""
 
 from __future__ import annotations
 
@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 import torch
 
-import d2f_core.adaptive as adaptive
 import d2f_core.rendering as rendering
-from d2f_core.adaptive import BUDGETS, choose_settings, render_adaptive
+import d2f_core.rendering.adaptive as adaptive
 from d2f_core.metrics import psnr
-from d2f_core.synth import linear_to_srgb, make_scene, render_pinhole
+from d2f_core.rendering.adaptive import BUDGETS, choose_settings, render_adaptive
+from d2f_core.train.synth import linear_to_srgb, make_scene, render_pinhole
 
 pytestmark = pytest.mark.usefixtures("two_threads")
 
@@ -49,9 +49,9 @@ class TestIdentityPath:
 
     def test_renderer_zero_blur_composites_nothing(self, monkeypatch):
         calls = []
-        real = rendering._composite
+        real = rendering.composite.composite_layers
         monkeypatch.setattr(
-            rendering, "_composite", lambda *a, **k: calls.append(1) or real(*a, **k)
+            rendering.api, "composite_layers", lambda *a, **k: calls.append(1) or real(*a, **k)
         )
         image, disp, subject, _ = _scene(303, (40, 56))
         assert torch.equal(rendering.render(image, disp, subject, 0.0), image)

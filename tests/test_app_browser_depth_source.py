@@ -16,7 +16,7 @@ import pytest
 from _browser import fetch_image, open_app, wait_new_result
 from _tiny_hub import save_dpt
 
-from d2f_core import depth_sources
+from d2f_core.depth import sources as depth_sources
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
 

@@ -16,7 +16,7 @@ from _browser import TIMEOUT_MS, open_app
 from _io_writers import lensblur_jpeg
 from PIL import Image
 
-from app.handlers import blur_px
+from app.settings import blur_px
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
 

@@ -16,15 +16,14 @@ from PIL import Image
 
 from app import imaging
 from app.cache import SceneCache, content_key, scene_nbytes
-from app.handlers import (
+from app.handlers import RefocusApp
+from app.sessions import Session, delete_session
+from app.settings import (
     DEFAULT_F_NUMBER,
     PREVIEW_MAX_SIDE,
     VIEWS,
-    RefocusApp,
     RenderParams,
-    Session,
     blur_px,
-    delete_session,
     disparity_of,
     f_number_for,
     position_of,
@@ -32,7 +31,7 @@ from app.handlers import (
 from d2f_core import io as d2f_io
 
 #: f/0.5, the widest aperture the handlers take (the page's slider starts at f/1): K = 44.4 px
-#: on the 320 px wide test photo (app.handlers.blur_px), both planes far out of focus when
+#: on the 320 px wide test photo (app.settings.blur_px), both planes far out of focus when
 #: the other is focused. (The tiny random model's fusion keeps much of the sharp input where
 #: a blur is under about 30 px: at f/1, 22 px, the far plane kept 60 % of its sharpness.)
 APERTURE = 0.5
@@ -409,10 +408,10 @@ class TestRenderParams:
 
 class TestLoad:
     def test_upload_with_disparity(self, logic, two_plane_scene, sharpness, monkeypatch):
-        from app import handlers
+        from app import settings
 
         # a lens whose f/1 blurs the 320 px photo by K = 120 px
-        monkeypatch.setattr(handlers, "BLUR_PER_PX_AT_F1", 120 / 320)
+        monkeypatch.setattr(settings, "BLUR_PER_PX_AT_F1", 120 / 320)
         scene = two_plane_scene
         out = logic.load(str(scene.photo), str(scene.disparity), "disparity", None, 0.5, 1.0)
         session = out[0]
@@ -619,11 +618,11 @@ class TestRender:
         assert "layers" in logic.render_preview(session, 0.45, APERTURE)[3]
 
     def test_quality_option_sets_the_budget(self, loaded, monkeypatch):
-        from app import handlers
+        from app import settings
 
         logic, session, _ = loaded
         # a lens whose f/1 reaches the 300 px cap on the 320 px photo
-        monkeypatch.setattr(handlers, "BLUR_PER_PX_AT_F1", 1.0)
+        monkeypatch.setattr(settings, "BLUR_PER_PX_AT_F1", 1.0)
         info = {}
         for quality in ("high", "fast"):
             info[quality] = logic.render_full(session, 0.0, 1.0, quality=quality)[-1]
@@ -716,7 +715,7 @@ class TestRender:
         other events of the session may write theirs: a young file is never removed."""
         import os
 
-        from app.handlers import DISPLAY_FILES_KEPT, FILE_MIN_AGE_S
+        from app.sessions import DISPLAY_FILES_KEPT, FILE_MIN_AGE_S
 
         logic, session, _ = loaded
         sent = [logic.render_preview(session, 0.1 + 0.01 * k, APERTURE)[0]["value"]
@@ -735,12 +734,12 @@ class TestRender:
         clock gained a digit (10**12 ns is 16.7 min after boot, 10**13 ns 2.8 h), every new
         file sorted before the older ones and was deleted as soon as written, so Gradio
         could not copy it and the browser got 403 for every picture of that session."""
-        from app import handlers
+        from app import sessions
 
         logic, session, _ = loaded
         ticks = [10**12 - 100 + k for k in range(10)] + [10**12 + k for k in range(10)]
         clock = iter(ticks)
-        monkeypatch.setattr(handlers.time, "monotonic_ns", lambda: next(clock))
+        monkeypatch.setattr(sessions.time, "monotonic_ns", lambda: next(clock))
         for k in range(10):  # 12-digit times
             logic.render_preview(session, 0.1 + 0.01 * k, APERTURE)
         for k in range(3):  # the clock has rolled over to 13 digits

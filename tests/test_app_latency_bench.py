@@ -18,7 +18,8 @@ import re
 import pytest
 
 from app import latency_bench
-from app.latency_bench import FULL_RENDER_RE, ROWS, format_table, parse_size
+from app.latency_bench import ROWS, format_table, parse_size
+from app.latency_probe import FULL_RENDER_RE
 
 
 def test_parse_size():

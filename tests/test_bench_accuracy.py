@@ -1,4 +1,4 @@
-"""The speed/accuracy bench (d2f_core.bench_accuracy): quick run, metrics, K convention."""
+"""The speed/accuracy bench (d2f_core.bench.accuracy): quick run, metrics, K convention."""
 
 from __future__ import annotations
 
@@ -8,18 +8,12 @@ import numpy as np
 import pytest
 import torch
 
-from d2f_core import bench
-from d2f_core.bench_accuracy import (
-    edge_band,
-    light_band,
-    load_cases,
-    main,
-    masked_metrics,
-    pareto_front,
-)
+from d2f_core.bench import render as bench
+from d2f_core.bench.accuracy import main, pareto_front
+from d2f_core.bench.cases import edge_band, light_band, load_cases, masked_metrics
 from d2f_core.metrics import psnr
 from d2f_core.rendering import render
-from d2f_core.synth import Layer, Scene, render_pinhole, render_thin_lens
+from d2f_core.train.synth import Layer, Scene, render_pinhole, render_thin_lens
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
@@ -95,14 +89,16 @@ class TestPieces:
 
         image, disp = bench.bench_scene(40, 60)
         calls = []
-        conv = rendering.F.conv2d
+        conv = rendering.blur.F.conv2d
         monkeypatch.setattr(
-            rendering.F, "conv2d", lambda x, w, **k: calls.append(x.shape[1]) or conv(x, w, **k)
+            rendering.blur.F,
+            "conv2d",
+            lambda x, w, **k: calls.append(x.shape[1]) or conv(x, w, **k),
         )
         with torch.no_grad():
             base = bench._authors_render(image, disp, 0.6, 30.0)
             (c,) = set(calls)  # alpha and colour (and the weight, with highlights)
-            assert c in (4, 5) and rendering.LANES == 16
+            assert c in (4, 5) and rendering.blur.LANES == 16
             calls.clear()
             ours = rendering.render(
                 image, disp, 0.6, 30.0, quality="exact", method="direct", full_frame=True
@@ -210,7 +206,7 @@ class TestConventions:
 
 class TestPeers:
     def test_gather_known_answers(self):
-        from d2f_core.bench_peers import gather_render
+        from d2f_core.bench.peers import gather_render
 
         flat = torch.full((1, 3, 20, 30), 0.4)
         disp = torch.rand(1, 1, 20, 30)
@@ -228,7 +224,7 @@ class TestPeers:
         assert float(out[20, 20]) == pytest.approx(float(out[20, 24]), rel=1e-5)  # flat disc
 
     def test_edge_sides(self):
-        from d2f_core.bench_peers import edge_sides
+        from d2f_core.bench.peers import edge_sides
 
         d = np.zeros((20, 40), np.float32)
         d[:, 20:] = 1.0
@@ -237,7 +233,7 @@ class TestPeers:
         assert far[:, 16:20].all() and not far[:, 20:].any() and not (near & far).any()
 
     def test_run_peers_reports_every_category(self, tmp_path):
-        from d2f_core.bench_peers import CATEGORIES, format_table, run_peers, summary
+        from d2f_core.bench.peers import CATEGORIES, format_table, run_peers, summary
 
         cases = load_cases([(40, 56)], [11, 12], [0.12], samples=16, cache=tmp_path)
         result = run_peers(cases, repeat=1, blender=False)
@@ -259,7 +255,7 @@ class TestPeers:
     def test_blender_peer_when_installed(self):
         """Blender's Defocus node as the bench runs it: pixels in = pixels out where nothing
         is blurred, a flat photo stays flat, and a bright square spreads by its CoC radius."""
-        from d2f_core.bench_peers import blender_available, blender_render
+        from d2f_core.bench.peers import blender_available, blender_render
 
         if blender_available() is None:
             pytest.skip("blender is not on PATH (Debian: apt-get install blender)")
@@ -279,7 +275,7 @@ class TestPeers:
 def test_e2e_runs_the_weights_own_defocus_network(tmp_path, tiny_checkpoint):
     """``"shipped"`` is the defocus network the weights hold, loaded from them; a variant
     the weights do not hold is randomly initialised and said to be."""
-    from d2f_core.bench_accuracy import run_e2e
+    from d2f_core.bench.accuracy import run_e2e
 
     cases = load_cases([(40, 56)], [11], [0.12], samples=16, cache=tmp_path)
     rows, sources = run_e2e(cases, variants=("shipped",), scales=(0.5,), weights=tiny_checkpoint)

@@ -10,7 +10,7 @@ import pytest
 import torch
 from PIL import Image
 
-from d2f_core.data import EBBDataset, PairFiles, find_pairs, split_pairs
+from d2f_core.train.data import EBBDataset, PairFiles, find_pairs, split_pairs
 
 
 def write_pairs(

@@ -13,9 +13,10 @@ import pytest
 import torch
 from PIL import Image
 
-from d2f_core import depth_bench, depth_train, teachers
+from d2f_core.bench import depth_bench
+from d2f_core.depth.refine import box_mean, harden_edges, snap_edges
 from d2f_core.pipeline import D2F, find_subject
-from d2f_core.refine import box_mean, harden_edges, snap_edges
+from d2f_core.train import depth_train, teachers
 
 # ------------------------------------------------------------------------------ metrics
 
@@ -728,8 +729,8 @@ def test_bench_depth_reports_missing_data(tmp_path, capsys):
 
 
 def test_photo_scene_subject_stands_in_front():
-    from d2f_core.synth import render_pinhole, render_thin_lens
-    from d2f_core.synth.photo import make_photo_scene
+    from d2f_core.train.synth import render_pinhole, render_thin_lens
+    from d2f_core.train.synth.photo import make_photo_scene
 
     rng = np.random.default_rng(0)
     background = rng.random((80, 120, 3)).astype(np.float32)
@@ -756,8 +757,8 @@ def test_photo_scene_subject_stands_in_front():
 
 
 def test_photo_scenes_from_a_datasets_folder(tmp_path):
-    from d2f_core.synth.dataset import make_pair
-    from d2f_core.synth.photo import PhotoScenes
+    from d2f_core.train.synth.dataset import make_pair
+    from d2f_core.train.synth.photo import PhotoScenes
 
     root, labels = tmp_path / "datasets", tmp_path / "labels"
     _tiny_datasets(root, labels, n=30)
@@ -774,7 +775,7 @@ def test_photo_scenes_from_a_datasets_folder(tmp_path):
 def test_flip_average_makes_the_map_mirror_with_the_photo(tiny_checkpoint):
     """Averaged with its mirror image, the network's map of a mirrored photo is the mirrored
     map (a random network alone is not symmetric, so the plain maps differ)."""
-    from d2f_core.train import apply_overrides
+    from d2f_core.train.two_stage import apply_overrides
 
     model = D2F.from_checkpoint(tiny_checkpoint)
     image = np.random.default_rng(2).random((64, 96, 3)).astype(np.float32)

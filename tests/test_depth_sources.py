@@ -1,4 +1,4 @@
-"""Depth sources (``d2f_core.depth_sources``): parsing, conversions, hub models loaded from
+"""Depth sources (``d2f_core.depth.sources``): parsing, conversions, hub models loaded from
 local folders (tiny random models, never downloaded), the clear errors, and the refinement
 that every source's map goes through in ``D2F.prepare``."""
 
@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 import torch
 
-from d2f_core import depth_sources as ds
+from d2f_core.depth import sources as ds
+from d2f_core.depth.refine import box_mean
 from d2f_core.io import Photo
 from d2f_core.pipeline import D2F
-from d2f_core.refine import box_mean
 from d2f_core.sizing import resize
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -352,7 +352,7 @@ def test_import_touches_no_hub():
     import subprocess
 
     code = (
-        "import sys, d2f_core.pipeline, d2f_core.depth_sources, d2f_core.cli; "
+        "import sys, d2f_core.pipeline, d2f_core.depth.sources, d2f_core.cli; "
         "bad = [m for m in ('transformers', 'huggingface_hub') if m in sys.modules]; "
         "sys.exit(', '.join(bad) or None)"
     )

@@ -10,7 +10,6 @@ import torch
 from test_data import write_pairs
 
 from d2f_core import metrics
-from d2f_core.data import EBBDataset
 from d2f_core.evaluate import (
     FUSION_METHODS,
     alpha_blend,
@@ -23,6 +22,7 @@ from d2f_core.evaluate import (
     poisson_blend,
 )
 from d2f_core.pipeline import D2F
+from d2f_core.train.data import EBBDataset
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

@@ -23,9 +23,9 @@ import torch.nn.functional as F
 from PIL import Image
 
 from d2f_core.io import load_depth, load_photo
-from d2f_core.kernels import soft_disk_kernel
 from d2f_core.pipeline import D2F
 from d2f_core.rendering import render_bokeh
+from d2f_core.rendering.kernels import soft_disk_kernel
 
 pytestmark = pytest.mark.failure_case
 

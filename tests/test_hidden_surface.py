@@ -2,7 +2,7 @@
 
 The photo shows only the near object there; a thin lens sees past its rim, up to its CoC
 radius inside it, to the background behind. Checked against the accumulation-buffer ground
-truth of ``d2f_core.synth``.
+truth of ``d2f_core.train.synth``.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from scipy import ndimage
 
 from d2f_core import rendering
 from d2f_core.metrics import psnr
-from d2f_core.synth import Layer, Scene, render_pinhole, render_thin_lens
+from d2f_core.train.synth import Layer, Scene, render_pinhole, render_thin_lens
 
 
 def _occluder_scene(near: float = 0.9, far: float = 0.2, focus: float = 0.2):
@@ -123,7 +123,7 @@ def test_push_pull_fills_from_known_pixels():
     known = torch.zeros(1, 1, 16, 16)
     known[..., :, 0] = 1
     known[..., :, 15] = 1
-    out = rendering._push_pull(values, known)
+    out = rendering.hidden._push_pull(values, known)
     # known pixels are kept; the gap between takes values between the two sides, ordered
     assert torch.allclose(out[..., :, 0], torch.tensor(0.25))
     assert torch.allclose(out[..., :, 15], torch.tensor(0.75))
@@ -156,7 +156,7 @@ def test_near_side_on_a_kernel_size():
         plan = rendering.layer_plan(d, torch.tensor(0.1, dtype=d.dtype).view(1, 1, 1, 1), 80.0)
         assert abs(float(plan.coord.max()) - 13.5) < 1e-5
         x = torch.cat([torch.ones_like(img[:, :1]), img], dim=1)
-        surfaces.append(rendering.hidden_surface(rendering._input_pixels(x, False), plan))
+        surfaces.append(rendering.hidden_surface(rendering.hidden.input_pixels(x, False), plan))
         renders.append(rendering.render(img, d, 0.1, 80.0).double())
     # the near side's CoC radius is 34 px: cells of 8 px, the frame's edges within reach
     assert [(s.grid, s.box) for s in surfaces] == [(8, (0, 96, 0, 128))] * 3
@@ -175,7 +175,7 @@ def test_drawn_only_within_its_spans():
     with torch.inference_mode():
         plan = rendering.layer_plan(disp, torch.tensor(0.2).view(1, 1, 1, 1), 28.0)
         x = torch.cat([torch.ones_like(image[:, :1]), image], dim=1)
-        under = rendering.hidden_surface(rendering._input_pixels(x, False), plan)
+        under = rendering.hidden_surface(rendering.hidden.input_pixels(x, False), plan)
         assert under is not None
         y0, y1, x0, x1 = under.box
         assert x0 < 20 and x1 > 300  # the box holds both: its middle is 0

@@ -6,6 +6,11 @@
    neither ``from x import _name`` nor ``x._name`` on an imported module. A helper that two
    modules need gets a public name in one home. (Tests are white-box: they may reach the
    private helpers of the module they test, and are not walked.)
+3. No import circle: the graph of which module imports which (function-level imports
+   included) has no cycle in ``d2f_core`` or ``app``.
+4. Inference apart from training and benchmarks: no inference module (the pipeline, the
+   renderer, the networks, io, depth, the CLI and the app) imports ``d2f_core.train`` or
+   ``d2f_core.bench``, directly or through another module.
 """
 
 from __future__ import annotations
@@ -133,7 +138,9 @@ def import_problems(module: str, source: str, modules: set[str], is_package: boo
 @pytest.fixture(scope="module")
 def all_problems() -> list[Problem]:
     modules = project_modules()
-    assert {"d2f_core.pipeline", "d2f_core.io", "d2f_core.synth.scene", "app.main"} <= set(modules)
+    assert {"d2f_core.pipeline", "d2f_core.io", "d2f_core.train.synth.scene", "app.main"} <= set(
+        modules
+    )
     out: list[Problem] = []
     for name, path in modules.items():
         out += import_problems(name, path.read_text(), set(modules), path.stem == "__init__")
@@ -215,3 +222,130 @@ def test_checker_allows_public_names(source):
 def test_relative_imports_resolve_from_a_package_init():
     found = import_problems("d2f_core", "from .rendering import _pool", MODULES, True)
     assert [(p.target, p.name) for p in found] == [("d2f_core.rendering", "_pool")]
+
+
+# ------------------------------------------------------------------- the import graph
+
+#: the modules a render of a photo runs through, and the CLI and app that call them (and the
+#: package's own ``__init__``)
+INFERENCE = (
+    "d2f_core.pipeline",
+    "d2f_core.rendering",
+    "d2f_core.networks",
+    "d2f_core.io",
+    "d2f_core.depth",
+    "d2f_core.bundled",
+    "d2f_core.sizing",
+    "d2f_core.errors",
+    "d2f_core.progress",
+    "d2f_core.cli",
+    "app",
+)
+#: app modules that time the app (they may use the benchmarks' scenes)
+APP_BENCHMARKS = ("app.bench", "app.latency_bench")
+TRAINING_AND_BENCHMARKS = ("d2f_core.train", "d2f_core.bench")
+
+
+def _within(module: str, roots) -> bool:
+    return any(module == r or module.startswith(r + ".") for r in roots)
+
+
+def import_edges(module: str, source: str, modules: set[str], is_package: bool = False):
+    """The project modules that ``module`` imports anywhere in ``source`` (function bodies
+    included): ``from x import y`` counts as importing ``x.y`` where that is a module."""
+    out: set[str] = set()
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Import):
+            for a in node.names:
+                if a.name in modules:
+                    out.add(a.name)
+        elif isinstance(node, ast.ImportFrom):
+            base = _absolute(module, is_package, node)
+            for a in node.names:
+                full = f"{base}.{a.name}"
+                if full in modules:
+                    out.add(full)
+                elif base in modules:
+                    out.add(base)
+    out.discard(module)
+    return out
+
+
+@pytest.fixture(scope="module")
+def graph() -> dict[str, set[str]]:
+    modules = project_modules()
+    names = set(modules)
+    return {
+        name: import_edges(name, path.read_text(), names, path.stem == "__init__")
+        for name, path in modules.items()
+    }
+
+
+def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of more than one module (Tarjan)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on: set[str] = set()
+    found: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on.add(v)
+        for w in sorted(graph.get(v, ())):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            part = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                part.append(w)
+                if w == v:
+                    break
+            if len(part) > 1:
+                found.append(sorted(part))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return found
+
+
+def test_no_import_circle(graph):
+    found = cycles(graph)
+    assert not found, "import circles:\n" + "\n".join(" <-> ".join(c) for c in found)
+
+
+def test_inference_never_imports_training_or_benchmarks(graph):
+    bad = []
+    for start in graph:
+        inference = start == "d2f_core" or _within(start, INFERENCE)
+        if not inference or _within(start, APP_BENCHMARKS):
+            continue
+        seen, todo = {start}, [start]
+        while todo:
+            for nxt in graph[todo.pop()]:
+                if nxt in seen:
+                    continue
+                if _within(nxt, TRAINING_AND_BENCHMARKS):
+                    bad.append(f"{start} -> ... -> {nxt}")
+                    continue
+                seen.add(nxt)
+                todo.append(nxt)
+    assert not bad, "\n".join(sorted(bad))
+
+
+def test_graph_sees_function_level_imports_and_circles():
+    names = {"d2f_core.a", "d2f_core.b", "d2f_core.train", "d2f_core.pipeline"}
+    assert import_edges("d2f_core.a", "def f():\n    from .b import x", names) == {"d2f_core.b"}
+    assert import_edges("d2f_core.a", "from . import b, pipeline", names) == {
+        "d2f_core.b",
+        "d2f_core.pipeline",
+    }
+    assert cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+    assert cycles({"a": {"b"}, "b": set()}) == []

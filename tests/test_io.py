@@ -15,6 +15,7 @@ from PIL import Image, ImageCms, ImageOps
 
 from d2f_core.io import image as io_image
 from d2f_core.io import load_image, load_image_with_info, save_image
+from d2f_core.io import save as io_save
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 
@@ -427,31 +428,31 @@ class TestFloatToUint8:
 
     @pytest.mark.parametrize("shape", [(1, 1), (7, 5, 3), (300, 17, 3), (2049, 512)])
     def test_same_bytes_as_whole_picture(self, shape, monkeypatch):
-        monkeypatch.setattr(io_image, "_BAND_ELEMENTS", 4096)  # many bands, a short last one
+        monkeypatch.setattr(io_save, "_BAND_ELEMENTS", 4096)  # many bands, a short last one
         rng = np.random.default_rng(3)
         a = rng.uniform(-0.2, 1.2, shape)
         a.flat[:6] = [0.0, 1.0, 0.5 / 255, 254.5 / 255, -0.0, 1.0 + 1e-9][: a.size]
         for x in (a, a.astype(np.float32), a[::-1]):  # float64, float32, a strided view
-            out = io_image.float_to_uint8(x)
+            out = io_save.float_to_uint8(x)
             assert out.dtype == np.uint8 and out.shape == x.shape
             np.testing.assert_array_equal(out, self.reference(x))
 
     def test_known_values(self):
-        got = io_image.float_to_uint8(np.array([[0.0, 0.5, 1.0, 2.0, -1.0, 0.499 / 255]]))
+        got = io_save.float_to_uint8(np.array([[0.0, 0.5, 1.0, 2.0, -1.0, 0.499 / 255]]))
         np.testing.assert_array_equal(got, [[0, 128, 255, 255, 0, 0]])
-        scalar = io_image.float_to_uint8(np.float32(0.5))
+        scalar = io_save.float_to_uint8(np.float32(0.5))
         assert scalar.shape == () and scalar == 128
-        assert io_image.float_to_uint8(np.zeros((0, 4, 3))).shape == (0, 4, 3)
+        assert io_save.float_to_uint8(np.zeros((0, 4, 3))).shape == (0, 4, 3)
 
     def test_nan_in_a_later_band_is_named(self, monkeypatch):
-        monkeypatch.setattr(io_image, "_BAND_ELEMENTS", 64)
+        monkeypatch.setattr(io_save, "_BAND_ELEMENTS", 64)
         a = np.zeros((100, 8, 3), np.float32)
         a[97, 2, 1] = np.nan
         with pytest.raises(ValueError, match="bokeh: contains NaN"):
-            io_image.float_to_uint8(a, "bokeh")
+            io_save.float_to_uint8(a, "bokeh")
         with pytest.raises(ValueError, match="contains NaN"):
-            io_image.to_uint8(a)
-        out = io_image.float_to_uint8(np.where(np.isnan(a), 0, a), None)
+            io_save.to_uint8(a)
+        out = io_save.float_to_uint8(np.where(np.isnan(a), 0, a), None)
         assert not out.any()
 
     def test_no_float_temporary_of_the_whole_picture(self):
@@ -461,8 +462,8 @@ class TestFloatToUint8:
         a = np.full((2000, 1000, 3), 0.5, np.float32)  # 24 MB of floats, 6 MB of bytes
         tracemalloc.start()
         try:
-            io_image.to_uint8(a)
+            io_save.to_uint8(a)
             peak = tracemalloc.get_traced_memory()[1]
         finally:
             tracemalloc.stop()
-        assert peak < a.nbytes // 4 + 4 * io_image._BAND_ELEMENTS + (1 << 20), peak
+        assert peak < a.nbytes // 4 + 4 * io_save._BAND_ELEMENTS + (1 << 20), peak

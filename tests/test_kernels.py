@@ -3,7 +3,7 @@ import math
 import pytest
 import torch
 
-from d2f_core.kernels import (
+from d2f_core.rendering.kernels import (
     PAPER_GROWING_SIZES,
     aperture_kernel,
     coarse_kernel,
@@ -79,7 +79,8 @@ class TestCoarseKernel:
 
     @staticmethod
     def _reduced(x: torch.Tensor, k: torch.Tensor, factor: int) -> torch.Tensor:
-        from d2f_core.rendering import _pool, _upsample
+        from d2f_core.rendering.blur import pool_grid as _pool
+        from d2f_core.rendering.blur import upsample_grid as _upsample
 
         r = k.shape[-1] // 2
         coarse = torch.nn.functional.conv2d(_pool(x, factor), k.flip(-1, -2)[None, None], padding=r)

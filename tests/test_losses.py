@@ -7,7 +7,7 @@ import logging
 import pytest
 import torch
 
-from d2f_core.losses import (
+from d2f_core.train.losses import (
     D2FLoss,
     PerceptualLoss,
     VGG19Features,
@@ -152,7 +152,7 @@ class TestPoisson:
 
 class TestPerceptual:
     def test_off_without_weights(self, caplog):
-        with caplog.at_level(logging.WARNING, logger="d2f_core.losses"):
+        with caplog.at_level(logging.WARNING, logger="d2f_core.train.losses"):
             loss = PerceptualLoss(None)
         assert "switched off" in caplog.text
         assert not loss.enabled

@@ -101,6 +101,31 @@ def test_wheel_holds_every_module_and_the_shipped_files(wheel):
     assert not [n for n in names if n.startswith(("tests/", "assets/"))]
 
 
+def test_wheel_holds_the_package_weights_and_samples_only(wheel):
+    """No frozen renderer, no benchmark-only data: the code of d2f_core and app, the
+    weights, the sample photos and the assets' README, nothing else."""
+    names = zipfile.ZipFile(wheel).namelist()
+    assert not [n for n in names if "benchmarks/" in n or "bench_baseline" in n or "00e22a4" in n]
+    frozen = []
+    with zipfile.ZipFile(wheel) as z:
+        for n in names:
+            if n.endswith(".py") and b"frozen copy" in z.read(n).lower():
+                frozen.append(n)
+    assert not frozen, f"frozen code in the wheel: {frozen}"
+    shipped = {"README.md", "__init__.py", *SHIPPED}
+    extra = []
+    for n in names:
+        top = n.split("/")[0]
+        if top.endswith(".dist-info"):
+            continue
+        if n.startswith("d2f_core/assets/"):
+            if n[len("d2f_core/assets/") :] not in shipped:
+                extra.append(n)
+        elif top not in ("d2f_core", "app") or not n.endswith((".py", ".md")):
+            extra.append(n)
+    assert not extra, f"the wheel carries more than the package: {extra}"
+
+
 def test_installed_wheel_loads_weights_and_renders_a_sample(venv, tmp_path):
     code = f"""
 import pathlib, sys

@@ -7,10 +7,10 @@ import pytest
 import torch
 
 from d2f_core import rendering
-from d2f_core.adaptive import BUDGETS
 from d2f_core.metrics import psnr
 from d2f_core.pipeline import D2F, D2FConfig, Result, Scene
-from d2f_core.synth import linear_to_srgb, make_scene, render_pinhole
+from d2f_core.rendering.adaptive import BUDGETS
+from d2f_core.train.synth import linear_to_srgb, make_scene, render_pinhole
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -231,11 +231,11 @@ class TestInputChecks:
         # D2F.render checks focus and blur; choose_settings and rendering.render take them
         # as checked, with the preview, the adaptive settings and fixed settings alike
         scene = model.prepare(_image())
-        check = rendering._check_focus
+        check = rendering.inputs._check_focus
         for kwargs in ({}, {"max_side": 32}, {"budget": None}, {"num_layers": 8}):
             seen: list[float] = []
             monkeypatch.setattr(
-                rendering, "_check_focus", lambda v, seen=seen: seen.append(v) or check(v)
+                rendering.inputs, "_check_focus", lambda v, seen=seen: seen.append(v) or check(v)
             )
             model.render(scene, 0.4, 20.0, **kwargs)
             assert seen == [0.4], kwargs

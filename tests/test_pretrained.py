@@ -11,7 +11,7 @@ import torch
 from d2f_core.io import load_image
 from d2f_core.metrics import psnr
 from d2f_core.pipeline import D2F, default_weights_path
-from d2f_core.synth.dataset import make_pair
+from d2f_core.train.synth.dataset import make_pair
 
 ASSETS = Path(__file__).resolve().parents[1] / "assets"
 
@@ -103,9 +103,9 @@ def test_motorcycle_without_depth_keeps_the_subject_sharp(model):
 def test_generated_scenes_rank_subject_first(model):
     """Generated scenes (seeds never used in training) with their exact disparity: the
     network's map ranks depth like the truth, and the main subject above the rest."""
-    from d2f_core.depth_bench import spearman, subject_auc
-    from d2f_core.synth import make_scene, render_pinhole
-    from d2f_core.synth.lens import linear_to_srgb
+    from d2f_core.bench.depth_bench import spearman, subject_auc
+    from d2f_core.train.synth import make_scene, render_pinhole
+    from d2f_core.train.synth.lens import linear_to_srgb
 
     rhos, aucs = [], []
     for seed in range(7100, 7106):
@@ -123,7 +123,7 @@ def test_generated_scenes_rank_subject_first(model):
 def test_heldout_masked_photos_rank_subject_nearer(model):
     """Held-out masked photos (ECSSD, DAVIS, COCO; never seen in training): the subject's
     pixels are predicted nearer than the background's."""
-    from d2f_core.depth_bench import heldout_masks, resize_array, subject_auc
+    from d2f_core.bench.depth_bench import heldout_masks, resize_array, subject_auc
 
     if not DATASETS.is_dir():
         pytest.skip(f"training datasets not available: {DATASETS}")
@@ -147,8 +147,8 @@ def test_no_rim_round_the_vase(model):
     (it was 0.053 brighter on average when the map's soft silhouette was rendered as it is)."""
     from scipy.ndimage import distance_transform_edt
 
-    from d2f_core.depth_train import resize_array
     from d2f_core.io import load_photo
+    from d2f_core.train.depth_train import resize_array
 
     if not VASE.is_dir():
         pytest.skip(f"shared data not available: {VASE}")

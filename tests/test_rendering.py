@@ -8,22 +8,24 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from d2f_core import LayeredRenderer, render, render_bokeh, rendering
-from d2f_core.kernels import aperture_kernel, coarse_kernel
 from d2f_core.metrics import psnr
-from d2f_core.rendering import (
-    _MASK_EPS,
-    _TILE,
-    _layer_mask,
-    _support_boxes,
-    hdr_boost,
-    hidden_surface,
-    layer_plan,
-)
+from d2f_core.rendering import hdr_boost, hidden_surface, layer_plan
+from d2f_core.rendering.blur import support_boxes as _support_boxes
+from d2f_core.rendering.kernels import aperture_kernel, coarse_kernel
+from d2f_core.rendering.plan import _MASK_EPS
+from d2f_core.rendering.plan import TILE as _TILE
+from d2f_core.rendering.plan import layer_mask as _layer_mask
 
 
 def _ramp(h=48, w=64, lo=0.0, hi=1.0):
     x = torch.linspace(lo, hi, w).expand(h, w)
     return x[None, None].clone()
+
+
+def _row_band(monkeypatch, pixels: int) -> None:
+    """Row bands of ``pixels`` in every stage that reads them."""
+    for stage in (rendering.inputs, rendering.radiance, rendering.plan, rendering.tiled):
+        monkeypatch.setattr(stage, "ROW_BAND", pixels)
 
 
 def _texture(h=48, w=64, seed=0):
@@ -253,7 +255,7 @@ class TestBands:
     @staticmethod
     def whole_and_banded(monkeypatch, fn):
         whole = fn()
-        monkeypatch.setattr(rendering, "_ROW_BAND", 97)  # bands of 1-2 rows, a short last one
+        _row_band(monkeypatch, 97)  # bands of 1-2 rows, a short last one
         with torch.inference_mode():
             banded = fn()
         return whole, banded
@@ -277,10 +279,12 @@ class TestBands:
         # the caller's extremes (render has them from its input checks) give the same plan
         disp = 0.4 + torch.rand(1, 1, 37, 53, generator=torch.Generator().manual_seed(5)) * 0.3
         focus = torch.full((1, 1, 1, 1), 0.9)
-        monkeypatch.setattr(rendering, "_ROW_BAND", 97)
+        _row_band(monkeypatch, 97)
         with torch.inference_mode():
             plain = rendering.layer_plan(disp, focus, 83.0)
-            given = rendering.layer_plan(disp, focus, 83.0, extremes=rendering._extremes(disp))
+            given = rendering.layer_plan(
+                disp, focus, 83.0, extremes=rendering.inputs.tensor_extremes(disp)
+            )
             wrong = rendering.layer_plan(disp, focus, 83.0, extremes=(0.0, 0.7))
         assert plain.order == given.order and torch.equal(plain.coord, given.coord)
         # (they are used: a farther lowest value asks for larger kernels)
@@ -302,7 +306,7 @@ class TestBands:
         assert banded.shape == (1, 1, 30, 40) and torch.equal(whole, banded)
 
     def test_layer_plan_keeps_gradients_whole(self, monkeypatch):
-        monkeypatch.setattr(rendering, "_ROW_BAND", 97)
+        _row_band(monkeypatch, 97)
         disp = torch.rand(1, 1, 20, 30, requires_grad=True)
         plan = rendering.layer_plan(disp, torch.full((1, 1, 1, 1), 0.5), 40.0)
         plan.coord.sum().backward()
@@ -324,8 +328,8 @@ def test_max_and_min_filters_are_max_pool(size):
     # the edge value is padding it with -inf), and the minimum as the negated maximum
     t = torch.randn(2, 3, 17, 23, generator=torch.Generator().manual_seed(size))
     pool = F.max_pool2d(t, size, stride=1, padding=size // 2)
-    assert torch.equal(rendering._max_filter(t, size), pool)
-    low = rendering._max_filter(t, size, torch.minimum)
+    assert torch.equal(rendering.hidden._max_filter(t, size), pool)
+    low = rendering.hidden._max_filter(t, size, torch.minimum)
     assert torch.equal(low, -F.max_pool2d(-t, size, stride=1, padding=size // 2))
 
 
@@ -335,7 +339,7 @@ def test_cell_max_is_max_pool(shape, g):
     """Cell maxima by strided maxima: max_pool2d's numbers, partial cells included."""
     t = torch.randn(*shape, generator=torch.Generator().manual_seed(g))
     want = F.max_pool2d(t, g, g, ceil_mode=True)
-    got = rendering._cell_max(t, g)
+    got = rendering.hidden._cell_max(t, g)
     assert got.shape == want.shape and torch.equal(got, want)
 
 
@@ -343,9 +347,9 @@ def test_cell_max_is_max_pool(shape, g):
 def test_transposed_in_blocks(monkeypatch, rows):
     """A tall matrix transposed block by block: the same as one transpose, whatever the
     last block holds."""
-    monkeypatch.setattr(rendering, "_TRANSPOSE_ROWS", 7)
+    monkeypatch.setattr(rendering.blur, "_TRANSPOSE_ROWS", 7)
     m = torch.randn(rows, 15, generator=torch.Generator().manual_seed(rows))
-    got = rendering._transposed(m)
+    got = rendering.blur._transposed(m)
     assert got.is_contiguous() and torch.equal(got, m.t().contiguous())
 
 
@@ -511,7 +515,10 @@ class TestImplementations:
     def test_inference_mode_inside_leaves_ordinary_tensors(self):
         # without gradients the layers run in inference mode; the result and the cached
         # kernels must still be ordinary tensors that autograd and in-place ops accept
-        from d2f_core.rendering import KernelSpec, _integer_table, _kernel, _spectrum
+        from d2f_core.rendering import KernelSpec
+        from d2f_core.rendering.blur import _spectrum
+        from d2f_core.rendering.blur import kernel_tensor as _kernel
+        from d2f_core.rendering.plan import _integer_table
 
         for cache in (_kernel, _spectrum, _integer_table):
             cache.cache_clear()
@@ -534,7 +541,9 @@ class TestImplementations:
         assert torch.allclose(again.detach(), 2 * out, atol=1e-5)
 
     def test_coarse_layers_use_fitted_kernels_up_to_the_cap(self):
-        from d2f_core.rendering import _FIT_MAX_SIZE, KernelSpec, _kernel
+        from d2f_core.rendering import KernelSpec
+        from d2f_core.rendering.blur import _FIT_MAX_SIZE
+        from d2f_core.rendering.blur import kernel_tensor as _kernel
 
         spec = KernelSpec("soft", 6, 10.0)
         fitted = _kernel(spec, 33, 2, "cpu", torch.float32)
@@ -585,7 +594,13 @@ class TestImplementations:
     def test_strip_stacked_convolution(self, channels, size, frame, box):
         # strips of the layer stacked along channels, against one plain convolution of the
         # whole zero-padded layer
-        from d2f_core.rendering import KernelSpec, _direct_stacked, _kernel
+        from d2f_core.rendering import KernelSpec
+        from d2f_core.rendering.blur import (
+            direct_stacked as _direct_stacked,
+        )
+        from d2f_core.rendering.blur import (
+            kernel_tensor as _kernel,
+        )
 
         height, width = frame
         y0, y1, x0, x1 = box
@@ -636,7 +651,7 @@ if not hasattr(libc, "mallinfo2"):
     sys.exit()
 libc.mallinfo2.restype = Info
 if sys.argv[1] == "on":
-    assert rendering._keep_freed_heap()
+    assert rendering.api._keep_freed_heap()
     img = torch.rand(1, 3, 64, 96)
     rendering.render(img, img[:, :1], 0.5, 10.0)  # the setting holds across a render
 before = libc.mallinfo2().hblkhd
@@ -663,7 +678,7 @@ print(libc.mallinfo2().hblkhd - before)
     def test_interp_matches_numpy(self, knots):
         # integer knots use a table over the integers, others a binary search: both are
         # np.interp onto the knot index, with its slope as the gradient
-        from d2f_core.rendering import _interp
+        from d2f_core.rendering.plan import _interp
 
         g = torch.Generator().manual_seed(1)
         x = torch.rand(1, 1, 30, 40, generator=g, dtype=torch.float64) * 100 - 5
@@ -685,7 +700,7 @@ print(libc.mallinfo2().hblkhd - before)
     @pytest.mark.parametrize("factor", [2, 4])
     @pytest.mark.parametrize("shape", [(1, 6, 12, 18), (2, 3, 5, 7), (1, 1, 1, 1), (1, 2, 1, 9)])
     def test_upsample_matches_interpolate(self, factor, shape):
-        from d2f_core.rendering import _upsample
+        from d2f_core.rendering.blur import upsample_grid as _upsample
 
         z = torch.rand(*shape, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
         height, width = shape[2] * factor - 1, shape[3] * factor - 2
@@ -697,7 +712,8 @@ print(libc.mallinfo2().hblkhd - before)
 
     @pytest.mark.parametrize("factor", [2, 4, 8])
     def test_pooling_matches_avg_pool(self, factor):
-        from d2f_core.rendering import _pool, _pool_product
+        from d2f_core.rendering.blur import pool_grid as _pool
+        from d2f_core.rendering.blur import pool_product as _pool_product
 
         g = torch.Generator().manual_seed(factor)
         x = torch.rand(2, 5, 24, 40, generator=g, dtype=torch.float64)
@@ -718,7 +734,9 @@ print(libc.mallinfo2().hblkhd - before)
     def test_coarse_kernel_gain(self):
         # the no-gradient path blurs cell sums with the kernel times 1 / factor**2: the same
         # composite as cell means with the plain kernel, in direct and FFT convolution
-        from d2f_core.rendering import KernelSpec, _fft, _kernel
+        from d2f_core.rendering import KernelSpec
+        from d2f_core.rendering.blur import fft_conv as _fft
+        from d2f_core.rendering.blur import kernel_tensor as _kernel
 
         spec = KernelSpec()
         k = _kernel(spec, 23, 2, "cpu", torch.float64)
@@ -738,8 +756,8 @@ class TestFocusBlurChecks:
     @staticmethod
     def _count(monkeypatch) -> list[float]:
         seen: list[float] = []
-        check = rendering._check_focus
-        monkeypatch.setattr(rendering, "_check_focus", lambda v: seen.append(v) or check(v))
+        check = rendering.inputs._check_focus
+        monkeypatch.setattr(rendering.inputs, "_check_focus", lambda v: seen.append(v) or check(v))
         return seen
 
     @pytest.mark.parametrize(
@@ -762,7 +780,7 @@ class TestFocusBlurChecks:
             render(img, disp, focus, blur)
 
     def test_each_public_entry_checks_focus_once(self, monkeypatch):
-        from d2f_core import adaptive
+        from d2f_core.rendering import adaptive
 
         img, disp = _texture(24, 32), _ramp(24, 32)
         calls = {
@@ -998,12 +1016,12 @@ class TestLargeFrames:
         exact = render(
             image.double(), disp.double(), 0.55, 260.0, **(options | {"quality": "exact"})
         )
-        monkeypatch.setattr(rendering, "_TILED_MIN_PIXELS", 0)
-        monkeypatch.setattr(rendering, "_BAND_PIXELS", 40 * 218)  # several bands
+        monkeypatch.setattr(rendering.api, "_TILED_MIN_PIXELS", 0)
+        monkeypatch.setattr(rendering.tiled, "_BAND_PIXELS", 40 * 218)  # several bands
         calls = []
-        tiled_render = rendering._render_tiled
+        tiled_render = rendering.tiled.render_tiled
         monkeypatch.setattr(
-            rendering, "_render_tiled", lambda *a: calls.append(1) or tiled_render(*a)
+            rendering.api, "render_tiled", lambda *a: calls.append(1) or tiled_render(*a)
         )
         tiled = render(image, disp, 0.55, 260.0, **options)
         assert calls and tiled.shape == image.shape and not tiled.is_inference()
@@ -1013,15 +1031,15 @@ class TestLargeFrames:
         assert psnr(tiled, exact) >= 40.0
 
     def test_constant_image_stays_constant(self, monkeypatch):
-        monkeypatch.setattr(rendering, "_TILED_MIN_PIXELS", 0)
+        monkeypatch.setattr(rendering.api, "_TILED_MIN_PIXELS", 0)
         _, disp = self._scene()
         image = torch.tensor([0.2, 0.5, 0.8]).view(1, 3, 1, 1).expand(1, 3, 150, 218).clone()
         out = render(image, disp, 0.5, 200.0)
         assert torch.allclose(out, image, atol=1e-5)
 
     def test_gradients_and_exact_keep_the_layer_by_layer_path(self, monkeypatch):
-        monkeypatch.setattr(rendering, "_TILED_MIN_PIXELS", 0)
-        monkeypatch.setattr(rendering, "_render_tiled", None)  # would raise if called
+        monkeypatch.setattr(rendering.api, "_TILED_MIN_PIXELS", 0)
+        monkeypatch.setattr(rendering.api, "render_tiled", None)  # would raise if called
         image, disp = self._scene(40, 56)
         render(image, disp, 0.5, 60.0, quality="exact")
         render(image.requires_grad_(), disp, 0.5, 60.0)
@@ -1037,9 +1055,9 @@ class TestLargeFrames:
         assert f(900, "exact") == 1
 
     def test_spans(self):
-        assert rendering._spans([1, 2, 5, 9], gap=3) == [(1, 5), (9, 9)]
-        assert rendering._spans([1, 2, 5, 9], gap=1) == [(1, 2), (5, 5), (9, 9)]
-        assert rendering._spans([]) == []
+        assert rendering.blur.column_spans([1, 2, 5, 9], gap=3) == [(1, 5), (9, 9)]
+        assert rendering.blur.column_spans([1, 2, 5, 9], gap=1) == [(1, 2), (5, 5), (9, 9)]
+        assert rendering.blur.column_spans([]) == []
 
     def test_hit_boxes_cover_the_hit_tiles_once(self):
         # every hit tile in exactly one box, boxes whole tiles, within the rows and columns
@@ -1047,21 +1065,21 @@ class TestLargeFrames:
         g = torch.Generator().manual_seed(3)
         hit = torch.rand(23, 31, generator=g) > 0.8
         hit[:, 12:20] = False  # a gap of 8 tile columns splits the spans
-        boxes = rendering._hit_boxes(hit, 2, 21, 1, 30, 32)
+        boxes = rendering.tiled._hit_boxes(hit, 2, 21, 1, 30, 32)
         covered = torch.zeros(23, 31, dtype=torch.int64)
         for y0, y1, x0, x1 in boxes:
             assert y0 % 32 == y1 % 32 == x0 % 32 == x1 % 32 == 0
-            assert y1 - y0 <= rendering._HIT_BAND * 32
+            assert y1 - y0 <= rendering.tiled._HIT_BAND * 32
             covered[y0 // 32 : y1 // 32, x0 // 32 : x1 // 32] += 1
         assert int(covered.max()) == 1
         inside = torch.zeros_like(hit)
         inside[2:21, 1:30] = True
         assert torch.equal(covered.bool() & hit, hit & inside)
         assert not covered[:, 12:20].any() and not covered[:2].any() and not covered[21:].any()
-        assert rendering._hit_boxes(torch.zeros(4, 4, dtype=torch.bool), 0, 4, 0, 4, 32) == []
+        assert rendering.tiled._hit_boxes(torch.zeros(4, 4, dtype=torch.bool), 0, 4, 0, 4, 32) == []
         # the boxes of bands of 4 rows lie inside those of bands of 16 (the FFT's pieces
         # cover every tile the masking wrote)
-        big = rendering._hit_boxes(hit, 2, 21, 1, 30, 32, 16)
+        big = rendering.tiled._hit_boxes(hit, 2, 21, 1, 30, 32, 16)
         for y0, y1, x0, x1 in boxes:
             assert any(a <= y0 and y1 <= b and c <= x0 and x1 <= d for a, b, c, d in big)
 
@@ -1073,8 +1091,8 @@ class TestLargeFrames:
         for a, b, c, d in pieces:
             z[..., a:b, c:d] = torch.rand(b - a, d - c, generator=g)
         spec = rendering.KernelSpec()
-        whole = rendering._fft(z, spec, 45, 2, 0.25)
-        parts = rendering._PieceBlur(pieces, spec, 45, 2, 0.25)(z)
+        whole = rendering.blur.fft_conv(z, spec, 45, 2, 0.25)
+        parts = rendering.tiled._PieceBlur(pieces, spec, 45, 2, 0.25)(z)
         assert parts.shape == whole.shape
         torch.testing.assert_close(parts, whole, rtol=0, atol=1e-5)
         assert float(whole.abs().max()) > 0.1
@@ -1083,7 +1101,7 @@ class TestLargeFrames:
     def test_tile_source_matches_a_padded_copy(self, h, w):
         # tiles read from the frame and its two padded edge copies are those of a padded copy
         x = torch.rand(2, h, w, generator=torch.Generator().manual_seed(h * w))
-        src = rendering._TileSource(x, 32, 7.0)
+        src = rendering.tiled._TileSource(x, 32, 7.0)
         ny, nx = -(-h // 32), -(-w // 32)
         padded = torch.full((2, ny * 32, nx * 32), 7.0)
         padded[:, :h, :w] = x
@@ -1097,14 +1115,14 @@ class TestLargeFrames:
         assert torch.equal(x, padded[:, :h, :w])  # the frame itself is only read
 
     def test_tiled_path_leaves_a_callers_radiance_alone(self, monkeypatch):
-        monkeypatch.setattr(rendering, "_TILED_MIN_PIXELS", 0)
+        monkeypatch.setattr(rendering.api, "_TILED_MIN_PIXELS", 0)
         image, disp = self._scene()
         radiance = torch.rand(1, 1, 150, 218, generator=torch.Generator().manual_seed(2))
         kept = radiance.clone()
         options = dict(radiance=radiance, highlight_boost=False)
         tiled = render(image, disp, 0.55, 260.0, **options)
         assert torch.equal(radiance, kept)
-        monkeypatch.setattr(rendering, "_TILED_MIN_PIXELS", 10**9)
+        monkeypatch.setattr(rendering.api, "_TILED_MIN_PIXELS", 10**9)
         assert psnr(tiled, render(image, disp, 0.55, 260.0, **options)) >= 50.0
 
     @staticmethod
@@ -1112,7 +1130,7 @@ class TestLargeFrames:
         """Brute force: the layer ``[m, m w I, m w]`` at full resolution, summed over 2x2
         cells (zero past the frame) and divided by 4."""
         h, w = coord.shape
-        m = rendering._tile_mask(coord.clone(), centre, gamma, gate)
+        m = rendering.tiled._tile_mask(coord.clone(), centre, gamma, gate)
         layer = torch.cat([m[None], image[0] * weights[0] * m, weights[0] * m])
         layer = F.pad(layer, (0, w % 2, 0, h % 2))
         return F.avg_pool2d(layer[None], 2)[0]
@@ -1125,7 +1143,7 @@ class TestLargeFrames:
         if band:
             # bands of 14 rows, the last of 13: its buffer is the one of the bands before,
             # and the row past the frame must not keep what an earlier band left there
-            monkeypatch.setattr(rendering, "_ROW_BAND", band)
+            _row_band(monkeypatch, band)
         gen = torch.Generator().manual_seed(h + w)
         image = torch.rand(1, 3, h, w, generator=gen)
         weights = 1 + 3 * torch.rand(1, 1, h, w, generator=gen)
@@ -1136,15 +1154,15 @@ class TestLargeFrames:
         coord[13:40, 21:52] = 6.3
         coord[:, 9] = -5.0
         hp, wp = -(-h // 32) * 32, -(-w // 32) * 32
-        half = rendering._HalfSource(image, weights, coord[None], hp, wp, 5)
+        half = rendering.tiled._HalfSource(image, weights, coord[None], hp, wp, 5)
         assert half.n > 0 and half.x.shape == (5, hp // 2, wp // 2)
         # past the frame: no input, and a coordinate no mask reaches
         assert not half.x[:, -(-h // 2) :].any() and not half.x[:, :, -(-w // 2) :].any()
-        assert (half.c[-(-h // 2) :] == rendering._FAR).all()
+        assert (half.c[-(-h // 2) :] == rendering.plan.FAR).all()
         gamma = 100.0 / 14
         hit = torch.ones(hp // 32, wp // 32, dtype=torch.bool)
         for centre, gate in ((-3, -1), (-1, -1), (1, 1), (4, 0), (6, 0), (-5, 0)):
-            grid = half.x * rendering._tile_mask(half.c.clone(), centre, gamma, gate)
+            grid = half.x * rendering.tiled._tile_mask(half.c.clone(), centre, gamma, gate)
             half.add_mixed(grid, centre, gamma, gate, hit, (0, 0), 2)
             want = self._cell_sums(image, weights, coord, centre, gamma, gate)
             gh, gw = want.shape[-2:]
@@ -1161,11 +1179,11 @@ class TestLargeFrames:
         image, weights = torch.rand(1, 3, 64, 96, generator=gen), torch.ones(1, 1, 64, 96)
         coord = torch.zeros(64, 96)
         coord[:, 37:] = 5.0  # an edge through cells of 2 px
-        half = rendering._HalfSource(image, weights, coord[None], 64, 96, 5)
+        half = rendering.tiled._HalfSource(image, weights, coord[None], 64, 96, 5)
         hit = torch.ones(2, 3, dtype=torch.bool)
         grid = torch.zeros(5, 8, 12)
-        m = rendering._tile_mask(half.c.clone(), 5, 100.0 / 14, 0)
-        rendering._pool_product(half.x, m, 4, out=grid, mean=False)
+        m = rendering.tiled._tile_mask(half.c.clone(), 5, 100.0 / 14, 0)
+        rendering.blur.pool_product(half.x, m, 4, out=grid, mean=False)
         half.add_mixed(grid, 5, 100.0 / 14, 0, hit, (0, 0), 8)
         want = self._cell_sums(image, weights, coord, 5, 100.0 / 14, 0)
         want = F.avg_pool2d(want[None], 4, divisor_override=1)[0]
@@ -1176,8 +1194,8 @@ class TestLargeFrames:
         coord = (torch.rand(70, 100, generator=gen) * 12 - 6).round(decimals=2)
         coord[:32, :32] = 0.0
         coord[5, 5] = -0.1
-        present, lower, upper = rendering._tile_bins(coord, 32, 3, 4)
-        q = rendering._TILE_BINS
+        present, lower, upper = rendering.tiled._tile_bins(coord, 32, 3, 4)
+        q = rendering.tiled._TILE_BINS
         for ty in range(3):
             for tx in range(4):
                 tile = coord[ty * 32 : ty * 32 + 32, tx * 32 : tx * 32 + 32].flatten()
@@ -1197,23 +1215,24 @@ class TestLargeFrames:
         """A depth edge through tiles: the layers between its sides take none of them (each
         tile is convolved for the layers near the coordinates its pixels have), and the
         picture is what the tiles' coordinate ranges gave."""
-        monkeypatch.setattr(rendering, "_TILED_MIN_PIXELS", 0)
+        monkeypatch.setattr(rendering.api, "_TILED_MIN_PIXELS", 0)
         gen = torch.Generator().manual_seed(12)
         image = torch.rand(1, 3, 160, 224, generator=gen)
         disp = torch.full((1, 1, 160, 224), 0.95)
         disp[..., :, 100:] = 0.15  # a far wall beside a subject at the focus
         areas = {}
-        boxes = rendering._direct_stacked
+        boxes = rendering.blur.direct_stacked
 
         def count(rows_of, like, chans, box, k, frame):
             key = k.shape[-1]
             areas[key] = areas.get(key, 0) + (box[1] - box[0]) * (box[3] - box[2])
             return boxes(rows_of, like, chans, box, k, frame)
 
-        monkeypatch.setattr(rendering, "_direct_stacked", count)
+        monkeypatch.setattr(rendering.composite, "direct_stacked", count)
+        monkeypatch.setattr(rendering.tiled, "direct_stacked", count)
         exact_hits = render(image, disp, 0.95, 240.0)
         with_bins, areas = areas, {}
-        monkeypatch.setattr(rendering, "_EXACT_HITS", False)
+        monkeypatch.setattr(rendering.tiled, "_EXACT_HITS", False)
         ranges = render(image, disp, 0.95, 240.0)
         assert psnr(exact_hits, ranges) >= 60.0
         # the sharp layers next to the focal plane: only the subject's side of the edge
@@ -1224,14 +1243,14 @@ class TestLargeFrames:
         """Tiles whose every pixel sits a fraction of a layer from the focal plane (a CoC
         of a few px, in front or behind; 2.6 px in front sits between 0 and a quarter of a
         layer): the layers either side still take them."""
-        monkeypatch.setattr(rendering, "_TILED_MIN_PIXELS", 0)
+        monkeypatch.setattr(rendering.api, "_TILED_MIN_PIXELS", 0)
         gen = torch.Generator().manual_seed(13)
         image = torch.rand(1, 3, 128, 160, generator=gen)
         disp = torch.full((1, 1, 128, 128 + 32), 0.5)
         disp[..., :64, :96] = 0.5 + coc / 240.0
         disp[..., 96:, 128:] = 0.05
         exact_hits = render(image, disp, 0.5, 240.0)
-        monkeypatch.setattr(rendering, "_EXACT_HITS", False)
+        monkeypatch.setattr(rendering.tiled, "_EXACT_HITS", False)
         assert psnr(exact_hits, render(image, disp, 0.5, 240.0)) >= 60.0
 
     def test_cells_across_the_focal_planes_gate_are_split(self, monkeypatch):
@@ -1244,9 +1263,9 @@ class TestLargeFrames:
         disp = 0.5 + (4.33 + torch.rand(1, 1, 128, 192, generator=gen) * 2.73) / 60
         disp[..., :, 150:] = 0.1
         options = dict(quality="fast", num_layers=4)
-        monkeypatch.setattr(rendering, "_TILED_MIN_PIXELS", 0)
+        monkeypatch.setattr(rendering.api, "_TILED_MIN_PIXELS", 0)
         tiled = render(image, disp, 0.5, 60.0, **options)
-        monkeypatch.setattr(rendering, "_TILED_MIN_PIXELS", 10**9)
+        monkeypatch.setattr(rendering.api, "_TILED_MIN_PIXELS", 10**9)
         assert psnr(tiled, render(image, disp, 0.5, 60.0, **options)) >= 50.0
 
     def test_float64_disparity_with_a_float32_image(self, monkeypatch):
@@ -1254,7 +1273,7 @@ class TestLargeFrames:
         image, disp = self._scene(97, 131)
         disp = disp.double()
         plain = render(image, disp, 0.5, 60.0)
-        monkeypatch.setattr(rendering, "_TILED_MIN_PIXELS", 0)
+        monkeypatch.setattr(rendering.api, "_TILED_MIN_PIXELS", 0)
         tiled = render(image, disp, 0.5, 60.0)
         assert tiled.dtype == torch.float32 and psnr(tiled, plain) >= 50.0
 
@@ -1265,13 +1284,13 @@ class TestLargeFrames:
         weights = 1 + torch.rand(1, 1, *disp.shape[-2:], generator=torch.Generator().manual_seed(1))
         plan = layer_plan(disp, torch.tensor(0.2), 60.0)
         x = torch.cat([torch.ones_like(disp), image * weights, weights], dim=1)
-        whole = hidden_surface(rendering._input_pixels(x, False), plan)
+        whole = hidden_surface(rendering.hidden.input_pixels(x, False), plan)
         reads = []
 
         def pixels(ys, xs):
             reads.append(ys.numel())
             out = torch.empty(5, ys.numel())
-            rendering._fill_layer(image, weights, ys, xs, torch.ones(()), out)
+            rendering.tiled._fill_layer(image, weights, ys, xs, torch.ones(()), out)
             return out
 
         alone = hidden_surface(pixels, plan)
@@ -1280,9 +1299,9 @@ class TestLargeFrames:
 
     def test_upsample_rows_matches_whole_upsampling(self):
         grid = torch.rand(5, 13, 9, generator=torch.Generator().manual_seed(8))
-        whole = rendering._upsample(grid[None], 4, 52, 35)[0]
+        whole = rendering.blur.upsample_grid(grid[None], 4, 52, 35)[0]
         for y0, y1 in ((0, 16), (16, 48), (48, 52), (8, 20)):
-            part = rendering._upsample_rows(grid, 4, y0, y1, 35)
+            part = rendering.tiled._upsample_rows(grid, 4, y0, y1, 35)
             torch.testing.assert_close(part, whole[:, y0:y1])
 
 
@@ -1299,20 +1318,22 @@ class TestThreadChoice:
     @pytest.mark.parametrize("others,cores,inside", [(0, 2, 2), (1, 2, 1), (5, 2, 1),
                                                      (1, 8, 2), (None, 2, 2)])  # fmt: skip
     def test_threads_inside_and_after(self, monkeypatch, two_threads, others, cores, inside):
-        monkeypatch.setattr(rendering, "_running_elsewhere", lambda: others)
-        monkeypatch.setattr(rendering, "_usable_cores", lambda: cores)
-        with rendering._ThreadChoice():
+        monkeypatch.setattr(rendering.threads, "_running_elsewhere", lambda: others)
+        monkeypatch.setattr(rendering.threads, "_usable_cores", lambda: cores)
+        with rendering.threads.ThreadChoice():
             assert torch.get_num_threads() == inside
         assert torch.get_num_threads() == 2
 
     def test_render_restores_threads_and_checks_again(self, monkeypatch, two_threads):
         busy = iter([0, 3, 3, 3] + [3] * 100)
         seen = []
-        monkeypatch.setattr(rendering, "_running_elsewhere", lambda: next(busy))
-        monkeypatch.setattr(rendering, "_RECHECK_S", 0.0)
-        blend = rendering._blend
+        monkeypatch.setattr(rendering.threads, "_running_elsewhere", lambda: next(busy))
+        monkeypatch.setattr(rendering.threads, "_RECHECK_S", 0.0)
+        blend = rendering.composite.blend_part
         monkeypatch.setattr(
-            rendering, "_blend", lambda *a: seen.append(torch.get_num_threads()) or blend(*a)
+            rendering.composite,
+            "blend_part",
+            lambda *a: seen.append(torch.get_num_threads()) or blend(*a),
         )
         image, disp = TestLargeFrames._scene(48, 64)
         render(image, disp, 0.5, 40.0)
@@ -1320,5 +1341,5 @@ class TestThreadChoice:
         assert torch.get_num_threads() == 2
 
     def test_running_elsewhere_reads_proc(self):
-        got = rendering._running_elsewhere()
+        got = rendering.threads._running_elsewhere()
         assert got is None or got >= 0

@@ -1,4 +1,4 @@
-"""The CoC <-> normalised defocus map (d2f_core.schedule) and the pass-size helpers (sizing)."""
+"""The CoC <-> normalised defocus map (d2f_core.rendering.schedule) and pass-size helpers."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from d2f_core.kernels import PAPER_GROWING_SIZES
-from d2f_core.schedule import coc_to_defocus, defocus_to_coc
+from d2f_core.rendering.kernels import PAPER_GROWING_SIZES
+from d2f_core.rendering.schedule import coc_to_defocus, defocus_to_coc
 from d2f_core.sizing import resize, scaled_size, size_ratio
 
 

@@ -1,4 +1,4 @@
-"""Synthetic scenes and their accumulation-buffer ground truth (d2f_core.synth)."""
+"""Synthetic scenes and their accumulation-buffer ground truth (d2f_core.train.synth)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 from PIL import Image
 from scipy.signal import fftconvolve
 
-from d2f_core.synth import (
+from d2f_core.train.synth import (
     Layer,
     Scene,
     aperture_samples,

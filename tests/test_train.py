@@ -11,7 +11,7 @@ import torch
 from test_data import write_pairs
 
 from d2f_core.pipeline import D2F
-from d2f_core.train import build_parser, main, train
+from d2f_core.train.two_stage import build_parser, main, train
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

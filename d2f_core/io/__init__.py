@@ -18,17 +18,9 @@ from .depth import (
     write_pfm,
 )
 from .embedded import Photo, extract_xmp, jpeg_segments, load_photo, read_embedded_depth
-from .image import (
-    READ_EXTENSIONS,
-    SAVE_FORMATS,
-    ImageInfo,
-    apply_orientation,
-    float_to_uint8,
-    load_image,
-    load_image_with_info,
-    same_file,
-    save_image,
-)
+from .formats import apply_orientation
+from .image import READ_EXTENSIONS, SAVE_FORMATS, ImageInfo, load_image, load_image_with_info
+from .save import float_to_uint8, same_file, save_image
 
 __all__ = [
     "READ_EXTENSIONS",

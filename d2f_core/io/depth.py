@@ -18,14 +18,8 @@ from typing import Literal
 import numpy as np
 from PIL import Image
 
-from .image import (
-    MAX_DECODE_PIXELS,
-    atomic_write,
-    open_pil,
-    read_source_bytes,
-    resize_float,
-    to_uint8,
-)
+from .image import MAX_DECODE_PIXELS, open_pil, read_source_bytes, resize_float
+from .save import atomic_write, to_uint8
 
 logger = logging.getLogger(__name__)
 

@@ -34,13 +34,12 @@ import numpy as np
 from PIL import Image
 
 from .depth import normalize_disparity
+from .formats import apply_orientation, exif_orientation
 from .image import (
     ImageInfo,
     ImageSource,
-    apply_orientation,
     decode_image,
     ensure_heif_support,
-    exif_orientation,
     is_heif,
     open_pil,
     read_source_bytes,

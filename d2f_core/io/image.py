@@ -16,10 +16,8 @@ import logging
 import os
 import stat
 import struct
-import tempfile
 import warnings
 import zlib
-from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal, Union
@@ -28,16 +26,25 @@ import numpy as np
 from PIL import Image, ImageCms, UnidentifiedImageError
 
 from ..errors import InputTypeError
+from .formats import (
+    apply_orientation,
+    decode_png16,
+    exif_orientation,
+    png16_header,
+    strip_orientation,
+)
 
-logger = logging.getLogger(__name__)
+logger = logging.getLogger("d2f_core.io.image")
+
 
 ImageSource = Union[str, os.PathLike, bytes, bytearray, memoryview]  # noqa: UP007 (runtime alias)
 
-EXIF_ORIENTATION = 0x0112
+
 # Same threshold as Pillow's DecompressionBombError (2 x MAX_IMAGE_PIXELS, about 179 MP).
 MAX_DECODE_PIXELS = 2 * 89_478_485
 #: Largest file read (photo or depth map): 1 GiB, about a 179 MP 16-bit RGBA TIFF.
 MAX_FILE_BYTES = 1 << 30
+
 
 SAVE_FORMATS = {
     ".png": "PNG",
@@ -47,13 +54,21 @@ SAVE_FORMATS = {
     ".tiff": "TIFF",
     ".webp": "WEBP",
 }
+
+
 # Extensions a batch run treats as photos (HEIC needs pillow-heif at read time).
 READ_EXTENSIONS = frozenset(
     {".jpg", ".jpeg", ".jpe", ".png", ".tif", ".tiff", ".webp", ".heic", ".heif", ".bmp", ".mpo"}
 )
+
+
 # HEIF brands only: Pillow reads AVIF itself, so it must not require pillow-heif.
 _HEIF_BRANDS = {b"heic", b"heix", b"hevc", b"hevx", b"heim", b"heis", b"mif1", b"msf1"}
+
+
 _DECODE_ERRORS = (OSError, SyntaxError, ValueError, EOFError, struct.error, zlib.error, IndexError)
+
+
 _heif_registered = False
 
 
@@ -207,240 +222,6 @@ def open_pil(data: bytes, name: str) -> Image.Image:
             f"exceeds the limit of {MAX_DECODE_PIXELS}"
         )
     return im
-
-
-# --------------------------------------------------------------------------- orientation
-
-
-def exif_orientation(im: Image.Image, data: bytes | None = None) -> int:
-    """EXIF orientation (1..8) of a Pillow image; 1 when absent or invalid.
-
-    For a PNG pass its bytes as ``data``: its eXIf chunk is then found by a scan of its
-    chunks. Pillow's ``getexif`` decodes the whole image to look for an eXIf chunk after the
-    image data, before any size check could refuse it.
-    """
-    try:
-        if data is not None and im.format == "PNG":
-            raw = _png_exif(data)
-            if raw is None:
-                return 1
-            ex = Image.Exif()
-            ex.load(raw)
-            value = ex.get(EXIF_ORIENTATION, 1)
-        else:
-            value = im.getexif().get(EXIF_ORIENTATION, 1)
-    except Exception:  # a malformed EXIF block must not stop the photo from loading
-        return 1
-    try:
-        value = int(value)
-    except (TypeError, ValueError):
-        return 1
-    return value if 1 <= value <= 8 else 1
-
-
-def apply_orientation(array: np.ndarray, orientation: int) -> np.ndarray:
-    """Make an array upright according to an EXIF orientation value.
-
-    Matches ``PIL.ImageOps.exif_transpose``. Works on HxW and HxWxC arrays.
-    """
-    a = array
-    if orientation == 2:
-        a = a[:, ::-1]
-    elif orientation == 3:
-        a = a[::-1, ::-1]
-    elif orientation == 4:
-        a = a[::-1]
-    elif orientation == 5:
-        a = a.swapaxes(0, 1)
-    elif orientation == 6:
-        a = np.rot90(a, -1)
-    elif orientation == 7:
-        a = np.rot90(a, 2).swapaxes(0, 1)
-    elif orientation == 8:
-        a = np.rot90(a, 1)
-    return np.ascontiguousarray(a)
-
-
-def strip_orientation(exif: bytes | Image.Exif | None) -> bytes | None:
-    """EXIF bytes with the orientation tag removed (pixels are stored upright)."""
-    if exif is None:
-        return None
-    try:
-        if isinstance(exif, Image.Exif):
-            ex = exif
-        else:
-            ex = Image.Exif()
-            ex.load(bytes(exif))
-        if EXIF_ORIENTATION in ex:
-            del ex[EXIF_ORIENTATION]
-        out = ex.tobytes()
-    except Exception as exc:  # keep the photo, lose only its broken EXIF
-        logger.warning("dropping unreadable EXIF block: %s", exc)
-        return None
-    return out if len(out) > 8 else None
-
-
-# --------------------------------------------------------------------------- 16-bit PNG
-
-#: Bytes inflated at a time: the inflater never hands out more than this in one piece.
-_INFLATE_STEP = 1 << 20
-
-
-def _png_chunks(data: bytes):
-    """``(type, body)`` of each chunk up to IEND; bodies are memoryviews (no copies)."""
-    view = memoryview(data)
-    pos = 8
-    while pos + 8 <= len(data):
-        (length,) = struct.unpack(">I", view[pos : pos + 4])
-        ctype = bytes(view[pos + 4 : pos + 8])
-        body = view[pos + 8 : pos + 8 + length]
-        if len(body) < length:
-            raise ValueError("truncated PNG chunk")
-        yield ctype, body
-        pos += 12 + length
-        if ctype == b"IEND":
-            return
-
-
-def _png_exif(data: bytes) -> bytes | None:
-    """The eXIf chunk of a PNG as EXIF bytes (``Exif\\0\\0`` first), or None."""
-    try:
-        for ctype, body in _png_chunks(data):
-            if ctype == b"eXIf":
-                raw = bytes(body)
-                return raw if raw.startswith(b"Exif\x00\x00") else b"Exif\x00\x00" + raw
-    except (ValueError, struct.error):
-        return None
-    return None
-
-
-def png16_header(data: bytes) -> tuple[int, int, int, bool] | None:
-    """``(width, height, channels, interlaced)`` of a 16-bit colour PNG (RGB, RGBA,
-    grey+alpha) from its IHDR chunk, or None for any other file."""
-    if not data.startswith(b"\x89PNG\r\n\x1a\n") or len(data) < 29 or data[12:16] != b"IHDR":
-        return None
-    w, h, depth, ctype, _, _, interlace = struct.unpack(">IIBBBBB", data[16:29])
-    channels = {2: 3, 4: 2, 6: 4}.get(ctype)
-    if depth != 16 or channels is None:
-        return None
-    return w, h, channels, bool(interlace)
-
-
-def _paeth(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
-    p = a + b - c
-    pa, pb, pc = np.abs(p - a), np.abs(p - b), np.abs(p - c)
-    return np.where((pa <= pb) & (pa <= pc), a, np.where(pb <= pc, b, c))
-
-
-def _png_unfilter(rows: np.ndarray, h: int, w: int, bpp: int) -> np.ndarray:
-    """Undo PNG scanline filters in place. ``rows``: (h, 1 + w * bpp) uint8, the filter type
-    byte then the filtered bytes of each scanline. Returns the (h, w, bpp) uint8 view of
-    ``rows`` that holds the pixels' bytes.
-
-    Average and Paeth depend on the left, upper and upper-left pixels, so rows cannot be
-    decoded independently; sweeping anti-diagonals decodes every pixel whose neighbours are
-    done in one vectorised step (h + w steps instead of h * w). Each byte is read as filtered
-    before it is written as decoded, so no second copy of the image is made.
-    """
-    ftype = rows[:, 0].copy()
-    if (ftype > 4).any():
-        raise ValueError("corrupt PNG filter type")
-    pix = rows[:, 1:].reshape(h, w, bpp)  # a view: the decode writes into ``rows``
-    if not ((ftype == 3) | (ftype == 4)).any():
-        for i in range(h):
-            if ftype[i] == 1:
-                pix[i] = np.cumsum(pix[i], axis=0, dtype=np.uint8)  # wraps modulo 256
-            elif ftype[i] == 2 and i > 0:
-                pix[i] += pix[i - 1]
-        return pix
-    ft = ftype.astype(np.int16)
-    for t in range(h + w - 1):
-        i = np.arange(max(0, t - w + 1), min(h - 1, t) + 1)
-        j = t - i
-        left, up = j > 0, i > 0
-        a = pix[i, np.maximum(j - 1, 0)].astype(np.int16)
-        a[~left] = 0
-        b = pix[np.maximum(i - 1, 0), j].astype(np.int16)
-        b[~up] = 0
-        c = pix[np.maximum(i - 1, 0), np.maximum(j - 1, 0)].astype(np.int16)
-        c[~(left & up)] = 0
-        f = ft[i][:, None]
-        pred = np.where(f == 1, a, np.where(f == 2, b, np.where(f == 3, (a + b) >> 1, 0)))
-        paeth_rows = f[:, 0] == 4
-        if paeth_rows.any():
-            pred[paeth_rows] = _paeth(a[paeth_rows], b[paeth_rows], c[paeth_rows])
-        pix[i, j] = (pix[i, j] + pred) & 0xFF
-    return pix
-
-
-def _inflate_bounded(chunks, limit: int) -> np.ndarray:
-    """The zlib stream spread over ``chunks``, inflated into at most ``limit`` bytes.
-
-    The work and the memory never exceed what ``limit`` allows, whatever the stream claims:
-    it is inflated a piece at a time (:data:`_INFLATE_STEP`), and one byte past ``limit``
-    is refused as a corrupt file.
-    """
-    inflater = zlib.decompressobj()
-    out = bytearray()
-    try:
-        for body in chunks:
-            pending = body
-            while pending and not inflater.eof:
-                step = min(_INFLATE_STEP, limit + 1 - len(out))
-                out += inflater.decompress(pending, step)
-                if len(out) > limit:
-                    raise ValueError(
-                        f"corrupt PNG image data: it inflates to more than the {limit} bytes "
-                        "that its header's size needs"
-                    )
-                pending = inflater.unconsumed_tail
-            if inflater.eof:
-                break
-    except zlib.error as exc:
-        raise ValueError(f"corrupt PNG image data: {exc}") from exc
-    if not inflater.eof:
-        raise ValueError("truncated PNG image data (compressed stream ends early)")
-    return np.frombuffer(out, np.uint8)
-
-
-def decode_png16(data: bytes) -> tuple[np.ndarray, bytes | None] | None:
-    """Decode a non-interlaced 16-bit colour PNG (RGB, RGBA, grey+alpha) at full precision.
-
-    Pillow reduces these to 8 bits. Returns (HxWxC uint16, eXIf bytes or None), or None when
-    the file is not of this kind (the caller then uses Pillow).
-
-    The image data is inflated with a bound: the rows that the header's size needs (its
-    filter bytes included) and not one byte more, so the cost follows the header, never what
-    the compressed stream claims; more data is refused as a corrupt file. The memory is the
-    inflated rows (decoded in place) and the returned array.
-    """
-    header = png16_header(data)
-    if header is None:
-        return None
-    w, h, channels, interlace = header
-    if interlace:
-        logger.info("interlaced 16-bit PNG: decoded by Pillow at 8-bit precision")
-        return None
-    if w <= 0 or h <= 0:
-        raise ValueError(f"PNG image has no pixels ({w}x{h})")
-    bpp = channels * 2
-    needed = h * (w * bpp + 1)
-    idat = []
-    exif = None
-    for ctype, body in _png_chunks(data):
-        if ctype == b"IDAT":
-            idat.append(body)
-        elif ctype == b"eXIf" and exif is None:
-            exif = bytes(body)
-    raw = _inflate_bounded(idat, needed)
-    if raw.size < needed:
-        raise ValueError(f"truncated PNG image data ({raw.size} of {needed} bytes)")
-    pix = _png_unfilter(raw.reshape(h, w * bpp + 1), h, w, bpp)
-    arr = pix.view(">u2").astype(np.uint16)  # (h, w, channels), big-endian samples
-    del pix, raw
-    if exif is not None and not exif.startswith(b"Exif\x00\x00"):
-        exif = b"Exif\x00\x00" + exif
-    return arr, exif
 
 
 # --------------------------------------------------------------------------- conversions
@@ -750,157 +531,3 @@ def load_image(
     See :func:`load_image_with_info` for arguments and errors.
     """
     return load_image_with_info(src, max_pixels=max_pixels, on_too_large=on_too_large)[0]
-
-
-# --------------------------------------------------------------------------- saving
-
-
-def to_uint8(array: np.ndarray, name: str = "array") -> np.ndarray:
-    """HxWx3 / HxW float [0, 1] or uint8 array -> uint8 (rounded, clipped)."""
-    a = np.asarray(array)
-    if a.ndim == 3 and a.shape[2] == 1:
-        a = a[..., 0]
-    if a.ndim not in (2, 3) or (a.ndim == 3 and a.shape[2] not in (3, 4)):
-        raise ValueError(f"{name}: expected an HxW or HxWx3 array, got shape {a.shape}")
-    if a.shape[0] == 0 or a.shape[1] == 0:
-        raise ValueError(f"{name}: empty image of shape {a.shape}")
-    if a.dtype == np.uint8:
-        return a
-    if a.dtype == np.bool_:
-        return a.astype(np.uint8) * 255
-    if not np.issubdtype(a.dtype, np.floating):
-        raise InputTypeError(f"{name}: expected float [0, 1] or uint8 values, got dtype {a.dtype}")
-    return float_to_uint8(a, name)
-
-
-#: Elements of the float32 band :func:`float_to_uint8` works on at once (4 MB). A float
-#: temporary of the whole picture (144 MB at 12 MP) is fresh memory each call, and its page
-#: faults cost 70 ms to 1.8 s in turn on a busy machine; a band costs a steady 35-40 ms.
-_BAND_ELEMENTS = 1 << 20
-
-
-def float_to_uint8(a: np.ndarray, name: str | None = "array") -> np.ndarray:
-    """Float ``a`` (any shape, values in [0, 1]) -> uint8 of the same shape, clipped and
-    rounded half up, by bands of rows in one reused float32 buffer.
-
-    ``name`` set: NaN or infinite values raise ``ValueError`` naming it; ``None``: they are
-    not looked for (a renderer's output, clamped already).
-    """
-    if a.ndim == 0:
-        return float_to_uint8(a.reshape(1), name).reshape(())
-    out = np.empty(a.shape, np.uint8)
-    if a.size == 0:
-        return out
-    rows = max(1, _BAND_ELEMENTS // max(1, a[0].size))
-    scratch = np.empty((min(rows, a.shape[0]), *a.shape[1:]), np.float32)
-    for r0 in range(0, a.shape[0], rows):
-        band = a[r0 : r0 + rows]
-        if name is not None and not np.isfinite(band).all():
-            raise ValueError(f"{name}: contains NaN or infinite values")
-        buf = scratch[: band.shape[0]]
-        # clip, scale and add 0.5 in float32: rounds half up, 2x faster than np.round
-        np.clip(band, 0.0, 1.0, out=buf)
-        buf *= 255.0
-        buf += 0.5
-        out[r0 : r0 + rows] = buf  # the cast truncates: floor of x + 0.5
-    return out
-
-
-def same_file(a: str | os.PathLike, b: str | os.PathLike) -> bool:
-    """True when two paths name the same file (existing or not)."""
-    pa, pb = Path(a), Path(b)
-    try:
-        if pa.exists() and pb.exists():
-            return os.path.samefile(pa, pb)
-    except OSError:
-        pass
-    return pa.resolve() == pb.resolve()
-
-
-def _umask() -> int:
-    mask = os.umask(0o022)
-    os.umask(mask)
-    return mask
-
-
-def atomic_write(path: Path, write) -> None:
-    """Call ``write(file_object)`` on a temp file next to ``path``, then rename it into place,
-    so that a failure never leaves a half-written output."""
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            write(fh)
-        # mkstemp creates 0600 files; give the output the permissions open() would have
-        os.chmod(tmp, 0o666 & ~_umask())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
-def save_image(
-    path: str | os.PathLike,
-    array: np.ndarray,
-    *,
-    quality: int = 95,
-    icc_profile: bytes | None = None,
-    exif: bytes | Image.Exif | None = None,
-    protect: str | os.PathLike | Sequence[str | os.PathLike] | None = None,
-) -> Path:
-    """Write an RGB (or grey) image; the format follows the extension.
-
-    Args:
-        path: ``.png``, ``.jpg``/``.jpeg``, ``.tif``/``.tiff`` or ``.webp``.
-        array: HxWx3 (or HxW) float in [0, 1] (clipped, rounded) or uint8.
-        quality: JPEG/WebP quality 1..100.
-        icc_profile: ICC profile bytes to embed (e.g. the input's), or None.
-        exif: EXIF bytes or ``PIL.Image.Exif`` to embed; its orientation tag is dropped
-            because the pixels are already upright.
-        protect: path(s) that must not be overwritten (e.g. the input photo).
-
-    Returns:
-        The written path.
-
-    Raises:
-        ValueError: unknown extension, bad array, or ``path`` is a protected file.
-    """
-    out = Path(path)
-    fmt = SAVE_FORMATS.get(out.suffix.lower())
-    if fmt is None:
-        known = ", ".join(sorted(SAVE_FORMATS))
-        raise ValueError(f"path: cannot save {out.name!r}: unknown extension (use one of {known})")
-    if not 1 <= int(quality) <= 100:
-        raise ValueError(f"quality: expected 1..100, got {quality}")
-    if protect is not None:
-        protected = [protect] if isinstance(protect, (str, os.PathLike)) else list(protect)
-        for p in protected:
-            if same_file(out, p):
-                raise ValueError(f"path: refusing to overwrite the input file {os.fspath(p)!r}")
-    if out.is_dir():
-        raise ValueError(f"path: {os.fspath(out)!r} is a directory")
-    if not out.parent.exists():
-        raise ValueError(f"path: directory {os.fspath(out.parent)!r} does not exist")
-    pixels = to_uint8(array, "array")
-    if pixels.ndim == 3 and pixels.shape[2] == 4:
-        pixels = pixels[..., :3]
-    img = Image.fromarray(pixels)
-    params: dict = {}
-    if icc_profile:
-        params["icc_profile"] = icc_profile
-    exif_bytes = strip_orientation(exif)
-    if exif_bytes:
-        params["exif"] = exif_bytes
-    if fmt == "JPEG":
-        params.update(quality=int(quality), optimize=True)
-        if quality >= 90:
-            params["subsampling"] = 0  # 4:4:4 keeps thin in-focus detail at high quality
-    elif fmt == "WEBP":
-        params.update(quality=int(quality), method=4)
-    elif fmt == "PNG":
-        params.update(compress_level=6)
-    elif fmt == "TIFF":
-        # Uncompressed: Pillow's own TIFF writer keeps the EXIF sub-IFDs, the libtiff
-        # (compressing) writer rejects them.
-        params.update(compression="raw")
-    atomic_write(out, lambda fh: img.save(fh, format=fmt, **params))
-    return out

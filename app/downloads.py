@@ -1,0 +1,64 @@
+"""Downloads: the latest full-resolution render written to a PNG or JPEG file for the
+download button.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gradio as gr
+
+from app import imaging
+from app.reporting import user_error
+from app.sessions import Session, prune_files, reported
+from app.settings import FORMATS
+
+
+class DownloadEvents:
+    """The download event of a :class:`~app.handlers.RefocusApp`: the latest full render
+    written to a file."""
+
+    @reported
+    def download(self, session: Session | None, fmt: str = "PNG") -> Any:
+        """Write the latest full-resolution render to a file for the download button.
+
+        Returns:
+            a ``gr.DownloadButton`` update with the file (or ``gr.skip()`` without a render).
+        """
+        fmt = str(fmt).upper()
+        if fmt not in FORMATS:
+            raise user_error(f"Download format must be PNG or JPEG, got {fmt!r}.")
+        if session is None:
+            return gr.update(value=None, label="Download", interactive=False)
+        session.touch()
+        with session.lock:
+            params = session.last_full_params
+            if params is None or session.full_params != params:
+                return gr.skip()  # no full render, or a preview is shown
+            done = session.download_file
+            image = None
+            if done is None or done[:2] != (params, fmt) or not done[2].exists():
+                image = session.last_full
+        if done is not None and image is None:  # written already: hand out the same file
+            w, h = session.size
+            label = f"Download {fmt} ({w}x{h})"
+            return gr.update(value=str(done[2]), label=label, interactive=True)
+        if image is None:
+            return gr.skip()
+        # each file in its own numbered folder, written once: a file handed to Gradio is
+        # never rewritten or removed while it may still be copied (see prune_files)
+        root = self._session_dir(session, "download")
+        folder = root / self._next_name(session, "")
+        folder.mkdir()
+        ext = "png" if fmt == "PNG" else "jpg"
+        name = f"{session.name}_bokeh_{self._file_params(params)}.{ext}"
+        path = imaging.save_image(
+            image, folder / name, icc_profile=session.icc_profile, exif=session.exif
+        )
+        prune_files(root, 2)
+        with session.lock:
+            if session.last_full_params != params or session.full_params != params:
+                return gr.skip()  # a newer render came in while this file was written
+            session.download_file = (params, fmt, path)
+        h, w = image.shape[:2]
+        return gr.update(value=str(path), label=f"Download {fmt} ({w}x{h})", interactive=True)

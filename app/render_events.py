@@ -1,0 +1,390 @@
+"""Render events: the views of a result, the preview while a slider moves, the full render and
+the click that sets the focus.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+import uuid
+from pathlib import Path
+from typing import Any
+
+import gradio as gr
+import numpy as np
+
+from app import imaging
+from app.reporting import DOWNLOAD_WAIT, NO_PHOTO, SKIP4, user_error
+from app.sessions import DISPLAY_FILES_KEPT, Session, SessionClosed, prune_files, reported
+from app.settings import (
+    LENS_FOCAL_MM,
+    MAX_BLUR_PX,
+    NEAREST_M,
+    PREVIEW_MAX_SIDE,
+    REFERENCE_SIZE,
+    SENSOR_WIDTH_MM,
+    VIEWS,
+    RenderParams,
+    blur_px,
+    position_of,
+)
+from d2f_core.rendering.kernels import PAPER_GROWING_SIZES
+
+MAX_DEFOCUS_COC = max(PAPER_GROWING_SIZES)
+
+_LEGENDS = {
+    "Disparity": ("viridis", "0 far", "1 near", "Disparity (network map or your upload)"),
+    "Defocus": (
+        "magma",
+        "0 in focus",
+        "1 = a blur of {px} px or more across",
+        "Defocus: how blurred each pixel is (size of its blur disc in the full image)",
+    ),
+    "Fusion mask": (
+        "gray",
+        "0 bokeh (upsampled)",
+        "1 sharp input",
+        "Fusion mask: where the full-resolution input is kept",
+    ),
+}
+
+
+class RenderEvents:
+    """The render events of a :class:`~app.handlers.RefocusApp`: the views, the preview
+    while a slider moves, the full render and the click to focus."""
+
+    def _session_dir(self, session: Session, name: str) -> Path:
+        with session.lock:  # never made again for a session being closed
+            if session.closed:
+                raise SessionClosed
+            if session.folder is None:
+                session.folder = self.download_root / uuid.uuid4().hex
+            folder = session.folder / name
+            folder.mkdir(parents=True, exist_ok=True)
+            return folder
+
+    @staticmethod
+    def _next_name(session: Session, suffix: str) -> str:
+        # a per-session count, zero-padded, so that names sort by age (a clock's digits
+        # can roll over: 999... sorted after 1000... made every new file the "oldest")
+        with session.lock:
+            session.files_written += 1
+            return f"{session.files_written:09d}{suffix}"
+
+    def _display_file(self, session: Session, image: np.ndarray) -> str:
+        """Write a picture for the browser as JPEG (:func:`app.imaging.write_display`) and
+        return its path; the download is written apart, at full resolution.
+
+        Gradio would encode arrays itself as PNG at level 6 (0.7 s for 1600x1200 here); it
+        copies the file into its cache after the event returns, so a file is removed only
+        once it is old (see :func:`prune_files`).
+        """
+        folder = self._session_dir(session, "display")
+        path = folder / self._next_name(session, ".jpg")
+        imaging.write_display(image, path)
+        prune_files(folder, DISPLAY_FILES_KEPT)
+        return str(path)
+
+    def _store_views(self, session: Session, result: Any, bokeh: np.ndarray) -> None:
+        shown = imaging.fit_display(bokeh)
+        size = (shown.shape[1], shown.shape[0])
+        # maps come at the render pass's size; shown at the bokeh's size they line up when
+        # the user switches views. Kept grey (one byte a pixel), coloured when shown.
+        session.pass_width = int(result.defocus.shape[-1])
+        session.views = {
+            "Bokeh": shown,
+            "Disparity": imaging.map_to_grey(result.disparity, size),
+            "Defocus": imaging.map_to_grey(result.defocus, size),
+            "Fusion mask": imaging.map_to_grey(result.fusion_mask, size),
+        }
+
+    @staticmethod
+    def _view_picture(session: Session, view: str) -> np.ndarray:
+        picture = session.views.get(view, session.views["Bokeh"])
+        if picture.ndim == 2:
+            cmap = _LEGENDS[view][0]
+            return imaging.colorize(picture.astype(np.float32) / 255.0, cmap)
+        return picture
+
+    @staticmethod
+    def _legend(session: Session, view: str) -> tuple[str, str, str, str] | None:
+        """The legend of ``view``; the defocus map's top end in full-resolution pixels."""
+        legend = _LEGENDS.get(view)
+        if legend is None or view != "Defocus":
+            return legend
+        # the defocus map is the paper's D of the CoC at the render pass, 1 = 69 px there;
+        # the pass (a preview's is its own size) is smaller than the photo by the width
+        # ratio of the two
+        px = round(MAX_DEFOCUS_COC * session.size[0] / max(session.pass_width, 1))
+        cmap, low, high, title = legend
+        return cmap, low, high.format(px=px), title
+
+    def view_outputs(self, session: Session | None, view: str) -> tuple:
+        """``(result, compare, legend)`` updates that show ``view`` of the last render."""
+        if session is None or not session.views:
+            return gr.update(value=None), gr.update(value=None), gr.update(visible=False)
+        if view == "Before / after":
+            after = session.views["Bokeh"]
+            before = imaging.resize_to(session.before, (after.shape[1], after.shape[0]))
+            return (
+                gr.update(visible=False),
+                gr.update(
+                    value=(self._display_file(session, before), self._display_file(session, after)),
+                    visible=True,
+                ),
+                gr.update(visible=False),
+            )
+        picture = self._view_picture(session, view)
+        legend = self._legend(session, view)
+        return (
+            gr.update(value=self._display_file(session, picture), visible=True),
+            gr.update(visible=False),
+            gr.update(value=imaging.legend_html(*legend), visible=True)
+            if legend
+            else gr.update(visible=False),
+        )
+
+    @staticmethod
+    def _settings_text(settings: Any, quality: str) -> str:
+        """The quality the user chose and, briefly, what the adaptive picker did for it (the
+        renderer's own preset names are not the user's words)."""
+        if settings is None:
+            return f"{quality} quality"
+        if settings.identity:
+            return f"{quality} quality: every blur under 1 px, photo shown as it is"
+        done = f"{settings.num_layers} blur layers"
+        if settings.quality != "exact":
+            done += ", large blurs computed at reduced size"
+        if not settings.fusion:
+            done += ", no sharpening pass needed"
+        return f"{quality} quality: {done}"
+
+    @staticmethod
+    def _info(session: Session, params: RenderParams, kind: str, ms: float, extra: str = "") -> str:
+        w, h = session.size
+        text = (
+            f"{w}x{h} px | focus {params.position:.3f} (0 = near, 1 = far; disparity "
+            f"{params.focus:.3f}) | {params.blur_text()} | {kind} render {ms:.0f} ms"
+        )
+        return text + (f" | {extra}" if extra else "")
+
+    @staticmethod
+    def _file_params(params: RenderParams) -> str:
+        """The settings part of a download's name: the focus slider's position, the
+        f-number and K (``focus0.310_f2.8_K14.9``), or ``focus0.310_noblur``."""
+        if params.f_number is None:
+            return f"focus{params.position:.3f}_noblur"
+        return f"focus{params.position:.3f}_f{params.f_number:g}_K{params.blur:g}"
+
+    @staticmethod
+    def blur_note(session: Session | None, f_number: Any, blur_on: Any = True) -> str:
+        """The aperture slider's info line: the virtual lens, and the blur ``f_number``
+        gives this photo (K, px at full resolution), or a 4000x3000 photo's before an upload.
+
+        Never raises: it only describes the controls (a render refuses bad values).
+        """
+        lens = (
+            f"{LENS_FOCAL_MM:g} mm lens on full frame ({SENSOR_WIDTH_MM:g} mm wide), nearest "
+            f"thing {NEAREST_M:g} m away"
+        )
+        if blur_on in (False, None, 0, "false", "False"):
+            return f"Blur is off: the photo as it is ({lens})"
+        try:
+            n = round(float(f_number), 3)
+            if not n > 0:
+                raise ValueError
+        except (TypeError, ValueError):
+            return lens
+        live = isinstance(session, Session) and not session.closed
+        w, h = session.size if live else REFERENCE_SIZE
+        k = blur_px(n, max(w, h))
+        capped = " (the most the app renders)" if k >= MAX_BLUR_PX else ""
+        where = f"this {w}x{h} photo" if live else f"a {w}x{h} photo"
+        return f"f/{n:g}: blur K = {k:g} px{capped} on {where} ({lens})"
+
+    def _render_full(
+        self, session: Session, params: RenderParams, view: str, scene: Any = None
+    ) -> tuple:
+        session.touch()
+        with session.lock:
+            session.full_seq += 1
+            seq = session.full_seq
+            session.full_params = params
+        try:
+            if scene is None:
+                scene = session.scene
+            t0 = time.perf_counter()
+            result = self.model.render(scene, params.focus, params.blur, **params.render_options())
+            del scene
+            ms = 1000 * (time.perf_counter() - t0)
+        except BaseException:
+            with session.lock:
+                if session.full_seq == seq:
+                    session.full_params = None
+            raise
+        bokeh = imaging.to_uint8(result.bokeh)
+        with session.lock:
+            if session.full_seq != seq or session.closed:
+                return SKIP4  # a newer full render is on its way
+            # the full render waits on disk for the download, not in memory
+            folder = self._session_dir(session, "")
+            part = folder / "last_full.part.npy"
+            np.save(part, bokeh)
+            os.replace(part, folder / "last_full.npy")
+            session.last_full_params = params
+            self._store_views(session, result, bokeh)
+        extra = self._settings_text(result.settings, params.quality)
+        return (*self.view_outputs(session, view), self._info(session, params, "full", ms, extra))
+
+    @reported
+    def render_full(
+        self,
+        session: Session | None,
+        focus: Any,
+        f_number: Any,
+        blades: Any = 0,
+        rotation: Any = 0.0,
+        highlight_boost: Any = True,
+        fusion: Any = True,
+        view: str = "Bokeh",
+        quality: Any = "balanced",
+        blur_on: Any = True,
+    ) -> tuple:
+        """Full-resolution render (slider released, option changed).
+
+        ``focus`` is the focus slider's position (0 = nearest, 1 = farthest), ``f_number``
+        the aperture, ``blur_on`` False renders no blur (see :meth:`RenderParams.from_inputs`).
+
+        Without a photo loaded in the session (a slider released on an empty page, an API
+        call before ``/load`` or from another session) the event is refused with a message;
+        the previews of a drag before that stay silent.
+
+        Returns:
+            ``(result, compare, legend, info)``.
+        """
+        if session is None:
+            raise user_error(NO_PHOTO)
+        params = RenderParams.from_inputs(
+            focus, f_number, blades, rotation, highlight_boost, fusion, quality, blur_on,
+            size=session.size,
+        )  # fmt: skip
+        session.touch()
+        with session.lock:
+            if params == session.full_params:
+                return SKIP4  # already rendered (or being rendered) at full resolution
+        return self._render_full(session, params, view)
+
+    @reported
+    def render_preview(
+        self,
+        session: Session | None,
+        focus: Any,
+        f_number: Any,
+        blades: Any = 0,
+        rotation: Any = 0.0,
+        highlight_boost: Any = True,
+        fusion: Any = True,
+        view: str = "Bokeh",
+        quality: Any = "balanced",
+        blur_on: Any = True,
+    ) -> tuple:
+        """Reduced-resolution render while a slider moves.
+
+        Dropped (``gr.skip()``) when a full render of the same params was requested, or when
+        a full render started while this preview ran: a preview must never replace the full
+        result that the release of the slider asked for. While a preview is shown the
+        download button is disabled (it would save another picture than the one on screen);
+        the full render that follows enables it again.
+
+        Returns:
+            ``(result, compare, legend, info, download)``.
+        """
+        if session is None:
+            return (*SKIP4, gr.skip())
+        params = RenderParams.from_inputs(
+            focus, f_number, blades, rotation, highlight_boost, fusion, quality, blur_on,
+            size=session.size,
+        )  # fmt: skip
+        session.touch()
+        with session.lock:
+            if params == session.full_params:
+                return (*SKIP4, gr.skip())
+            seq = session.full_seq
+        t0 = time.perf_counter()
+        result = self.model.render(
+            session.scene,
+            params.focus,
+            params.blur,
+            max_side=PREVIEW_MAX_SIDE,
+            **params.render_options(),
+        )
+        ms = 1000 * (time.perf_counter() - t0)
+        bokeh = imaging.to_uint8(result.bokeh)
+        with session.lock:
+            if session.full_seq != seq or params == session.full_params or session.closed:
+                return (*SKIP4, gr.skip())
+            self._store_views(session, result, bokeh)
+            # the views no longer hold the full render: releasing at its params renders again
+            session.full_params = None
+        extra = self._settings_text(result.settings, params.quality)
+        info = self._info(session, params, "preview", ms, extra)
+        return (*self.view_outputs(session, view), info, gr.update(**DOWNLOAD_WAIT))
+
+    @reported
+    def click(
+        self,
+        session: Session | None,
+        index: Any,
+        f_number: Any,
+        blades: Any = 0,
+        rotation: Any = 0.0,
+        highlight_boost: Any = True,
+        fusion: Any = True,
+        view: str = "Bokeh",
+        quality: Any = "balanced",
+        blur_on: Any = True,
+    ) -> tuple:
+        """Focus on the clicked point: ``index = [x, y]`` in the shown photo's pixels.
+
+        Returns:
+            ``(focus, result, compare, legend, info)``; the focus slider moves to ``focus``,
+            the position (0 = nearest, 1 = farthest) of the clicked point's disparity.
+        """
+        if session is None:
+            gr.Warning("Upload a photo first.")
+            return (gr.skip(), *SKIP4)
+        session.touch()
+        try:
+            x, y = (float(v) for v in index)
+        except (TypeError, ValueError):
+            raise user_error(f"Click position must be [x, y], got {index!r}.") from None
+        # the browser reports pixels of the upload as shown; the scene may be downscaled
+        sw, sh = session.shown_size
+        w, h = session.size
+        xs = min(max((x + 0.5) * w / sw - 0.5, 0.0), w - 1.0)
+        ys = min(max((y + 0.5) * h / sh - 0.5, 0.0), h - 1.0)
+        t0 = time.perf_counter()
+        focus = position_of(self.model.focus_at(session.scene, xs, ys))
+        ms_focus = 1000 * (time.perf_counter() - t0)
+        params = RenderParams.from_inputs(
+            focus, f_number, blades, rotation, highlight_boost, fusion, quality, blur_on,
+            size=session.size,
+        )  # fmt: skip
+        outputs = self._render_full(session, params, view)
+        if outputs is SKIP4:
+            return (focus, *SKIP4)
+        info = outputs[3] + f" | focused on the click at ({xs:.0f}, {ys:.0f}) in {ms_focus:.0f} ms"
+        return (focus, *outputs[:3], info)
+
+    @reported
+    def show_view(self, session: Session | None, view: str) -> tuple:
+        """Switch the result panel to ``view`` without rendering.
+
+        Returns:
+            ``(result, compare, legend)``.
+        """
+        if view not in VIEWS:
+            raise user_error(f"Unknown view {view!r}; expected one of {', '.join(VIEWS)}.")
+        if session is not None:
+            session.touch()
+        return self.view_outputs(session, view)

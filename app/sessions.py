@@ -1,0 +1,340 @@
+"""The per-session cache of the app: each user's :class:`Session` (the prepared photo, its
+renders and files, in ``gr.State``), the live sessions of the server, memory given back
+when a session closes, and :func:`reported`, which holds an event's session while it runs and
+turns its failures into messages.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import shutil
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import gradio as gr
+import numpy as np
+
+from app.reporting import CLOSED_MESSAGE, one_line, user_error
+from app.settings import RenderParams
+
+# the app's events log under one name, whichever module holds them
+log = logging.getLogger("app.handlers")
+
+
+#: Display and download files kept per session: Gradio copies each one into its cache once
+#: the event that made it returns, so only files at least :data:`FILE_MIN_AGE_S` old are
+#: removed, and never the newest :data:`DISPLAY_FILES_KEPT` (an event may still be waiting
+#: for its copy while others of the same session write theirs).
+DISPLAY_FILES_KEPT = 8
+FILE_MIN_AGE_S = 60.0
+#: Live sessions (a photo loaded, not yet expired); an upload past it gets a message.
+DEFAULT_MAX_SESSIONS = 16
+#: A session unused this long (seconds) is closed: its pictures and files are freed.
+DEFAULT_SESSION_IDLE_S = 1800.0
+#: Long side of the live preview rendered while a slider is dragged.
+
+
+class SessionClosed(Exception):
+    """An event reached a session that was closed (expired, ended, or replaced)."""
+
+
+@dataclass
+class Session:
+    """One user's work: where its prepared scene is found, and what was last shown.
+
+    A session holds no scene: :attr:`scene` looks the photo up in the process-wide scene
+    cache by :attr:`key` and prepares it again from the session's copy of the upload when
+    the cache has dropped it. Its own memory is the display-size pictures (``before``,
+    ``views``); the latest full render is kept on disk (:attr:`last_full`).
+
+    Attributes:
+        key: the photo's key in the scene cache (:func:`app.cache.content_key`).
+        get_scene: ``() -> Scene`` for :attr:`key` (cache, else prepare again).
+        name: file stem of the upload, used for the download's name.
+        shown_size: ``(width, height)`` of the picture in the photo panel; clicks come in
+            these coordinates (the upload as the browser shows it, or :attr:`panel`).
+        size: ``(width, height)`` of the scene (the upload, possibly downscaled).
+        before: ``(h, w, 3)`` uint8 input at display size.
+        views: the last render at display size: ``"Bokeh"`` ``(h, w, 3)`` uint8, the maps
+            ``(h, w)`` uint8 (0..255 for 0..1), coloured when shown.
+        pass_width: width in px of the rendering pass of :attr:`views` (a preview's pass is
+            its own size): the defocus map's scale (its 1 is 69 px at that pass).
+        full_params: params of the full-resolution render the views hold or will hold
+            (None: none, or a preview has replaced it).
+        full_seq: counts full-resolution renders; a preview that overlaps one is dropped.
+        last_full_params: params of the full render saved for the download.
+        download_file: ``(params, format, path)`` of the latest download file written.
+        folder: this session's folder for display and download files (removed with it).
+        icc_profile, exif: metadata of the upload, written into the download.
+        owner: the Gradio session hash of the browser tab or client that loaded it.
+        upload: the session's copy of the uploaded photo (shown again after a failed upload).
+        upload_name: the user's file name of the upload.
+        source_path: the upload's path as Gradio gave it.
+        panel: the picture the app put in the photo panel in place of the upload, or None:
+            for a Lens Blur file, the embedded all-in-focus original that is rendered from,
+            at display size (:meth:`RefocusApp.photo_panel`).
+        last_used: ``time.monotonic()`` of its latest event.
+        closed: True once :meth:`close` ran.
+    """
+
+    key: str
+    get_scene: Callable[[], Any] = field(repr=False)
+    name: str
+    shown_size: tuple[int, int]
+    size: tuple[int, int]
+    before: np.ndarray
+    views: dict[str, np.ndarray] = field(default_factory=dict)
+    pass_width: int = 0
+    full_params: RenderParams | None = None
+    full_seq: int = 0
+    last_full_params: RenderParams | None = None
+    download_file: tuple[RenderParams, str, Path] | None = None
+    folder: Path | None = None
+    icc_profile: bytes | None = None
+    exif: bytes | None = None
+    owner: str | None = None
+    upload: Path | None = None
+    upload_name: str | None = None
+    source_path: str | None = None
+    panel: Path | None = None
+    last_used: float = field(default_factory=time.monotonic)
+    closed: bool = False
+    files_written: int = 0
+    on_close: Callable[[Session], None] | None = field(default=None, repr=False)
+    busy: int = 0
+    lock: threading.RLock = field(default_factory=threading.RLock, repr=False)
+
+    @property
+    def scene(self) -> Any:
+        """The prepared scene (from the shared cache, or prepared again)."""
+        if self.closed:
+            raise SessionClosed
+        return self.get_scene()
+
+    @property
+    def last_full(self) -> np.ndarray | None:
+        """``(H, W, 3)`` uint8 of the latest full render (read from the session's folder)."""
+        if self.last_full_params is None or self.folder is None:
+            return None
+        try:
+            return np.load(self.folder / "last_full.npy")
+        except FileNotFoundError:
+            return None
+
+    def touch(self) -> None:
+        """Mark the session used now (idle sessions are closed); raise if it is closed."""
+        with self.lock:
+            if self.closed:
+                raise SessionClosed
+            self.last_used = time.monotonic()
+
+    def hold(self) -> None:
+        """An event starts using the session: it is not idle until :meth:`let_go`."""
+        with self.lock:
+            self.busy += 1
+            self.last_used = time.monotonic()
+
+    def let_go(self) -> None:
+        with self.lock:
+            self.busy -= 1
+            self.last_used = time.monotonic()
+
+    def close(self, idle_s: float | None = None) -> bool:
+        """Free the pictures and delete the session's files (display, download, upload).
+
+        With ``idle_s``, only if no event is using it and it was unused that long. Returns
+        whether it was closed (now or before).
+        """
+        with self.lock:
+            if idle_s is not None and (self.busy or time.monotonic() - self.last_used <= idle_s):
+                return False
+            self.closed = True
+            self.views = {}
+            self.before = np.zeros((1, 1, 3), np.uint8)
+            self.last_full_params = None
+            folder, self.folder = self.folder, None
+        if folder is not None:
+            shutil.rmtree(folder, ignore_errors=True)
+        if self.on_close is not None:
+            self.on_close(self)
+        return True
+
+
+def _libc_malloc_trim() -> Callable[[], Any] | None:
+    try:
+        import ctypes
+
+        return ctypes.CDLL("libc.so.6").malloc_trim
+    except (OSError, AttributeError):  # not glibc
+        return None
+
+
+_MALLOC_TRIM = _libc_malloc_trim()
+
+
+def give_back_memory() -> None:
+    """Return the C heap's free pages to the system (glibc ``malloc_trim``).
+
+    Freed pictures and scenes go back to malloc's arenas (one per worker thread), which
+    keep the pages; after sessions close, this gives them back, so the process shrinks.
+    """
+    if _MALLOC_TRIM is not None:
+        _MALLOC_TRIM(0)
+
+
+def no_scene() -> Any:
+    raise SessionClosed
+
+
+def delete_session(session: Session | None) -> None:
+    """``gr.State`` delete callback: free the session when Gradio drops its state."""
+    if isinstance(session, Session):
+        session.close()
+
+
+def prune_files(folder: Path, keep: int, min_age_s: float = FILE_MIN_AGE_S) -> None:
+    """Delete the entries of ``folder`` beyond the newest ``keep`` (by name, which counts
+    up) that are older than ``min_age_s``: a younger file may be an event's output that
+    Gradio has not copied into its cache yet."""
+    now = time.time()
+    try:
+        names = sorted(folder.iterdir())
+    except FileNotFoundError:  # the session was closed meanwhile
+        return
+    for old in names[:-keep] if keep else names:
+        try:
+            if now - old.stat().st_mtime < min_age_s:
+                continue
+            if old.is_dir():
+                shutil.rmtree(old, ignore_errors=True)
+            else:
+                old.unlink(missing_ok=True)
+        except FileNotFoundError:
+            continue
+
+
+def reported(fn: Callable) -> Callable:
+    """Turn bad-input exceptions into ``gr.Error`` and anything else into a short one.
+
+    A refused event (bad input, a closed session) logs one line naming the reason; only an
+    unexpected failure logs its traceback.
+    """
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        # the session an event works on is not idle while the event runs
+        held = [a for a in args if isinstance(a, Session)]
+        for session in held:
+            session.hold()
+        try:
+            return fn(*args, **kwargs)
+        except gr.Error as err:
+            log.info("%s refused: %s", fn.__name__, one_line(err.message))
+            raise
+        except SessionClosed:
+            log.info("%s refused: the session was closed", fn.__name__)
+            raise user_error(CLOSED_MESSAGE) from None
+        except Exception as err:
+            if any(session.closed for session in held):
+                # the tab was closed (or the session expired) while the event ran, and its
+                # files were removed under it: no fault of the input nor of the event
+                log.info(
+                    "%s stopped: the session was closed while it ran (%s)",
+                    fn.__name__, type(err).__name__,
+                )  # fmt: skip
+                raise user_error(CLOSED_MESSAGE) from None
+            if isinstance(err, (ValueError, TypeError)):
+                log.info("%s refused: %s", fn.__name__, one_line(err))
+                raise user_error(str(err)) from None
+            if isinstance(err, MemoryError):
+                log.exception("out of memory in %s", fn.__name__)
+                raise user_error("The server ran out of memory; try a smaller photo.") from None
+            log.exception("unexpected failure in %s", fn.__name__)
+            raise user_error(
+                f"Something went wrong ({type(err).__name__}); please retry."
+            ) from None
+        finally:
+            for session in held:
+                session.let_go()
+
+    return wrapper
+
+
+class SessionRegistry:
+    """The live sessions of a :class:`~app.handlers.RefocusApp`: admission, idle expiry
+    and each session's files."""
+
+    @property
+    def live_sessions(self) -> int:
+        """Sessions open now (a photo loaded, not closed)."""
+        with self._sessions_lock:
+            return len(self._sessions)
+
+    def _forget(self, session: Session) -> None:
+        with self._sessions_lock:
+            self._sessions.pop(id(session), None)
+
+    def expire_idle(self) -> int:
+        """Close the sessions unused for ``session_idle_s``; return how many."""
+        now = time.monotonic()
+        with self._sessions_lock:
+            idle = [s for s in self._sessions.values() if now - s.last_used > self.session_idle_s]
+        closed = 0
+        for session in idle:
+            if session.close(idle_s=self.session_idle_s):  # still idle: not in use since
+                log.info("closed session %s: idle over %.0f s", session.name, self.session_idle_s)
+                closed += 1
+        if closed:
+            give_back_memory()
+        return closed
+
+    def end_sessions(self, owner: str | None) -> int:
+        """Close every session loaded by ``owner`` (a Gradio session hash); return how many.
+
+        Wired to the page's unload event: a closed browser tab frees its photo at once.
+        """
+        if owner is None:
+            return 0
+        with self._sessions_lock:
+            mine = [s for s in self._sessions.values() if s.owner == owner]
+        for session in mine:
+            session.close()
+        if mine:
+            give_back_memory()
+        return len(mine)
+
+    def _sweep_forever(self) -> None:
+        while True:
+            time.sleep(min(30.0, max(0.5, self.session_idle_s / 4)))
+            try:
+                self.expire_idle()
+            except Exception:  # never let the sweeper die
+                log.exception("session sweep failed")
+
+    def _admit(self, replacing: Session | None) -> None:
+        """Make room for one more session or refuse with a message (``replacing`` is the
+        uploader's own previous session, which the new one replaces)."""
+        if self._sweeper is None:
+            self._sweeper = threading.Thread(
+                target=self._sweep_forever, name="d2f-session-sweeper", daemon=True
+            )
+            self._sweeper.start()
+        self.expire_idle()
+        with self._sessions_lock:
+            others = sum(1 for s in self._sessions.values() if s is not replacing)
+        if others >= self.max_sessions:
+            minutes = max(1, round(self.session_idle_s / 60))
+            raise user_error(
+                f"The app is at its limit of {self.max_sessions} open photos. Please try again "
+                f"in a few minutes (a photo unused for {minutes} min is closed)."
+            )
+
+    def _register(self, session: Session) -> None:
+        session.on_close = self._forget
+        with self._sessions_lock:
+            self._sessions[id(session)] = session

@@ -1,0 +1,171 @@
+"""The refocusing page's settings: the lens behind the f-number slider, the focus slider's
+scale, and one render's parameters (:class:`RenderParams`) checked from the page's inputs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any
+
+from app.reporting import user_error
+
+#: The adaptive renderer's error budgets (``D2F.render(budget=...)``), fastest last.
+QUALITIES = ("high", "balanced", "fast")
+VIEWS = ("Bokeh", "Before / after", "Disparity", "Defocus", "Fusion mask")
+
+
+PREVIEW_MAX_SIDE = 512
+FORMATS = ("PNG", "JPEG")
+DEPTH_KINDS = ("disparity (bright = near)", "depth (bright = far)")
+#: File names of the pictures the app puts in the photo panel (:meth:`RefocusApp.photo_panel`):
+#: when the panel sends one back as the photo, the upload it stands for is used.
+PANEL_PREFIX = "d2f-rendered-from-"
+#: Focus values are rounded to the focus slider's step, so that a value the app sets and
+#: the value the slider sends back compare equal.
+FOCUS_DECIMALS = 3
+
+# The controls speak a photographer's language; the library keeps its own units. The focus
+# slider reads near (0, left) to far (1, right); the library's focal plane is a disparity,
+# 1 = near: disparity = 1 - slider. The disparity map is relative (normalised per photo,
+# not metres), so no distance scale is invented: the slider stays linear in disparity, where
+# the blur of a point grows linearly with its distance |d - f| from the focal plane, and
+# equal steps of the slider change the blur by equal amounts.
+#
+# The blur control is the f-number N of a virtual lens. With the disparity read as
+# d = z_near / z (1 at the nearest point, 0 at infinity), the thin-lens blur circle on the
+# sensor is about F^2 / N * |1/z - 1/z_f| = F^2 / (N z_near) * |d - d_f|, so the library's K
+# (blur circle diameter in px at full resolution for |d - f| = 1) is
+#     K = F^2 / (N z_near) * (long side in px / sensor width).
+#: The virtual lens: focal length F (mm) on a full-frame sensor (its 36 mm width spans the
+#: photo's long side), with the nearest point of the photo this far away (m).
+LENS_FOCAL_MM = 50.0
+SENSOR_WIDTH_MM = 36.0
+NEAREST_M = 1.0
+#: K per pixel of the photo's long side at f/1: F^2 / (z_near * sensor width) = 0.0694.
+BLUR_PER_PX_AT_F1 = LENS_FOCAL_MM**2 / (NEAREST_M * 1000.0 * SENSOR_WIDTH_MM)
+#: The aperture slider's range and default: f/1 (most blur) to f/22.
+F_NUMBER_RANGE = (1.0, 22.0)
+DEFAULT_F_NUMBER = 1.4
+#: K is capped here (the old px slider's top, and the range the renderer is timed for):
+#: f/1 reaches it on a long side of 4320 px and more (12 MP at 3:2), 278 px at 4000 px.
+MAX_BLUR_PX = 300.0
+#: The photo size the blur note under the aperture slider describes before an upload.
+REFERENCE_SIZE = (4000, 3000)
+
+
+def disparity_of(position: float) -> float:
+    """The library's focal plane (disparity, 1 = near) for a focus slider position (0 =
+    nearest, 1 = farthest)."""
+    return round(1.0 - float(position), FOCUS_DECIMALS)
+
+
+def position_of(disparity: float) -> float:
+    """The focus slider position (0 = nearest, 1 = farthest) of a disparity (1 = near)."""
+    return round(1.0 - float(disparity), FOCUS_DECIMALS)
+
+
+def blur_px(f_number: float, long_side: int) -> float:
+    """K (px at full resolution, for |d - f| = 1) of the virtual lens at ``f_number`` on a
+    photo whose long side is ``long_side`` px, capped at :data:`MAX_BLUR_PX`, to 0.1 px."""
+    return round(min(MAX_BLUR_PX, BLUR_PER_PX_AT_F1 * long_side / float(f_number)), 1)
+
+
+def f_number_for(blur: float, long_side: int) -> float:
+    """The f-number whose K is ``blur`` px on a photo with this long side (inverse of
+    :func:`blur_px` below the cap), to 3 decimals."""
+    return round(BLUR_PER_PX_AT_F1 * long_side / float(blur), 3)
+
+
+#: The CoC (px at the render pass) that the defocus map draws as 1 (the paper's schedule).
+
+
+@dataclass(frozen=True)
+class RenderParams:
+    """What a render depends on besides the scene; equal params give equal pictures.
+
+    ``focus`` and ``blur`` are the library's (disparity, 1 = near; K in px at full
+    resolution); ``f_number`` is the aperture chosen (None: blur off, ``blur`` is 0).
+    """
+
+    focus: float
+    blur: float
+    blades: int = 0
+    rotation: float = 0.0
+    highlight_boost: bool = True
+    fusion: bool = True
+    quality: str = "balanced"
+    f_number: float | None = None
+
+    @classmethod
+    def from_inputs(
+        cls,
+        focus: Any,
+        f_number: Any,
+        blades: Any = 0,
+        rotation: Any = 0.0,
+        highlight_boost: Any = True,
+        fusion: Any = True,
+        quality: Any = "balanced",
+        blur_on: Any = True,
+        *,
+        size: tuple[int, int] | None,
+    ) -> RenderParams:
+        """Validate raw widget values (numbers may arrive as str/None from API callers).
+
+        Args:
+            focus: focus slider position, 0 = nearest .. 1 = farthest.
+            f_number: aperture of the virtual lens (:func:`blur_px`).
+            blur_on: False renders no blur (the photo as it is).
+            size: ``(width, height)`` of the photo K is computed for; None gives K = 0 (to
+                check the inputs before the photo is known; :meth:`sized` sets it).
+        """
+        try:
+            position = round(float(focus), FOCUS_DECIMALS)
+            n = round(float(f_number), 3)
+            blades_n = int(float(blades or 0))
+            r = round(float(rotation or 0.0), 3)
+        except (TypeError, ValueError):
+            raise user_error(
+                f"Invalid slider values: focus={focus!r}, f-number={f_number!r}, "
+                f"blades={blades!r}, rotation={rotation!r}."
+            ) from None
+        if not 0.0 <= position <= 1.0:
+            raise user_error(f"focus must be in [0, 1] (0 = near, 1 = far), got {position}.")
+        if not 0.5 <= n <= 1000.0:
+            raise user_error(f"The f-number must be in [0.5, 1000], got {n:g}.")
+        if blades_n < 0 or blades_n in (1, 2):
+            raise user_error(f"blades must be 0 (round) or at least 3, got {blades_n}.")
+        quality = "balanced" if quality in (None, "") else str(quality)
+        if quality not in QUALITIES:
+            raise user_error(f"quality must be one of {', '.join(QUALITIES)}, got {quality!r}.")
+        on = blur_on not in (False, None, 0, "false", "False")
+        params = cls(disparity_of(position), 0.0, blades_n, r, bool(highlight_boost),
+                     bool(fusion), quality, n if on else None)  # fmt: skip
+        return params.sized(size)
+
+    def sized(self, size: tuple[int, int] | None) -> RenderParams:
+        """These params with K for a photo of ``size = (width, height)`` (0 for None)."""
+        k = 0.0 if self.f_number is None or not size else blur_px(self.f_number, max(size))
+        return dataclasses.replace(self, blur=k)
+
+    @property
+    def position(self) -> float:
+        """The focus slider position of :attr:`focus` (0 = nearest, 1 = farthest)."""
+        return position_of(self.focus)
+
+    def blur_text(self) -> str:
+        """The aperture and the blur it gives, for the status line."""
+        if self.f_number is None:
+            return "no blur"
+        return f"f/{self.f_number:g}, blur {self.blur:g} px"
+
+    def render_options(self) -> dict[str, Any]:
+        """Keyword options for ``D2F.render`` (and on to ``rendering.render``)."""
+        return {
+            "fusion": self.fusion,
+            "blades": self.blades,
+            "rotation": self.rotation,
+            "highlight_boost": self.highlight_boost,
+            "budget": self.quality,
+        }

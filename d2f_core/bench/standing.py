@@ -1,0 +1,195 @@
+"""``d2f-bench standing``: does a depth map put the subject in front of what stands behind it?
+
+The cases where "the bottom of the frame is near" fails, held out of training:
+
+- **Generated** (always available): scenes of :mod:`d2f_core.synth.standing` drawn from seeds
+  that training never uses (:data:`SEED_BASE` on): a near post crossing the frame from top to
+  bottom, a subject over water or a floor whose bottom rows are far, a near subject in front
+  of far lights at night. Their subject mask and disparity are exact.
+- **Held-out photos** (``../shared/datasets``, skipped when absent): the held-out masked photos
+  whose subject is tall (its box spans :data:`TALL` of the frame's height, a post, a person, a
+  bottle standing across the frame) or, when the ADE20K teacher is given (``--teachers``),
+  stands over ground, water or a floor (ground classes cover a fifth of the frame below it).
+
+A case passes when the predictor's median disparity over the subject is above its median over
+the background around it (a ring as wide as a tenth of the frame): the subject comes out
+nearer than what is behind it. The table gives each predictor's share of passing cases, by
+kind, beside the "bottom is near" ramp.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["SEED_BASE", "TALL", "generated_cases", "in_front", "main", "photo_cases", "score"]
+
+#: generated scenes for this check use seeds from here on (training draws below 2**30)
+SEED_BASE = 1 << 31
+#: a subject whose box spans this share of the frame's height is "tall"
+TALL = 0.8
+Case = tuple[str, str, np.ndarray, np.ndarray]  # (name, kind, image H x W x 3, mask H x W)
+
+
+def generated_cases(n: int = 24, size: tuple[int, int] = (256, 384)) -> list[Case]:
+    """``n`` held-out standing scenes, the kinds in turn, as sRGB images in [0, 1]."""
+    from ..train.synth import linear_to_srgb, render_pinhole
+    from ..train.synth.standing import STANDING_KINDS, make_standing_scene, subject_mask
+
+    out = []
+    for i in range(n):
+        kind = STANDING_KINDS[i % len(STANDING_KINDS)]
+        scene = make_standing_scene(size, seed=SEED_BASE + i, kind=kind, margin=0)
+        radiance, _ = render_pinhole(scene)
+        image = linear_to_srgb(np.clip(radiance, 0.0, 1.0)).astype(np.float32)
+        out.append((f"generated-{kind}-{i}", f"generated {kind}", image, subject_mask(scene) > 0.5))
+    return out
+
+
+def photo_cases(root: str | Path, teachers: str | Path | None = None) -> list[Case]:
+    """The held-out masked photos whose subject is tall or stands over the ground (the latter
+    only with the ADE20K teacher in ``teachers``)."""
+    from .depth_bench import heldout_masks
+
+    parse = None
+    if teachers is not None:
+        from PIL import Image
+
+        from ..train.scene_targets import GROUND
+        from ..train.scene_teachers import SceneTeachers
+
+        net = SceneTeachers(teachers, 1)
+
+        def parse(image: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+            rgb = Image.fromarray((np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8))
+            ade = Image.fromarray(net.parse(rgb)).resize((shape[1], shape[0]), Image.NEAREST)
+            return np.isin(np.asarray(ade), GROUND)
+
+    out = []
+    for key, image, mask in heldout_masks(root):
+        rows = np.nonzero(mask.any(axis=1))[0]
+        if (rows[-1] - rows[0] + 1) >= TALL * mask.shape[0]:
+            out.append((key, "photo tall", image, mask))
+            continue
+        if parse is not None:
+            ground = parse(image, mask.shape)
+            below = np.zeros_like(mask)
+            below[rows[-1] - (rows[-1] - rows[0]) // 4 :] = True
+            below &= ~mask
+            if below.any() and ground[below].mean() >= 0.2:
+                out.append((key, "photo over ground", image, mask))
+    return out
+
+
+def in_front(pred: np.ndarray, mask: np.ndarray) -> tuple[bool, float]:
+    """``(passes, margin)``: the median of ``pred`` over ``mask`` less its median over the
+    background ring around it (a tenth of the frame wide), in units of the map's 5-95 %
+    range; the case passes when the margin is positive."""
+    from scipy.ndimage import binary_dilation, binary_erosion
+
+    h, w = mask.shape
+    core = binary_erosion(mask, iterations=2)
+    core = core if core.any() else mask
+    r = max(2, int(0.1 * max(h, w)))
+    step = max(1, r // 8)  # dilate a coarse copy: the ring's exact shape does not matter
+    small = mask[::step, ::step]
+    grown = binary_dilation(small, iterations=max(1, r // step))
+    ring = np.repeat(np.repeat(grown, step, 0), step, 1)[:h, :w] & ~binary_dilation(
+        mask, iterations=2
+    )
+    if not ring.any():
+        ring = ~mask
+    lo, hi = np.percentile(pred, [5, 95])
+    margin = (float(np.median(pred[core])) - float(np.median(pred[ring]))) / max(hi - lo, 1e-6)
+    return margin > 0, margin
+
+
+def score(predictors: dict[str, Callable[[np.ndarray], np.ndarray]], cases: Sequence[Case]) -> dict:
+    """Per case and predictor ``(passes, margin)``, and per kind and predictor the share
+    of cases passing and the median margin."""
+    from ..train.depth_train import resize_array
+
+    per_case: dict[str, dict] = {}
+    for name, kind, image, mask in cases:
+        row = {}
+        for pname, fn in predictors.items():
+            pred = resize_array(fn(image), mask.shape)
+            ok, margin = in_front(pred, mask)
+            row[pname] = {"in_front": bool(ok), "margin": margin}
+        per_case[name] = {"kind": kind, **row}
+    kinds = sorted({c[1] for c in cases})
+    summary: dict[str, dict] = {}
+    for kind in [*kinds, "all"]:
+        rows = [r for r in per_case.values() if kind in ("all", r["kind"])]
+        summary[kind] = {
+            p: {
+                "share": float(np.mean([r[p]["in_front"] for r in rows])),
+                "median_margin": float(np.median([r[p]["margin"] for r in rows])),
+                "cases": len(rows),
+            }
+            for p in predictors
+        }
+    return {"cases": per_case, "summary": summary}
+
+
+def format_table(result: dict, predictors: Sequence[str]) -> str:
+    lines = [
+        "| cases | n | " + " | ".join(predictors) + " |",
+        "|" + " --- |" * (2 + len(predictors)),
+    ]
+    for kind, row in result["summary"].items():
+        n = next(iter(row.values()))["cases"]
+        cells = [f"{row[p]['share']:.0%} ({row[p]['median_margin']:+.2f})" for p in predictors]
+        lines.append(f"| {kind} | {n} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    from .depth_bench import DEFAULT_DATASETS, network_predictor, ramp_predictor
+
+    p = argparse.ArgumentParser(prog="d2f-bench standing", description=__doc__.split("\n\n")[0])
+    p.add_argument("--weights", action="append", default=None, metavar="[NAME=]PATH")
+    p.add_argument("--datasets", type=Path, default=DEFAULT_DATASETS, help="held-out photos")
+    p.add_argument("--teachers", type=Path, default=None, help="ADE20K teacher's folder")
+    p.add_argument("--generated", type=int, default=24, help="how many generated scenes")
+    p.add_argument("--no-photos", action="store_true", help="generated scenes only")
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--json", type=Path, default=None)
+    args = p.parse_args(argv)
+    import torch
+
+    torch.set_num_threads(args.threads)
+    logging.basicConfig(level=logging.WARNING)
+    predictors: dict[str, Callable] = {"ramp": ramp_predictor}
+    try:
+        for spec in args.weights or [None]:
+            if spec is not None and "=" in spec:
+                name, path = spec.split("=", 1)
+            else:
+                name, path = ("network" if spec is None else Path(spec).stem), spec
+            predictors[name] = network_predictor(path)
+    except (FileNotFoundError, ValueError) as exc:
+        print(f"d2f-bench standing: error: {exc}", file=sys.stderr)
+        return 1
+    cases = generated_cases(args.generated)
+    if not args.no_photos:
+        if args.datasets.is_dir():
+            cases += photo_cases(args.datasets, args.teachers)
+        else:
+            print(f"held-out photos skipped: {args.datasets} not found", file=sys.stderr)
+    result = score(predictors, cases)
+    print(format_table(result, list(predictors)))
+    if args.json is not None:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(result, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

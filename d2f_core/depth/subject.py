@@ -1,0 +1,82 @@
+"""Subject finding: where the nearest prominent thing of a disparity map is, for the first focus
+(:meth:`d2f_core.pipeline.D2F.subject_focus`, ``d2f --focus subject``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+
+def find_subject(
+    disparity: np.ndarray, min_prominence: float = 0.02
+) -> tuple[float, tuple[float, float]] | None:
+    """Where the subject of a disparity map is, and its focal disparity.
+
+    A subject is what stands out nearer than the rest of its rows: the map minus each row's
+    30th percentile (a floor or a wall sloping away in depth stands out from nothing), box
+    smoothed over a fortieth of the frame and weighted by a broad centre prior. The
+    subject's pixels are those within half the strongest score; the focus is their
+    score-weighted median disparity and the point is the strongest of them.
+
+    Args:
+        disparity: ``H x W`` in [0, 1], 1 = nearest (any size; 128 px is plenty).
+        min_prominence: below this strongest score nothing stands out.
+
+    Returns:
+        ``(focus, (x, y))`` with ``x, y`` as fractions of the width and height (pixel
+        centres), or ``None`` when nothing stands out.
+    """
+    d = np.asarray(disparity, dtype=np.float64)
+    if d.ndim != 2 or d.size == 0:
+        raise ValueError(f"disparity must be a non-empty H x W map, got shape {d.shape}")
+    h, w = d.shape
+    prominence = d - np.percentile(d, 30, axis=1, keepdims=True)
+    k = max(1, round(max(h, w) / 40))
+    n = 2 * k + 1
+    cs = np.pad(np.pad(prominence, k, mode="edge").cumsum(0).cumsum(1), ((1, 0), (1, 0)))
+    smooth = (cs[n:, n:] - cs[:-n, n:] - cs[n:, :-n] + cs[:-n, :-n]) / (n * n)
+    yy, xx = np.mgrid[0:h, 0:w]
+    centre = np.exp(-(((yy + 0.5) / h - 0.5) ** 2 + ((xx + 0.5) / w - 0.5) ** 2) / 0.18)
+    score = np.clip(smooth, 0, None) * centre
+    top = float(score.max())
+    if not top >= min_prominence:
+        return None
+    region = score >= 0.5 * top
+    values, weights = d[region], score[region]
+    order = np.argsort(values, kind="stable")
+    cum = np.cumsum(weights[order])
+    focus = float(values[order][np.searchsorted(cum, 0.5 * cum[-1])])
+    iy, ix = np.unravel_index(int(np.argmax(score)), score.shape)
+    return float(np.clip(focus, 0.0, 1.0)), ((ix + 0.5) / w, (iy + 0.5) / h)
+
+
+def locate_subject(
+    disparity: np.ndarray, size: tuple[int, int], focus_at: Callable[[float, float], float]
+) -> tuple[float, tuple[float, float]]:
+    """:func:`find_subject` on a small ``disparity`` map of a photo of ``size`` = ``(H, W)``,
+    the point in that photo's pixels; where nothing stands out, the centre and
+    ``focus_at(x, y)`` there.
+
+    Returns:
+        ``(focus, (x, y))``.
+    """
+    height, width = size
+    found = find_subject(disparity)
+    if found is None:
+        cx, cy = (width - 1) / 2.0, (height - 1) / 2.0
+        return focus_at(cx, cy), (cx, cy)
+    focus, (fx, fy) = found
+    return focus, (fx * width - 0.5, fy * height - 0.5)
+
+
+def index_runs(columns: list[int]) -> list[tuple[int, int]]:
+    """Merge sorted column indices into inclusive runs: [1, 2, 3, 7] -> [(1, 3), (7, 7)]."""
+    runs: list[list[int]] = []
+    for c in columns:
+        if runs and c == runs[-1][1] + 1:
+            runs[-1][1] = c
+        else:
+            runs.append([c, c])
+    return [(a, b) for a, b in runs]

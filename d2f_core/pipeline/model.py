@@ -1,0 +1,622 @@
+"""The model, D2F end to end: ``prepare`` runs the networks once per photo (steps 1-3,
+``d = f_d(I_lr)``, ``R0 = f_r(I_lr)``), ``render`` refocuses it (steps 4-6) as often as asked.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from .. import rendering
+from ..depth import sources as depth_sources
+from ..depth.refine import harden_edges, snap_edges
+from ..depth.subject import locate_subject
+from ..errors import InputTypeError
+from ..io.embedded import Photo
+from ..networks import build_defocus_net, build_fusion_net, build_radiance_net, read_torch_file
+from ..rendering import adaptive
+from ..rendering.kernels import check_rotation
+from ..rendering.schedule import coc_to_defocus, defocus_to_coc
+from ..sizing import resize, scaled_size, size_ratio
+from .config import CHECKPOINT_VERSION, D2FConfig, default_weights_path
+from .fusion import FUSION_TILE, FusionStage, ms_since, per_sample, to_numpy_image
+from .outputs import Result, Scene
+
+
+class D2F(FusionStage, nn.Module):
+    """Defocus-to-Focus: defocus, radiance and fusion networks plus the layered renderer.
+
+    Use :meth:`from_pretrained`, :meth:`from_checkpoint` or :meth:`from_config`; all return
+    the model in ``eval()`` mode. ``prepare`` runs the networks once per photo and ``render``
+    refocuses cheaply; ``forward_stage1`` / ``forward_stage2`` are the differentiable
+    training forwards.
+    """
+
+    def __init__(self, config: D2FConfig | dict[str, Any] | None = None) -> None:
+        super().__init__()
+        if config is None:
+            config = D2FConfig()
+        elif isinstance(config, dict):
+            config = D2FConfig.from_dict(config)
+        elif not isinstance(config, D2FConfig):
+            raise InputTypeError(f"config must be a D2FConfig or dict, got {type(config).__name__}")
+        self.config = config
+        self.defocus_net = build_defocus_net(config.defocus)
+        self.radiance_net = build_radiance_net(config.radiance)
+        # channels-last weights make the few-channel full-res convs 3-10x faster on CPU
+        self.fusion_net = build_fusion_net(config.fusion).to(memory_format=torch.channels_last)
+
+    @property
+    def device(self) -> torch.device:
+        return next(self.parameters()).device
+
+    # ---------------------------------------------------------------- construction / io
+
+    @classmethod
+    def from_config(cls, config: D2FConfig | dict[str, Any] | None = None) -> D2F:
+        """Randomly initialised model in ``eval()`` mode."""
+        return cls(config).eval()
+
+    @classmethod
+    def from_checkpoint(cls, path: str | Path, map_location: str | torch.device = "cpu") -> D2F:
+        """Load a ``{"config", "state_dict", "version"}`` checkpoint (extra keys are ignored).
+
+        Raises:
+            FileNotFoundError: ``path`` does not exist.
+            ValueError: the file is corrupt or truncated, lacks the expected keys, has a newer
+                version, or its weights do not match its config.
+        """
+        path = Path(path)
+        ckpt = read_torch_file(
+            path,
+            not_found="checkpoint not found",
+            unreadable=f"checkpoint {path} is corrupt or truncated",
+        )
+        if not isinstance(ckpt, dict) or not {"config", "state_dict"} <= set(ckpt):
+            keys = sorted(ckpt) if isinstance(ckpt, dict) else type(ckpt).__name__
+            raise ValueError(f"checkpoint {path} must hold 'config' and 'state_dict', got {keys}")
+        version = ckpt.get("version", CHECKPOINT_VERSION)
+        if not isinstance(version, int) or version > CHECKPOINT_VERSION:
+            raise ValueError(
+                f"checkpoint {path} has version {version!r}; this code reads up to "
+                f"{CHECKPOINT_VERSION}"
+            )
+        try:
+            model = cls(ckpt["config"])
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"checkpoint {path} has an invalid config: {exc}") from exc
+        state = ckpt["state_dict"]
+        if not isinstance(state, dict):
+            raise ValueError(f"checkpoint {path}: state_dict is not a dict")
+        own = model.state_dict()
+        missing = sorted(set(own) - set(state))
+        unexpected = sorted(set(state) - set(own))
+        mismatched = [
+            k
+            for k in own
+            if k in state
+            and (not isinstance(state[k], Tensor) or tuple(state[k].shape) != tuple(own[k].shape))
+        ]
+        if missing or unexpected or mismatched:
+            raise ValueError(
+                f"checkpoint {path} does not match its config {model.config.to_dict()}: "
+                f"missing {missing[:3]}{'...' if len(missing) > 3 else ''}, "
+                f"unexpected {unexpected[:3]}{'...' if len(unexpected) > 3 else ''}, "
+                f"wrong shape {mismatched[:3]}{'...' if len(mismatched) > 3 else ''}"
+            )
+        model.load_state_dict(state)
+        return model.to(map_location).eval()
+
+    @classmethod
+    def from_pretrained(cls, path: str | Path | None = None) -> D2F:
+        """Load the shipped weights (``assets/weights/d2f_lite.pt``, or ``$D2F_WEIGHTS``).
+
+        Raises:
+            FileNotFoundError: naming the missing weights file.
+        """
+        path = Path(path) if path is not None else default_weights_path()
+        if not path.is_file():
+            raise FileNotFoundError(
+                f"D2F weights not found: {path} (train them with d2f-train, or point "
+                f"D2F_WEIGHTS / the path argument at a checkpoint)"
+            )
+        return cls.from_checkpoint(path)
+
+    def checkpoint(self) -> dict[str, Any]:
+        """The checkpoint dict ``{"config", "state_dict", "version"}`` (tensors on CPU)."""
+        state = {k: v.detach().cpu().contiguous() for k, v in self.state_dict().items()}
+        return {"config": self.config.to_dict(), "state_dict": state, "version": CHECKPOINT_VERSION}
+
+    def save(self, path: str | Path) -> None:
+        """Write :meth:`checkpoint` to ``path`` (parent folders are created)."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        torch.save(self.checkpoint(), path)
+
+    # ---------------------------------------------------------------- networks
+
+    def predict_disparity(self, image: Tensor, refine: bool = True) -> Tensor:
+        """Defocus network at ``config.network_size`` (averaged with its mirror image with
+        ``config.flip_average``), resized back to the input size; with ``refine`` and
+        ``config.refine="snap"`` its edges are then moved onto the photo's
+        (:func:`refine.snap_edges`).
+
+        Shape: (B, 3, h, w) in [0, 1] -> (B, 1, h, w) in [0, 1].
+        """
+        size = tuple(image.shape[-2:])
+        net_size = scaled_size(size, 1.0, self.config.network_size)
+        small = resize(image, net_size)
+        if self.config.flip_average:
+            both = self.defocus_net(torch.cat([small, small.flip(-1)]))  # [2B,1,hn,wn]
+            b = small.shape[0]
+            d = 0.5 * (both[:b] + both[b:].flip(-1))
+        else:
+            d = self.defocus_net(small)
+        d = resize(d, size)  # [B,1,h,w]
+        if refine:
+            d = self._snap(image, d)
+        return d.clamp(0, 1)
+
+    def _snap(self, image: Tensor, disparity: Tensor) -> Tensor:
+        if self.config.refine != "snap":
+            return disparity
+        radius = max(1, round(self.config.refine_radius * max(image.shape[-2:])))
+        return snap_edges(image, disparity, radius, self.config.refine_eps).clamp_(0, 1)
+
+    def refine_disparity(self, image: Tensor, disparity: Tensor) -> Tensor:
+        """Edge-aware refinement of a disparity map from any source, guided by the photo at
+        the map's size (:meth:`prepare` runs it at the rendering pass's size): with
+        ``config.edge_step > 0`` every pixel on a silhouette's ramp is put on one side of it
+        by its colour (:func:`refine.harden_edges`).
+
+        The snapping of ``config.refine="snap"`` belongs to the defocus network's own map
+        (:meth:`predict_disparity`), a soft map at ``network_size``; on a phone's map it
+        copies the photo's texture into the depth (the portrait with a matte, at 768x1024:
+        depth-edge pixels 12k -> 48k, the silhouette's IoU with the matte 0.653 -> 0.597).
+
+        Shape: image (1, 3, h, w) in [0, 1], disparity (1, 1, h, w) -> (1, 1, h, w) in [0, 1].
+        """
+        if self.config.edge_step <= 0:
+            return disparity
+        radius = max(3, round(self.config.edge_radius * max(image.shape[-2:])))
+        return harden_edges(image, disparity, radius, self.config.edge_step)
+
+    # ---------------------------------------------------------------- inference
+
+    def pass_size(self, size: tuple[int, int], given: bool = False) -> tuple[int, int]:
+        """``(h, w)`` of the rendering pass for a photo of ``size``: with a ``given`` map the
+        photo's own size up to ``config.full_pass_side``, else ``render_scale`` of it
+        capped at ``max_render_side``."""
+        if given and max(size) <= self.config.full_pass_side:
+            return tuple(size)
+        return scaled_size(size, self.config.render_scale, self.config.max_render_side)
+
+    @torch.no_grad()
+    def prepare(
+        self, image: Any, disparity: Any = None, *, depth: Any = None, refine: bool = True
+    ) -> Scene:
+        """Run the networks once for a photo and cache what :meth:`render` needs.
+
+        Args:
+            image: ``H x W x 3`` numpy (uint8, or float32 in [0, 1]), a ``[1, 3, H, W]``
+                tensor in [0, 1], or a :class:`d2f_core.io.Photo` from
+                :func:`~d2f_core.io.load_photo` (whose phone depth the ``"embedded"`` source
+                reads, and which is the default for a photo that carries some).
+            depth: where the disparity comes from (:mod:`d2f_core.depth.sources`): ``None``
+                (the photo's phone depth when it has some, else this model's defocus network),
+                ``"d2f"`` (the network), ``"embedded"``, ``"file:PATH"``,
+                ``"transformers:MODEL"``, a :class:`~d2f_core.depth.sources.DepthMap`, or a
+                ready ``H' x W'`` map in [0, 1] (1 = nearest) of any size, resized to the
+                photo.
+            disparity: a ready map, as ``depth`` (its older name).
+            refine: edge-aware refinement (:meth:`refine_disparity`) of the map at the
+                rendering pass's size, the same for every source (and the network's own
+                snapping, ``config.refine``); ``False`` keeps the map as the source gave it.
+
+        Returns:
+            A :class:`Scene` on the model's device; ``scene.disparity_source`` names the
+            source (``"given"`` for a bare map).
+        """
+        if disparity is not None and depth is not None:
+            raise ValueError("pass the map as depth or as disparity, not both")
+        depth = disparity if depth is None else depth
+        photo = None
+        if isinstance(image, Photo):
+            photo, image = image, image.image
+            if depth is None and photo.disparity is not None:
+                depth = "embedded"  # the phone's own depth, as the CLI and the app take it
+        device = self.device
+        image_t = rendering.image_tensor(image).to(device)  # [1,3,H,W]
+        source, output = depth_sources.DEFAULT_SOURCE, "D2F network disparity"
+        if isinstance(depth, (str, depth_sources.DepthSource)):
+            spec = depth_sources.parse_source(depth)
+            if spec.kind == "d2f":
+                depth = None
+            else:
+                depth = depth_sources.depth_map(spec, image_t, photo=photo, device=device)
+        if isinstance(depth, depth_sources.DepthMap):
+            source, output, depth = depth.source, depth.output, depth.disparity
+        elif depth is not None:
+            source, output = "given", "disparity map"
+        given = None if depth is None else rendering.disparity_tensor(depth).to(device)
+        size = (int(image_t.shape[-2]), int(image_t.shape[-1]))
+        lr_size = self.pass_size(size, given=given is not None)
+        image_lr = resize(image_t, lr_size).clamp_(0, 1)  # [1,3,h,w]
+        if given is None:
+            disparity_lr = self.predict_disparity(image_lr, refine=refine)  # [1,1,h,w]
+        else:
+            disparity_lr = resize(given, lr_size).clamp_(0, 1)
+        if refine:
+            disparity_lr = self.refine_disparity(image_lr, disparity_lr)
+        radiance_lr = self.radiance_net(image_lr)  # [1,1,h,w]
+        return Scene(
+            image=image_t,
+            image_lr=image_lr,
+            disparity_lr=disparity_lr,
+            radiance_lr=radiance_lr,
+            size=size,
+            disparity_source=source,
+            disparity_output=output,
+            refined=bool(refine),
+            given_disparity=given,
+        )
+
+    def _preview_inputs(self, scene: Scene, max_side: int) -> tuple[Tensor, Tensor, Tensor]:
+        size = scaled_size(scene.size, 1.0, max_side)
+        key = ("preview", size)
+        if key not in scene.cache:
+            lr_size = tuple(scene.image_lr.shape[-2:])
+            src = scene.image_lr if size[0] <= lr_size[0] else scene.image
+            scene.cache[key] = (
+                resize(src, size).clamp(0, 1),
+                resize(scene.disparity_lr, size).clamp(0, 1),
+                resize(scene.radiance_lr, size),
+            )
+        return scene.cache[key]
+
+    @torch.no_grad()
+    def render(
+        self,
+        scene: Scene,
+        focus: float = 0.5,
+        blur: float = 40.0,
+        fusion: bool = True,
+        max_side: int | None = None,
+        budget: str | float | None = adaptive.DEFAULT_QUALITY,
+        **render_options: Any,
+    ) -> Result:
+        """Refocus a prepared photo.
+
+        Args:
+            scene: from :meth:`prepare`.
+            focus: focal disparity in [0, 1] (1 = nearest); see :meth:`focus_at`.
+            blur: ``K``, CoC diameter in px at FULL resolution for ``|d - focus| = 1``.
+            fusion: apply deep Poisson fusion at full resolution (else plain upsampling; a
+                pass at the photo's own size needs none and has none).
+            max_side: preview mode: render at this long side, no fusion.
+            budget: error budget of the adaptive settings (:mod:`d2f_core.rendering.adaptive`):
+                ``"high"``, ``"balanced"`` or ``"fast"`` (45, 40, 30 dB against the exact
+                renderer), or a PSNR in dB. The layer count and reduced-resolution preset are
+                picked per focus and blur; when every CoC is under a pixel the input is
+                returned without rendering (identity path), and fusion is skipped when no
+                pixel is near enough to the focal plane to be fused. ``None``, an explicit
+                ``num_layers`` or ``quality``, or ``order="paper"`` fix the settings.
+            **render_options: passed to ``rendering.render`` (``order``, ``num_layers``,
+                ``schedule``, ``kernel``, ``blades``, ``rotation``, ``highlight_boost``,
+                ``quality``, ``method``).
+
+        Returns:
+            :class:`Result`; ``result.settings`` says what was picked.
+        """
+        if not isinstance(scene, Scene):
+            kind = type(scene).__name__
+            raise InputTypeError(f"scene must be a Scene from prepare(), got {kind}")
+        focus, blur = rendering.check_focus_blur(focus, blur)
+        if "rotation" in render_options:  # named even when no kernel needs it
+            render_options["rotation"] = check_rotation(render_options["rotation"])
+        if max_side is not None and (isinstance(max_side, bool) or int(max_side) < 1):
+            raise ValueError(f"max_side must be a positive integer or None, got {max_side!r}")
+        if "radiance" in render_options:
+            raise ValueError("render_options must not contain 'radiance' (it comes from scene)")
+        if "checked" in render_options:
+            raise ValueError("render_options must not contain 'checked' (D2F.render sets it)")
+        render_options.setdefault("order", self.config.order)
+        render_options.setdefault("placement", self.config.placement)
+        named = isinstance(budget, str)
+        if named and budget not in adaptive.BUDGETS:
+            names = sorted(adaptive.BUDGETS)
+            raise ValueError(f"budget must be one of {names}, a dB value or None, got {budget!r}")
+        if budget is not None and not named:
+            bad = f"budget must be a name, a dB value or None, got {budget!r}"
+            if isinstance(budget, bool):
+                raise ValueError(bad)
+            try:
+                budget = float(budget)
+            except (TypeError, ValueError):
+                raise ValueError(bad) from None
+            if not math.isfinite(budget):
+                raise ValueError(f"budget must be finite, got {budget}")
+        pick = (
+            budget is not None
+            and render_options["order"] == "depth"
+            and "num_layers" not in render_options
+            and "quality" not in render_options
+        )
+        timings: dict[str, float] = {}
+        t_all = time.perf_counter()
+
+        # 1. inputs of the rendering pass (preview: its own size, cached per size)
+        if max_side is not None:
+            image_lr, disparity_lr, radiance_lr = self._preview_inputs(scene, int(max_side))
+        else:
+            image_lr, disparity_lr, radiance_lr = (
+                scene.image_lr,
+                scene.disparity_lr,
+                scene.radiance_lr,
+            )
+        lr_size = (int(image_lr.shape[-2]), int(image_lr.shape[-1]))
+        lr_ratio = size_ratio(lr_size, scene.size)
+        blur_lr = blur * lr_ratio
+        # full-res CoC under which the fusion gate can open (see _fuse_tiled)
+        gate_coc = defocus_to_coc(self.config.fusion_gate) / lr_ratio * 1.01
+
+        # 2. adaptive settings, then layered rendering at low resolution (HDR boost inside)
+        settings = None
+        if pick:
+            t0 = time.perf_counter()
+            full = max_side is None
+            settings = adaptive.choose_settings(
+                disparity_lr,
+                focus,
+                blur_lr,
+                budget_db=None if named else budget,
+                quality=budget if named else adaptive.DEFAULT_QUALITY,
+                schedule=render_options.get("schedule", "growing"),
+                placement=render_options["placement"],
+                full_scale=1.0 / lr_ratio if full else 1.0,
+                fusion_coc=gate_coc,
+                checked=True,  # focus and blur were checked above; blur_lr <= blur
+            )
+            if full:
+                # decide from the full-resolution map (a given map can hold finer extremes
+                # than its low-res copy): identity when every output CoC is under a pixel,
+                # fusion when some pixel is near enough to focus for _fuse_tiled to touch it
+                lo, hi = scene.disparity_tile_range(FUSION_TILE)
+                far = float(torch.maximum((hi - focus).abs(), (lo - focus).abs()).max())
+                near = float(torch.clamp(torch.maximum(lo - focus, focus - hi), min=0.0).min())
+                settings.identity = blur * far < 1.0
+                settings.fusion = blur * near < max(gate_coc, 2.0 * self.config.sharp_coc)
+            timings["pick"] = ms_since(t0)
+        t0 = time.perf_counter()
+        fuse = (
+            fusion
+            and max_side is None
+            and lr_size != tuple(scene.size)  # a full-size pass lost no detail to restore
+            and not (settings is not None and settings.identity)
+            and (settings is None or settings.fusion)
+        )
+        behind_lr = None
+        if settings is not None and settings.identity:
+            bokeh_lr = image_lr  # every CoC is under a pixel of the output
+        else:
+            options = render_options | (settings.render_options() if settings else {})
+            bokeh_lr = rendering.render(
+                image_lr,
+                disparity_lr,
+                focus,
+                blur_lr,
+                radiance=radiance_lr,
+                behind=fuse,
+                # foreground layers blurred past the fusion gate: fusion never sharpens
+                # them, and must not paste what lies behind them over their blur
+                front_size=defocus_to_coc(self.config.fusion_gate),
+                checked=True,
+                **options,
+            )  # [1,3,h,w]
+            if fuse:
+                # what the layers behind the blurred foreground make of each pixel: fusion
+                # sharpens only that part
+                bokeh_lr, share_lr, colour_lr = bokeh_lr
+                if bool((share_lr < 1.0 - 1e-4).any()):
+                    behind_lr = (share_lr, colour_lr)
+        timings["render_lr"] = ms_since(t0)
+        defocus_lr = coc_to_defocus(blur_lr * (disparity_lr - focus).abs())
+
+        # 3. upsample + deep Poisson fusion at full resolution
+        if max_side is not None:
+            bokeh = bokeh_lr
+            mask = torch.zeros_like(disparity_lr)
+        elif settings is not None and settings.identity:
+            bokeh = scene.image.clone()
+            mask = torch.ones((1, 1, *scene.size), device=bokeh.device)
+        else:
+            t0 = time.perf_counter()
+            bokeh = resize(bokeh_lr, scene.size)  # [1,3,H,W]
+            if bokeh is bokeh_lr:
+                bokeh = bokeh.clone()  # fusion writes into it; bokeh_lr is returned too
+            timings["upsample"] = ms_since(t0)
+            if fuse:
+                t0 = time.perf_counter()
+                behind = None
+                if behind_lr is not None:
+                    behind = tuple(resize(t, scene.size).clamp_(0, 1) for t in behind_lr)
+                bokeh, mask = self._fuse_tiled(scene, bokeh, focus, blur, lr_ratio, behind)
+                timings["fusion"] = ms_since(t0)
+            else:
+                mask = torch.zeros((1, 1, *scene.size), device=bokeh.device)
+
+        t0 = time.perf_counter()
+        result = Result(
+            bokeh=to_numpy_image(bokeh.clamp_(0, 1)),
+            bokeh_lr=to_numpy_image(bokeh_lr),
+            disparity=disparity_lr[0, 0].cpu().numpy(),
+            defocus=defocus_lr[0, 0].cpu().numpy(),
+            fusion_mask=mask[0, 0].cpu().numpy(),
+            timings=timings,
+            settings=settings,
+        )
+        timings["to_numpy"] = ms_since(t0)
+        timings["total"] = ms_since(t_all)
+        return result
+
+    def focus_at(self, scene: Scene, x: float, y: float, radius: int | None = None) -> float:
+        """Median disparity in a ``(2r+1)^2`` window around full-res pixel ``(x, y)``.
+
+        ``(x, y)`` must lie in the photo, pixel centres at whole numbers: ``x`` in
+        ``[-0.5, W - 0.5]``, ``y`` in ``[-0.5, H - 0.5]``; the window is clipped at its
+        borders. ``radius`` defaults to ``max(2, round(max(H, W) / 200))`` px.
+
+        Returns:
+            Focal disparity in [0, 1] for :meth:`render`.
+
+        Raises:
+            ValueError: a point outside the photo, or not finite.
+        """
+        if not isinstance(scene, Scene):
+            kind = type(scene).__name__
+            raise InputTypeError(f"scene must be a Scene from prepare(), got {kind}")
+        try:
+            xf, yf = float(x), float(y)
+        except (TypeError, ValueError):
+            raise InputTypeError(f"x and y must be numbers, got {x!r}, {y!r}") from None
+        if not (math.isfinite(xf) and math.isfinite(yf)):
+            raise ValueError(f"x and y must be finite, got {x!r}, {y!r}")
+        height, width = scene.size
+        if not (-0.5 <= xf <= width - 0.5 and -0.5 <= yf <= height - 0.5):
+            raise ValueError(
+                f"the point ({x!r}, {y!r}) is outside the {width}x{height} photo: x must be in "
+                f"[0, {width - 1}] and y in [0, {height - 1}]"
+            )
+        r = max(2, round(max(height, width) / 200)) if radius is None else int(radius)
+        if r < 0:
+            raise ValueError(f"radius must be >= 0, got {radius!r}")
+        xi = min(max(round(xf), 0), width - 1)
+        yi = min(max(round(yf), 0), height - 1)
+        d = scene.disparity_full_tensor()[0, 0]
+        window = d[max(0, yi - r) : yi + r + 1, max(0, xi - r) : xi + r + 1]
+        return float(np.clip(np.median(window.detach().cpu().numpy()), 0.0, 1.0))
+
+    def subject_focus(self, scene: Scene) -> tuple[float, tuple[float, float]]:
+        """The focal disparity of the subject the disparity map shows, and where it is
+        (:func:`find_subject`); a map in which nothing stands out (flat, or a plain ramp) gets
+        the focus at the centre, as :meth:`focus_at`.
+
+        Returns:
+            ``(focus, (x, y))``, the point in full-res pixel coordinates.
+        """
+        if not isinstance(scene, Scene):
+            kind = type(scene).__name__
+            raise InputTypeError(f"scene must be a Scene from prepare(), got {kind}")
+        with torch.no_grad():
+            d = resize(scene.disparity_lr, scaled_size(scene.size, 1.0, 128))[0, 0]
+        return locate_subject(d.cpu().numpy(), scene.size, lambda x, y: self.focus_at(scene, x, y))
+
+    # ---------------------------------------------------------------- training forwards
+
+    def _render_batch(
+        self,
+        image: Tensor,
+        disparity: Tensor,
+        focus: Tensor,
+        blur: Tensor,
+        radiance: Tensor,
+        **options: Any,
+    ) -> Tensor:
+        # rendering.render takes one blur per call; group samples that share it
+        blur_list = [float(v) for v in blur.reshape(-1)]
+        focus = focus.reshape(-1)
+        if all(v == blur_list[0] for v in blur_list):
+            return rendering.render(
+                image, disparity, focus, blur_list[0], radiance=radiance, **options
+            )
+        outs = [
+            rendering.render(
+                image[i : i + 1],
+                disparity[i : i + 1],
+                focus[i : i + 1],
+                blur_list[i],
+                radiance=radiance[i : i + 1],
+                **options,
+            )
+            for i in range(image.shape[0])
+        ]
+        return torch.cat(outs, dim=0)
+
+    def forward_stage1(
+        self, image_lr: Tensor, focus: float | Tensor, blur_lr: float | Tensor, **options: Any
+    ) -> dict[str, Tensor]:
+        """Differentiable low-resolution bokeh (training stage 1).
+
+        Args:
+            image_lr: ``(B, 3, h, w)`` in [0, 1]; the defocus network runs at this size.
+            focus: focal disparity, float or ``[B]`` in [0, 1].
+            blur_lr: ``K`` in px at this resolution, float or ``[B]``.
+            **options: passed to ``rendering.render``.
+
+        Returns:
+            ``{"bokeh_lr": (B,3,h,w), "disparity": (B,1,h,w), "radiance": (B,1,h,w)}``.
+        """
+        b = image_lr.shape[0]
+        options.setdefault("order", self.config.order)
+        options.setdefault("placement", self.config.placement)
+        disparity = self.defocus_net(image_lr)  # [B,1,h,w]
+        radiance = self.radiance_net(image_lr)  # [B,1,h,w]
+        f = per_sample(focus, b, image_lr).reshape(-1)
+        k = per_sample(blur_lr, b, image_lr).reshape(-1)
+        bokeh = self._render_batch(image_lr, disparity, f, k, radiance, **options)
+        return {"bokeh_lr": bokeh, "disparity": disparity, "radiance": radiance}
+
+    def forward_stage2(
+        self, image: Tensor, focus: float | Tensor, blur: float | Tensor, **options: Any
+    ) -> dict[str, Tensor]:
+        """Full-resolution fused bokeh (training stage 2; gradients reach ``f_p`` only).
+
+        Args:
+            image: ``I_hr``, ``(B, 3, H, W)`` in [0, 1].
+            focus: focal disparity, float or ``[B]``.
+            blur: ``K`` in px at full resolution, float or ``[B]``.
+
+        Returns:
+            dict with ``bokeh`` (B,3,H,W) = fused ``B_hr``, ``bokeh_up`` (B,3,H,W),
+            ``bokeh_lr`` (B,3,h,w), ``disparity_lr`` (B,1,h,w), ``disparity`` (B,1,H,W),
+            ``defocus`` (B,1,H,W) paper-normalised, ``mask`` and ``mask_soft`` (B,1,H,W).
+        """
+        b = image.shape[0]
+        size = (int(image.shape[-2]), int(image.shape[-1]))
+        lr_size = scaled_size(size, self.config.render_scale, None)
+        lr_ratio = size_ratio(lr_size, size)
+        k = per_sample(blur, b, image)
+        f = per_sample(focus, b, image)
+        frozen = (self.defocus_net, self.radiance_net)
+        modes = [m.training for m in frozen]
+        with torch.no_grad():
+            # the stage-1 networks are frozen here: batch statistics must not move
+            for m in frozen:
+                m.eval()
+            image_lr = resize(image, lr_size).clamp(0, 1)
+            low = self.forward_stage1(
+                image_lr, f.reshape(-1), (k * lr_ratio).reshape(-1), **options
+            )
+            bokeh_up = resize(low["bokeh_lr"], size)  # [B,3,H,W]
+            disparity = resize(low["disparity"], size).clamp(0, 1)  # [B,1,H,W]
+            for m, mode in zip(frozen, modes, strict=True):
+                m.train(mode)
+        mask, mask_soft = self.fusion_mask(image, disparity, f, k, lr_ratio)
+        bokeh = torch.lerp(bokeh_up, image, mask)
+        defocus = coc_to_defocus(k * lr_ratio * (disparity - f).abs())
+        return {
+            "bokeh": bokeh,
+            "bokeh_up": bokeh_up,
+            "bokeh_lr": low["bokeh_lr"],
+            "disparity_lr": low["disparity"],
+            "disparity": disparity,
+            "defocus": defocus,
+            "mask": mask,
+            "mask_soft": mask_soft,
+        }

@@ -1,0 +1,105 @@
+"""What the pipeline returns: a prepared photo (:class:`Scene`: ``I_hr``, ``I_lr``, the
+disparity ``d`` and the radiance ``R0`` of D2F steps 1-3) and a render (:class:`Result`:
+``B_hr`` of step 6 with the maps behind it).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from ..rendering import adaptive
+from ..sizing import resize
+
+
+@dataclass
+class Scene:
+    """Everything :meth:`D2F.render` needs for one photo, computed once by :meth:`D2F.prepare`.
+
+    Attributes:
+        image: full-resolution photo, ``[1, 3, H, W]`` float32 in [0, 1].
+        image_lr: low-resolution pass input, ``[1, 3, h, w]`` in [0, 1].
+        disparity_lr: ``[1, 1, h, w]`` in [0, 1], 1 = nearest.
+        radiance_lr: ``R0`` before the HDR boost, ``[1, 1, h, w]`` in (0, 1).
+        size: ``(H, W)`` of the full-resolution photo.
+        disparity_source: the depth source (:mod:`d2f_core.depth.sources`): ``"d2f"``,
+            ``"embedded"``, ``"file:PATH"``, ``"transformers:MODEL"``, or ``"given"`` for a
+            bare map passed to :meth:`D2F.prepare`.
+        disparity_output: what that source gave (``"relative inverse depth"``, ``"metric
+            depth"``, ``"apple_mpo phone depth"``, ``"D2F network disparity"``, ...).
+        refined: whether :meth:`D2F.refine_disparity` ran on the map.
+        cache: derived tensors (full-res disparity, preview-size inputs), filled lazily.
+    """
+
+    image: Tensor
+    image_lr: Tensor
+    disparity_lr: Tensor
+    radiance_lr: Tensor
+    size: tuple[int, int]
+    disparity_source: str = "d2f"
+    disparity_output: str = "D2F network disparity"
+    refined: bool = True
+    given_disparity: Tensor | None = field(default=None, repr=False)
+    cache: dict[Any, Any] = field(default_factory=dict, repr=False)
+
+    def disparity_full_tensor(self) -> Tensor:
+        """Disparity at full resolution, ``[1, 1, H, W]`` in [0, 1] (cached).
+
+        The given map when one was passed to ``prepare`` (resized to the photo), else the
+        network's map upsampled bilinearly.
+        """
+        if "disparity_full" not in self.cache:
+            src = self.given_disparity if self.given_disparity is not None else self.disparity_lr
+            with torch.no_grad():
+                self.cache["disparity_full"] = resize(src, self.size).clamp(0, 1)
+        return self.cache["disparity_full"]
+
+    def disparity_tile_range(self, tile: int) -> tuple[Tensor, Tensor]:
+        """Min and max of the full-res disparity over ``tile`` x ``tile`` blocks (cached).
+
+        Shape: two ``[ceil(H / tile), ceil(W / tile)]`` tensors.
+        """
+        key = ("tile_range", tile)
+        if key not in self.cache:
+            with torch.no_grad():
+                d = self.disparity_full_tensor()
+                hi = F.max_pool2d(d, tile, tile, ceil_mode=True)[0, 0]
+                lo = -F.max_pool2d(-d, tile, tile, ceil_mode=True)[0, 0]
+            self.cache[key] = (lo, hi)
+        return self.cache[key]
+
+    def disparity_full(self) -> np.ndarray:
+        """Disparity at full resolution as ``H x W`` float32 numpy in [0, 1] (1 = nearest)."""
+        return self.disparity_full_tensor()[0, 0].detach().cpu().numpy()
+
+
+@dataclass
+class Result:
+    """One render (numpy, float32).
+
+    Attributes:
+        bokeh: ``H x W x 3`` in [0, 1] (preview size when ``max_side`` was given).
+        bokeh_lr: ``h x w x 3`` in [0, 1], the low-resolution rendering pass.
+        disparity: ``h x w`` in [0, 1], 1 = nearest.
+        defocus: ``h x w`` in [0, 1], the paper's normalised defocus of each pixel
+            (``schedule.coc_to_defocus`` of its CoC at the low-res pass).
+        fusion_mask: ``H x W`` in [0, 1], weight of the sharp input in ``bokeh`` (zeros when
+            fusion is off or in preview).
+        timings: milliseconds per stage.
+        settings: what the adaptive picker chose for this focus and blur
+            (:class:`adaptive.RenderSettings`: layer count, reduced-resolution preset,
+            identity path, predicted PSNR), ``None`` when the settings were fixed.
+    """
+
+    bokeh: np.ndarray
+    bokeh_lr: np.ndarray
+    disparity: np.ndarray
+    defocus: np.ndarray
+    fusion_mask: np.ndarray
+    timings: dict[str, float]
+    settings: adaptive.RenderSettings | None = None

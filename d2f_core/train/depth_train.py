@@ -1,0 +1,743 @@
+"""Stage 0: the defocus network learns depth from real photos before any bokeh loss.
+
+``d2f-train depth`` trains :class:`~d2f_core.networks.DefocusNet` with direct supervision:
+
+- **Real photos with a subject** (human-drawn masks, or the VOC teacher's foreground where a
+  photo has no mask). The target is a layout plus the subject in front of it: the layout is
+  a "bottom of the frame is near" ramp blended with the indoor depth teacher's ranked
+  disparity (``layout_teacher`` of it); every connected part of the subject stands on that
+  layout where its lowest row touches it (a person standing on a floor has the floor's
+  disparity at their feet), and is lifted to at least what surrounds it. The mask is
+  feathered by a pixel so hair and fur edges stay soft.
+- **Pasted subjects**: a subject cut out of another masked photo with its feathered alpha is
+  placed over the photo, in front of everything it covers. Its disparity is exact, and it
+  teaches that what looks like a subject is near wherever it lies in the frame.
+- **Generated layered scenes** (:mod:`d2f_core.train.synth`) with their exact disparity, so the
+  network stays calibrated on the scenes the bokeh stages and the held-out set use.
+
+Real targets are relative (0 = farthest, 1 = nearest in each photo), so their loss is a
+scale- and shift-invariant L1 plus multi-scale gradient matching (MiDaS), plus a plain L1 with
+weight ``absolute_weight`` that keeps outputs in [0, 1]; generated scenes have absolute
+targets and take a plain L1 plus gradient matching.
+
+A photo is held out of training when :func:`is_heldout` says so (a hash of its name: about
+one photo in ten); ``d2f-bench depth`` evaluates on exactly those.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import logging
+import math
+import random
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from ..io import load_image
+from ..networks import build_defocus_net, count_parameters
+from .heldout import is_heldout
+from .scene_targets import read_scene_label, scene_target, subject_target
+from .synth.photo import feather
+from .teachers import FeatureTeacher, Photo, iter_photos, read_label, read_mask, subject_cutout
+
+__all__ = [
+    "DepthSample",
+    "RealDepthData",
+    "gradient_matching_loss",
+    "is_heldout",
+    "resize_array",
+    "ssi_align",
+    "subject_target",
+    "train_depth",
+]
+
+logger = logging.getLogger(__name__)
+
+#: folders of whole scenes (streets, rooms, landscapes): the layouts that the depth teacher
+#: knows; ``scene_weight`` draws them more often
+SCENE_SOURCES = ("photos/sun_hays80", "photos/urban100", "photos/bsds500")
+#: the encoder map that feature distillation reads (with the next one upsampled onto it)
+DISTILL_STRIDE = 16
+
+
+# ------------------------------------------------------------------------------ targets
+
+
+def ramp(height: int, width: int) -> np.ndarray:
+    """``H x W`` float32: 0 at the top row, 1 at the bottom row ("the bottom is near")."""
+    col = np.linspace(0.0, 1.0, height, dtype=np.float32)[:, None]
+    return np.broadcast_to(col, (height, width)).copy()
+
+
+def teacher_weight(teacher: np.ndarray, cap: float = 0.8) -> float:
+    """Weight of the depth teacher in a photo's layout: its correlation with the ramp,
+    clipped to ``[0, cap]``.
+
+    The indoor teacher is right on rooms, streets and ground planes, where its map falls
+    off towards the top like the ramp, and wrong on close-ups and dark scenes, where it
+    does not. On the 12 measured-depth photos of ``d2f-bench depth`` (teacher and VOC subject
+    run on each), the targets built with a fixed 0.4 blend score 0.689 mean Spearman, with
+    this weight 0.722 (the teacher alone 0.548, the ramp 0.607). A teacher that disagrees
+    with the ramp is not trusted.
+    """
+    h, w = teacher.shape
+    r = np.broadcast_to(np.linspace(0.0, 1.0, h, dtype=np.float32)[:, None], (h, w))
+    t = teacher - teacher.mean()
+    rr = r - r.mean()
+    denom = float(np.sqrt((t * t).sum() * (rr * rr).sum()))
+    c = float((t * rr).sum()) / denom if denom > 0 else 0.0
+    return float(np.clip(c, 0.0, cap))
+
+
+def teacher_subject(
+    fg: np.ndarray, min_area: float = 0.01, max_area: float = 0.8
+) -> np.ndarray | None:
+    """The subject alpha of a photo without a mask: the VOC teacher's foreground ``fg``,
+    ramped from 0.3 to 0.7 and feathered by a pixel, where it covers ``min_area`` to
+    ``max_area`` of the frame; ``None`` elsewhere (no subject, or the whole frame)."""
+    area = float((fg >= 0.5).mean())
+    if not min_area <= area <= max_area:
+        return None
+    return feather(np.clip((fg - 0.3) / 0.4, 0, 1), 1.0)
+
+
+def teacher_layout(teacher: np.ndarray, weight: float = -1.0) -> np.ndarray:
+    """A photo's layout: the ramp blended with the depth teacher's ranked disparity, at
+    ``weight`` of the teacher, or per photo by :func:`teacher_weight` when negative."""
+    h, w = teacher.shape
+    wt = teacher_weight(teacher) if weight < 0 else weight
+    return ((1 - wt) * ramp(h, w) + wt * teacher).astype(np.float32)
+
+
+def _normalise(t: np.ndarray) -> np.ndarray:
+    lo, hi = float(t.min()), float(t.max())
+    return ((t - lo) / max(hi - lo, 1e-6)).astype(np.float32)
+
+
+# ------------------------------------------------------------------------------ data
+
+
+@dataclass
+class DepthSample:
+    image: np.ndarray  # H x W x 3 float32 [0, 1]
+    target: np.ndarray  # H x W float32 [0, 1]
+    relative: bool  # True: scale/shift-free target (real photos)
+
+
+def resize_array(x: np.ndarray, size: tuple[int, int], nearest: bool = False) -> np.ndarray:
+    """An ``H x W`` or ``H x W x C`` float array at ``size`` = ``(h, w)``: bilinear,
+    antialiased when shrinking, or nearest."""
+    h, w = size
+    t = torch.from_numpy(np.ascontiguousarray(x, dtype=np.float32))
+    t = t.permute(2, 0, 1)[None] if t.ndim == 3 else t[None, None]
+    mode = "nearest" if nearest else "bilinear"
+    shrink = h < t.shape[-2] or w < t.shape[-1]
+    kw = {} if nearest else {"align_corners": False, "antialias": shrink}
+    out = F.interpolate(t, size=(h, w), mode=mode, **kw)[0]
+    return out.permute(1, 2, 0).numpy() if x.ndim == 3 else out[0].numpy()
+
+
+class RealDepthData:
+    """Samples for stage 0 (see the module docstring); ``sample(rng)`` draws one.
+
+    Args:
+        root: the datasets folder (``../shared/datasets``).
+        labels: the teachers' ``.npz`` folder written by ``d2f-train label``.
+        size: ``(H, W)`` of every sample.
+        paste: probability of pasting another photo's subject.
+        synth: probability of a generated layered scene instead of a photo.
+        layout_teacher: weight of the depth teacher in the background layout (the rest is
+            the ramp); negative: per photo, :func:`teacher_weight`.
+        scene_weight: how much more often than another photo a photo of
+            :data:`SCENE_SOURCES` is drawn.
+        scene: build the targets of photos whose labels hold the scene teachers' maps with
+            :func:`d2f_core.scene_targets.scene_target`.
+        rescan_every: look for label files written since every this many samples (0: never).
+        standing: share of the generated scenes drawn from :mod:`d2f_core.synth.standing`.
+    """
+
+    def __init__(
+        self,
+        root: str | Path,
+        labels: str | Path,
+        size: tuple[int, int] = (256, 256),
+        paste: float = 0.4,
+        synth: float = 0.15,
+        layout_teacher: float = 0.4,
+        fg_min_area: float = 0.01,
+        fg_max_area: float = 0.8,
+        scene_weight: float = 1.0,
+        scene: bool = False,
+        rescan_every: int = 0,
+        standing: float = 0.0,
+    ) -> None:
+        self.labels = Path(labels)
+        self._all = [p for p in iter_photos(root) if not is_heldout(p)]
+        self.scene = scene
+        self.rescan_every = rescan_every
+        self.standing = standing
+        self._drawn = 0
+        self._scan()
+        if not self.photos:
+            raise ValueError(f"no labelled training photos under {root} with labels {labels}")
+        self.size = size
+        self.paste = paste
+        self.synth = synth
+        self.layout_teacher = layout_teacher
+        self.fg_min_area, self.fg_max_area = fg_min_area, fg_max_area
+        if scene_weight <= 0:
+            raise ValueError(f"scene_weight must be positive, got {scene_weight}")
+        self.scene_weight = scene_weight
+        self._weigh()
+
+    def _scan(self) -> None:
+        """The photos whose labels exist now (labels may still be being written)."""
+        have = {f.name for f in self.labels.iterdir()} if self.labels.is_dir() else set()
+        self.photos = [p for p in self._all if f"{p.key}.npz" in have]
+        self.masked = [p for p in self.photos if p.mask is not None]
+
+    def _weigh(self) -> None:
+        weights = [self.scene_weight if p.source in SCENE_SOURCES else 1.0 for p in self.photos]
+        self._cum_weights = list(itertools.accumulate(weights))
+
+    # -- pieces
+    def _photo(
+        self, photo: Photo, rng: random.Random, size: tuple[int, int]
+    ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+        """Image, subject alpha (or None) and layout, at ``size`` after a random crop."""
+        img = load_image(photo.path)
+        h0, w0 = img.shape[:2]
+        th, tw = size
+        scale = max(th / h0, tw / w0) * rng.uniform(1.0, 1.3)
+        rh, rw = max(th, round(h0 * scale)), max(tw, round(w0 * scale))
+        img = resize_array(img, (rh, rw))
+        mask = read_mask(photo, (h0, w0))
+        label = self.labels / f"{photo.key}.npz"
+        fg, teacher = read_label(label, (rh, rw))
+        if mask is not None:
+            alpha = feather(resize_array(mask, (rh, rw)) >= 0.5, 1.0)
+        else:
+            alpha = teacher_subject(fg, self.fg_min_area, self.fg_max_area)
+        layout = teacher_layout(teacher, self.layout_teacher)
+        scene = read_scene_label(label, (rh, rw)) if self.scene else None
+        if scene is not None:  # the scene model's target, subjects and occluders stood on it
+            wt = teacher_weight(teacher) if self.layout_teacher < 0 else self.layout_teacher
+            voc = None if mask is not None else alpha
+            layout = scene_target(scene["ade"], layout, wt, alpha if mask is not None else None,
+                                  scene["sal"], voc)  # fmt: skip
+            alpha = None
+        y = rng.randint(0, rh - th)
+        x = rng.randint(0, rw - tw)
+        sl = (slice(y, y + th), slice(x, x + tw))
+        return img[sl], (None if alpha is None else alpha[sl]), layout[sl]
+
+    def _cutout(
+        self, rng: random.Random, size: tuple[int, int]
+    ) -> tuple[np.ndarray, np.ndarray] | None:
+        """A subject cut out of a random masked photo: (rgb h x w x 3, alpha h x w)."""
+        cut = subject_cutout(rng.choice(self.masked))
+        if cut is None or cut[1].sum() < 64:
+            return None
+        crop, mask, _ = cut
+        th, tw = size
+        scale = rng.uniform(0.25, 0.8) * min(th, tw) / max(mask.shape)
+        ch, cw = max(4, round(mask.shape[0] * scale)), max(4, round(mask.shape[1] * scale))
+        rgb = resize_array(crop, (ch, cw))
+        alpha = feather(resize_array(mask, (ch, cw)) >= 0.5, 0.8)
+        if rng.random() < 0.5:
+            rgb, alpha = rgb[:, ::-1], alpha[:, ::-1]
+        return rgb, alpha
+
+    def _paste(
+        self,
+        img: np.ndarray,
+        target: np.ndarray,
+        rgb: np.ndarray,
+        a: np.ndarray,
+        rng: random.Random,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Composite a cut-out over ``img`` at a random place (up to a quarter of it may
+        leave the frame), nearer than everything it covers and at least at the target's
+        disparity where its lowest row stands; returns the new image and target."""
+        th, tw = target.shape
+        ch, cw = a.shape
+        y = rng.randint(-ch // 4, th - 3 * ch // 4)
+        x = rng.randint(-cw // 4, tw - 3 * cw // 4)
+        ya, yb, xa, xb = max(0, y), min(th, y + ch), max(0, x), min(tw, x + cw)
+        if yb <= ya or xb <= xa:
+            return img, target
+        a_c = a[ya - y : yb - y, xa - x : xb - x]
+        rgb_c = rgb[ya - y : yb - y, xa - x : xb - x]
+        inside = a_c >= 0.5
+        if not inside.any():
+            return img, target
+        rows = np.nonzero(inside.any(axis=1))[0]
+        contact = float(np.median(target[ya + rows[-1], xa:xb][inside[rows[-1]]]))
+        value = min(1.0, max(contact, float(target[ya:yb, xa:xb][inside].max()) + 0.05))
+        img, target = img.copy(), target.copy()
+        img[ya:yb, xa:xb] = a_c[..., None] * rgb_c + (1 - a_c[..., None]) * img[ya:yb, xa:xb]
+        target[ya:yb, xa:xb] = a_c * value + (1 - a_c) * target[ya:yb, xa:xb]
+        return img, _normalise(target)
+
+    def _synth(self, rng: random.Random, size: tuple[int, int]) -> DepthSample:
+        from .synth import linear_to_srgb, make_scene, render_pinhole
+        from .synth.standing import STANDING_KINDS, make_standing_scene
+
+        seed = rng.randrange(1 << 30)
+        if rng.random() < self.standing:
+            kind = rng.choice(STANDING_KINDS)
+            scene = make_standing_scene(size, seed=seed, kind=kind, margin=0)
+        else:
+            scene = make_scene(size, seed=seed, margin=0)
+        radiance, disp = render_pinhole(scene)
+        image = linear_to_srgb(np.clip(radiance, 0.0, 1.0)).astype(np.float32)
+        return DepthSample(image, disp.astype(np.float32), relative=False)
+
+    def sample(self, rng: random.Random, size: tuple[int, int] | None = None) -> DepthSample:
+        """One sample of ``size`` (``(H, W)``; default :attr:`size`)."""
+        size = self.size if size is None else size
+        self._drawn += 1
+        if self.rescan_every and self._drawn % self.rescan_every == 0:
+            self._scan()
+            self._weigh()
+        if rng.random() < self.synth:
+            return self._synth(rng, size)
+        if self.scene_weight == 1.0:
+            photo = rng.choice(self.photos)
+        else:
+            photo = rng.choices(self.photos, cum_weights=self._cum_weights)[0]
+        img, alpha, layout = self._photo(photo, rng, size)
+        target = subject_target(layout, alpha) if alpha is not None else layout
+        target = _normalise(target)
+        if rng.random() < self.paste:
+            cut = self._cutout(rng, size)
+            if cut is not None:
+                img, target = self._paste(img, target, *cut, rng)
+        if rng.random() < 0.5:
+            img, target = img[:, ::-1], target[:, ::-1]
+        # mild photometric jitter
+        gain = rng.uniform(0.8, 1.2)
+        gamma = rng.uniform(0.8, 1.25)
+        img = np.clip(img * gain, 0, 1) ** gamma
+        return DepthSample(img.astype(np.float32), target.astype(np.float32), relative=True)
+
+    def batch(
+        self, rng: random.Random, n: int, size: tuple[int, int] | None = None
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        samples = [self.sample(rng, size) for _ in range(n)]
+        images = torch.stack(
+            [torch.from_numpy(np.ascontiguousarray(s.image)).permute(2, 0, 1) for s in samples]
+        )
+        targets = torch.stack([torch.from_numpy(np.ascontiguousarray(s.target)) for s in samples])
+        relative = torch.tensor([s.relative for s in samples])
+        return images, targets[:, None], relative
+
+
+def batch_shapes(sides: Sequence[int]) -> list[tuple[int, int]]:
+    """Sample shapes for multi-scale training: for every long side in ``sides``, a square,
+    a 4:3 landscape and a 3:4 portrait frame, both sides rounded to multiples of 32."""
+    shapes = []
+    for side in sides:
+        short = max(32, round(side * 0.75 / 32) * 32)
+        side = max(32, round(side / 32) * 32)
+        shapes += [(side, side), (short, side), (side, short)]
+    return shapes
+
+
+class _Batches(torch.utils.data.IterableDataset):
+    """Endless batches of :class:`RealDepthData` from a seeded stream (one per worker).
+
+    With ``shapes``, every batch takes one shape drawn from them and as many samples as
+    fit ``batch_size`` samples of :attr:`RealDepthData.size` in pixels (at least 2), so a
+    step costs about the same at every scale.
+    """
+
+    def __init__(
+        self,
+        data: RealDepthData,
+        batch_size: int,
+        seed: int,
+        shapes: Sequence[tuple[int, int]] = (),
+        teacher: str | Path | None = None,
+    ) -> None:
+        self.data, self.batch_size, self.seed = data, batch_size, seed
+        self.shapes = list(shapes)
+        self.teacher = teacher
+
+    def __iter__(self):
+        info = torch.utils.data.get_worker_info()
+        rng = random.Random(self.seed + (0 if info is None else 7919 * info.id))
+        torch.set_num_threads(1)
+        teacher = FeatureTeacher(self.teacher) if self.teacher is not None else None
+        budget = self.batch_size * self.data.size[0] * self.data.size[1]
+        while True:
+            if not self.shapes:
+                batch = self.data.batch(rng, self.batch_size)
+            else:
+                h, w = rng.choice(self.shapes)
+                batch = self.data.batch(rng, max(2, round(budget / (h * w))), (h, w))
+            if teacher is not None:
+                batch = (*batch, teacher_grid(teacher, batch[0]))
+            yield batch
+
+
+def teacher_grid(teacher: FeatureTeacher, images: Tensor) -> Tensor:
+    """The teacher's features of ``images`` (B x 3 x H x W in [0, 1]) averaged onto the
+    grid of the network's stride-16 map, ``(H // 16, W // 16)``, as float16.
+
+    Shape: (B, 3, H, W) -> (B, C, H // 16, W // 16).
+    """
+    h, w = images.shape[-2:]
+    feats = torch.from_numpy(teacher(images.permute(0, 2, 3, 1).numpy()))
+    grid = F.adaptive_avg_pool2d(feats, (max(1, h // DISTILL_STRIDE), max(1, w // DISTILL_STRIDE)))
+    return grid.half()
+
+
+class Distiller(torch.nn.Module):
+    """Feature distillation head (training only; never part of a checkpoint that ships).
+
+    A 1x1 convolution maps the encoder's stride-16 map and its stride-32 map (upsampled)
+    onto the teacher's channels; the loss is the mean squared difference to the teacher's
+    features, centred per channel and scaled by statistics fixed from the first batch (it
+    starts at about 1: the convolution starts at zero). The network
+    must then carry, linearly readable from its encoder, what the teacher's features hold.
+    """
+
+    def __init__(self, encoder_channels: Sequence[int], teacher_channels: int) -> None:
+        super().__init__()
+        self.proj = torch.nn.Conv2d(encoder_channels[2] + encoder_channels[3], teacher_channels, 1)
+        torch.nn.init.zeros_(self.proj.weight)
+        torch.nn.init.zeros_(self.proj.bias)
+        self.register_buffer("mean", torch.zeros(1, teacher_channels, 1, 1))
+        self.register_buffer("std", torch.ones(1, teacher_channels, 1, 1))
+        self.register_buffer("ready", torch.zeros((), dtype=torch.bool))
+
+    def fix_statistics(self, feats: Tensor) -> None:
+        """Centre each channel on its mean over ``feats`` and scale all channels by one
+        factor, their pooled standard deviation (a scale per channel would blow up the
+        channels that happen to be near zero in one batch)."""
+        flat = feats.float().transpose(0, 1).flatten(1)  # [C, N]
+        mean = flat.mean(1)
+        self.mean.copy_(mean.view_as(self.mean))
+        pooled = (flat - mean[:, None]).pow(2).mean().sqrt().clamp_min(1e-6)
+        self.std.fill_(float(pooled))
+        self.ready.fill_(True)
+
+    def forward(self, encoder_feats: Sequence[Tensor], teacher: Tensor) -> Tensor:
+        f3, f4 = encoder_feats[2], encoder_feats[3]
+        f4 = F.interpolate(f4, size=f3.shape[-2:], mode="bilinear", align_corners=False)
+        pred = self.proj(torch.cat([f3, f4], dim=1))
+        h, w = teacher.shape[-2:]
+        target = (teacher.float() - self.mean) / self.std
+        return (pred[..., :h, :w] - target).pow(2).mean()
+
+
+# ------------------------------------------------------------------------------ losses
+
+
+def ssi_align(pred: Tensor, target: Tensor) -> Tensor:
+    """``pred`` scaled and shifted per sample to fit ``target`` in least squares.
+
+    Shape: (B, 1, H, W) and (B, 1, H, W) -> (B, 1, H, W).
+    """
+    p = pred.flatten(1)
+    t = target.flatten(1)
+    pm, tm = p.mean(1, keepdim=True), t.mean(1, keepdim=True)
+    pc = p - pm
+    scale = (pc * (t - tm)).sum(1, keepdim=True) / pc.pow(2).sum(1, keepdim=True).clamp_min(1e-6)
+    return (scale * pc + tm).view_as(pred)
+
+
+def gradient_matching_loss(pred: Tensor, target: Tensor, scales: int = 4) -> Tensor:
+    """MiDaS gradient matching: mean |grad(pred - target)| over ``scales`` halvings."""
+    diff = pred - target
+    total = pred.new_zeros(())
+    for s in range(scales):
+        if s:
+            diff = F.avg_pool2d(diff, 2)
+        gx = (diff[..., :, 1:] - diff[..., :, :-1]).abs().mean()
+        gy = (diff[..., 1:, :] - diff[..., :-1, :]).abs().mean()
+        total = total + gx + gy
+    return total / scales
+
+
+def depth_loss(
+    pred: Tensor,
+    target: Tensor,
+    relative: Tensor,
+    absolute_weight: float = 0.25,
+    grad_weight: float = 1.0,
+) -> tuple[Tensor, dict[str, float]]:
+    """Stage-0 loss of a batch (see the module docstring)."""
+    rel = relative.to(pred.device).view(-1, 1, 1, 1).to(pred.dtype)
+    aligned = ssi_align(pred, target)
+    fit = rel * aligned + (1 - rel) * pred
+    l1 = (fit - target).abs().mean()
+    absolute = (rel * (pred - target).abs()).mean()
+    grad = gradient_matching_loss(fit, target)
+    loss = l1 + absolute_weight * absolute + grad_weight * grad
+    return loss, {"l1": l1.item(), "abs": absolute.item(), "grad": grad.item()}
+
+
+# ------------------------------------------------------------------------------ training
+
+
+def train_depth(args: argparse.Namespace) -> Path:
+    """Run (or resume) stage 0; returns the path of the last checkpoint."""
+    torch.set_num_threads(args.threads)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    data = RealDepthData(
+        args.data,
+        args.labels,
+        size=(args.crop, args.crop),
+        paste=args.paste,
+        synth=args.synth,
+        layout_teacher=args.layout_teacher,
+        scene_weight=args.scene_weight,
+        scene=args.scene_targets,
+        rescan_every=args.rescan_every,
+        standing=args.standing,
+    )
+    net = build_defocus_net(args.variant)
+    if args.init is not None:
+        from ..pipeline import D2F
+
+        net.load_lite(D2F.from_checkpoint(args.init).defocus_net.state_dict())
+        logger.info("defocus network initialised from %s", args.init)
+    distiller = None
+    groups = [{"params": list(net.parameters()), "lr_scale": 1.0}]
+    if args.distill is not None:
+        distiller = Distiller(net.encoder.channels, args.distill_channels)
+        # the projection starts at zero and must catch up with a trained encoder before
+        # its gradient says anything to it: it learns ten times faster
+        groups.append({"params": list(distiller.parameters()), "lr_scale": 10.0})
+        encoder_feats: list[Tensor] = []
+        net.encoder.register_forward_hook(lambda _m, _i, out: encoder_feats.append(out))
+    opt = torch.optim.AdamW(groups, lr=args.lr, weight_decay=1e-4)
+    step = 0
+    last = out / "depth_last.pt"
+    if last.is_file() and not args.restart:
+        state = torch.load(last, map_location="cpu", weights_only=True)
+        net.load_state_dict(state["state_dict"])
+        opt.load_state_dict(state["optimizer"])
+        if distiller is not None:
+            if "distiller" not in state:
+                raise ValueError(f"{last} was trained without --distill; use --restart")
+            distiller.load_state_dict(state["distiller"])
+        step = int(state["step"])
+        logger.info("resumed from %s at step %d", last, step)
+    torch.manual_seed(args.seed + step)
+    logger.info(
+        "stage 0: %s, %d params, %d photos (%d masked), crop %d, batch %d",
+        args.variant,
+        count_parameters(net),
+        len(data.photos),
+        len(data.masked),
+        args.crop,
+        args.batch_size,
+    )
+    net.train()
+    loader = iter(
+        torch.utils.data.DataLoader(
+            _Batches(
+                data,
+                args.batch_size,
+                args.seed * 1_000_003 + step,
+                batch_shapes(args.sides) if args.sides else (),
+                teacher=args.distill,
+            ),
+            batch_size=None,
+            num_workers=args.workers,
+            prefetch_factor=4 if args.workers else None,
+        )
+    )
+    t0 = time.perf_counter()
+    log = open(out / "depth_log.jsonl", "a")  # noqa: SIM115
+    while step < args.steps:
+        lr = args.lr * 0.5 * (1 + math.cos(math.pi * step / args.steps))
+        warm = min(1.0, (step + 1) / 200)
+        for g in opt.param_groups:
+            g["lr"] = lr * warm * g.get("lr_scale", 1.0)
+        images, targets, relative, *teacher = next(loader)
+        pred = net(images)
+        loss, parts = depth_loss(pred, targets, relative, args.absolute_weight)
+        if distiller is not None:
+            if not bool(distiller.ready):
+                distiller.fix_statistics(teacher[0])
+            distill = distiller(encoder_feats.pop(), teacher[0])
+            encoder_feats.clear()
+            loss = loss + args.distill_weight * distill
+            parts["distill"] = distill.item()
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)
+        opt.step()
+        step += 1
+        if step % args.log_every == 0:
+            rec = {
+                "step": step,
+                "loss": loss.item(),
+                **parts,
+                "lr": lr,
+                "elapsed_s": round(time.perf_counter() - t0, 1),
+            }
+            log.write(json.dumps(rec) + "\n")
+            log.flush()
+            logger.info("step %d loss %.4f %s", step, loss.item(), parts)
+        if step % args.save_every == 0 or step == args.steps:
+            state = {
+                "state_dict": net.state_dict(),
+                "optimizer": opt.state_dict(),
+                "step": step,
+                "variant": args.variant,
+            }
+            if distiller is not None:
+                state["distiller"] = distiller.state_dict()
+            tmp = last.with_suffix(".tmp")
+            torch.save(state, tmp)
+            tmp.replace(last)
+            if step % args.keep_every == 0:
+                torch.save(
+                    {"state_dict": net.state_dict(), "step": step, "variant": args.variant},
+                    out / f"depth_{step:06d}.pt",
+                )
+    log.close()
+    return last
+
+
+def export_checkpoint(
+    depth: str | Path, base: str | Path, out: str | Path, overrides: Sequence[str] = ()
+) -> Path:
+    """A D2F checkpoint: ``base`` with its defocus network replaced by the stage-0 weights
+    in ``depth`` (a ``depth_*.pt`` file) and ``KEY=VALUE`` config overrides applied."""
+    from ..pipeline import D2F
+    from .overrides import apply_overrides
+
+    model = D2F.from_checkpoint(base)
+    config = apply_overrides(model.config.to_dict(), overrides)
+    state = torch.load(depth, map_location="cpu", weights_only=True)
+    variant = state.get("variant", config["defocus"])
+    config["defocus"] = variant
+    fresh = D2F(config)
+    fresh.radiance_net.load_state_dict(model.radiance_net.state_dict())
+    fresh.fusion_net.load_state_dict(model.fusion_net.state_dict())
+    fresh.defocus_net.load_state_dict(state["state_dict"])
+    fresh.save(out)
+    return Path(out)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="d2f-train depth",
+        description="stage 0: train the defocus network on real photos with depth targets",
+    )
+    p.add_argument("--data", type=Path, required=True, help="datasets folder")
+    p.add_argument("--labels", type=Path, required=True, help="teacher labels (d2f-train label)")
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--variant", default="lite")
+    p.add_argument("--steps", type=int, default=6000)
+    p.add_argument("--batch-size", type=int, default=8)
+    p.add_argument("--crop", type=int, default=256)
+    p.add_argument(
+        "--sides",
+        type=lambda v: [int(x) for x in v.split(",")],
+        default=None,
+        metavar="A,B,...",
+        help="multi-scale: long sides of the batches (square, 4:3 and 3:4 frames; "
+        "each batch holds --batch-size crops of --crop in pixels)",
+    )
+    p.add_argument("--lr", type=float, default=1e-3)
+    p.add_argument("--paste", type=float, default=0.4)
+    p.add_argument("--synth", type=float, default=0.15)
+    p.add_argument(
+        "--layout-teacher",
+        type=float,
+        default=0.4,
+        help="weight of the depth teacher in the layout; -1: per photo, by its agreement "
+        "with the ramp (teacher_weight)",
+    )
+    p.add_argument("--absolute-weight", type=float, default=0.25)
+    p.add_argument(
+        "--scene-weight",
+        type=float,
+        default=1.0,
+        help="draw the photos of whole scenes (SUN, Urban100, BSDS) this many times as often",
+    )
+    p.add_argument(
+        "--scene-targets",
+        action="store_true",
+        help="targets from the scene model (d2f_core.scene_targets) on photos whose labels "
+        "hold the scene teachers' maps (d2f-train label-scene)",
+    )
+    p.add_argument(
+        "--standing",
+        type=float,
+        default=0.0,
+        help="share of the generated scenes drawn from d2f_core.synth.standing (a near post "
+        "across the frame, a subject over a far floor, far lights at night)",
+    )
+    p.add_argument(
+        "--rescan-every",
+        type=int,
+        default=0,
+        metavar="N",
+        help="look for new label files every N samples (labelling still running)",
+    )
+    p.add_argument(
+        "--distill",
+        type=Path,
+        default=None,
+        metavar="ONNX",
+        help="feature distillation from this teacher (the VOC teacher's ASPP features)",
+    )
+    p.add_argument("--distill-weight", type=float, default=0.2)
+    p.add_argument("--distill-channels", type=int, default=256)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--log-every", type=int, default=20)
+    p.add_argument("--save-every", type=int, default=100)
+    p.add_argument("--keep-every", type=int, default=1000)
+    p.add_argument("--workers", type=int, default=1, help="data-loading processes")
+    p.add_argument("--init", type=Path, default=None, help="D2F checkpoint to start from")
+    p.add_argument("--restart", action="store_true", help="ignore an existing depth_last.pt")
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["export"]:
+        e = argparse.ArgumentParser(
+            prog="d2f-train depth export",
+            description="a D2F checkpoint from a base checkpoint and stage-0 weights",
+        )
+        e.add_argument("depth", type=Path)
+        e.add_argument("base", type=Path)
+        e.add_argument("out", type=Path)
+        e.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+        a = e.parse_args(argv[1:])
+        try:
+            print(export_checkpoint(a.depth, a.base, a.out, a.set))
+        except (ValueError, FileNotFoundError, KeyError) as exc:
+            print(f"d2f-train depth export: error: {exc}", file=sys.stderr)
+            return 2
+        return 0
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    path = train_depth(args)
+    print(f"stage 0 checkpoint: {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

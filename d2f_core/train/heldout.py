@@ -1,0 +1,21 @@
+"""Which photos depth training never sees: about one in ten, fixed by a hash of the name.
+
+Shared by stage 0 (:mod:`.depth_train`), the photo scenes of :mod:`.synth.photo` and the depth
+bench, so that none of them imports another for it.
+"""
+
+from __future__ import annotations
+
+import zlib
+
+from .teachers import Photo
+
+__all__ = ["HELDOUT_MODULUS", "is_heldout"]
+
+#: one photo in HELDOUT_MODULUS is held out (by a CRC of its key)
+HELDOUT_MODULUS = 10
+
+
+def is_heldout(photo: Photo) -> bool:
+    """True for the photos that depth training never sees (about one in ten, fixed by name)."""
+    return zlib.crc32(photo.key.encode()) % HELDOUT_MODULUS == 0
