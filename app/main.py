@@ -23,7 +23,8 @@ from app.reporting import one_line
 from app.sessions import delete_session
 from app.settings import DEFAULT_F_NUMBER, DEPTH_KINDS, F_NUMBER_RANGE, FORMATS, QUALITIES, VIEWS
 from app.uploads import UploadGate
-from d2f_core import bundled, depth_sources
+from d2f_core import bundled
+from d2f_core.depth import sources as depth_sources
 
 log = logging.getLogger(__name__)
 

@@ -85,7 +85,7 @@ def configure(models: tuple[str, ...] | list[str] = (), any_model: bool = False)
 
 def check_hub_model(name: Any, policy: HubPolicy | None = None) -> str:
     """The hub model a client named, checked: allowed by ``policy`` (default :data:`POLICY`)
-    and loadable from local files only (:func:`d2f_core.depth_sources.hub_model_cached`).
+    and loadable from local files only (:func:`d2f_core.depth.sources.hub_model_cached`).
     Takes milliseconds, touches no network and downloads nothing.
 
     Raises:

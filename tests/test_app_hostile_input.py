@@ -15,7 +15,7 @@ gr = pytest.importorskip("gradio", reason="the app extra is not installed")
 from app import handlers, sources  # noqa: E402
 from app.cache import SceneCache  # noqa: E402
 from app.handlers import RefocusApp  # noqa: E402
-from d2f_core import depth_sources  # noqa: E402
+from d2f_core.depth import sources as depth_sources  # noqa: E402
 
 # depth map, its kind, session, focus, f-number, blades, rotation, highlight, fusion, view,
 # quality (the /load inputs before the depth source and the model)

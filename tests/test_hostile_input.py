@@ -238,7 +238,7 @@ def test_depth_training_resumes_weights_only(tmp_path, monkeypatch):
     before it runs."""
     import torch
 
-    from d2f_core import depth_train
+    from d2f_core.train import depth_train
 
     marker = tmp_path / "ran"
 

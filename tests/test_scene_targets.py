@@ -8,10 +8,10 @@ import random
 import numpy as np
 import pytest
 
-from d2f_core import depth_train, scene_targets
-from d2f_core.depth_bench import spearman
-from d2f_core.synth import render_pinhole
-from d2f_core.synth.standing import STANDING_KINDS, make_standing_scene, subject_mask
+from d2f_core.bench.depth_bench import spearman
+from d2f_core.train import depth_train, scene_targets
+from d2f_core.train.synth import render_pinhole
+from d2f_core.train.synth.standing import STANDING_KINDS, make_standing_scene, subject_mask
 
 SKY, BUILDING, ROAD, POLE, WALL, FLOOR = 3, 2, 7, 94, 1, 4
 

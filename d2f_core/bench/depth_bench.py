@@ -10,7 +10,7 @@ Two test sets, both read from outside the package and skipped with a reason when
   measured nearness, normalised to [0, 1], in least squares). Sign matters: a map upside down
   scores about ``-rho``.
 - **Held-out masks** (``../shared/datasets``): the masked photos that depth training never
-  sees (:func:`d2f_core.depth_train.is_heldout`). Per photo the subject AUC: the chance that
+  sees (:func:`d2f_core.train.depth_train.is_heldout`). Per photo the subject AUC: the chance that
   a random subject pixel is predicted nearer than a random background pixel (ties half),
   over the whole frame and within 8 px of the silhouette (:func:`edge_band`), where a map
   that ends in a soft blob scores about 0.5.
@@ -302,18 +302,18 @@ def teacher_predictors(folder: str | Path, threads: int = 1) -> dict[str, Predic
 
     - ``"teacher"``: the indoor depth teacher's smoothed, ranked disparity;
     - ``"layout"``: the ramp blended with it by
-      :func:`~d2f_core.depth_train.teacher_weight`, the background of the older targets;
+      :func:`~d2f_core.train.depth_train.teacher_weight`, the background of the older targets;
     - ``"targets"``: the older targets on a photo without a mask: that layout with the VOC
-      teacher's subject stood on it by :func:`~d2f_core.depth_train.subject_target`.
+      teacher's subject stood on it by :func:`~d2f_core.train.depth_train.subject_target`.
 
-    With the scene teachers in ``folder`` (:mod:`d2f_core.scene_teachers`), also:
+    With the scene teachers in ``folder`` (:mod:`d2f_core.train.scene_teachers`), also:
 
-    - ``"sky+ground"``: ADE20K's scene model alone (:func:`~d2f_core.scene_targets.scene_layout`:
-      sky farthest, a ground plane, things standing on it), blended with ``"layout"`` where the
-      photo shows little scene;
+    - ``"sky+ground"``: ADE20K's scene model alone
+      (:func:`~d2f_core.train.scene_targets.scene_layout`: sky farthest, a ground plane, things
+      standing on it), blended with ``"layout"`` where the photo shows little scene;
     - ``"silhouette"``: the ramp with U^2-Net-p's silhouette stood on it, wherever it is found;
     - ``"scene targets"``: what stage 0 now trains towards on a photo without a mask
-      (:func:`~d2f_core.scene_targets.scene_target`).
+      (:func:`~d2f_core.train.scene_targets.scene_target`).
     """
     from PIL import Image
 

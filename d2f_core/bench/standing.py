@@ -2,7 +2,7 @@
 
 The cases where "the bottom of the frame is near" fails, held out of training:
 
-- **Generated** (always available): scenes of :mod:`d2f_core.synth.standing` drawn from seeds
+- **Generated** (always available): scenes of :mod:`d2f_core.train.synth.standing` drawn from seeds
   that training never uses (:data:`SEED_BASE` on): a near post crossing the frame from top to
   bottom, a subject over water or a floor whose bottom rows are far, a near subject in front
   of far lights at night. Their subject mask and disparity are exact.

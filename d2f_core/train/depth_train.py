@@ -161,9 +161,9 @@ class RealDepthData:
         scene_weight: how much more often than another photo a photo of
             :data:`SCENE_SOURCES` is drawn.
         scene: build the targets of photos whose labels hold the scene teachers' maps with
-            :func:`d2f_core.scene_targets.scene_target`.
+            :func:`d2f_core.train.scene_targets.scene_target`.
         rescan_every: look for label files written since every this many samples (0: never).
-        standing: share of the generated scenes drawn from :mod:`d2f_core.synth.standing`.
+        standing: share of the generated scenes drawn from :mod:`d2f_core.train.synth.standing`.
     """
 
     def __init__(
@@ -677,14 +677,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--scene-targets",
         action="store_true",
-        help="targets from the scene model (d2f_core.scene_targets) on photos whose labels "
+        help="targets from the scene model (d2f_core.train.scene_targets) on photos whose labels "
         "hold the scene teachers' maps (d2f-train label-scene)",
     )
     p.add_argument(
         "--standing",
         type=float,
         default=0.0,
-        help="share of the generated scenes drawn from d2f_core.synth.standing (a near post "
+        help="share of the generated scenes drawn from d2f_core.train.synth.standing (a near post "
         "across the frame, a subject over a far floor, far lights at night)",
     )
     p.add_argument(

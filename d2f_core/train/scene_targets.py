@@ -1,7 +1,7 @@
 """Stage-0 depth targets from a scene model: sky at the back, a ground plane, things standing.
 
-The labels of :mod:`d2f_core.scene_teachers` (ADE20K classes, U^2-Net-p silhouettes) and of
-:mod:`d2f_core.teachers` (VOC foreground, indoor depth) are turned into one relative disparity
+The labels of :mod:`d2f_core.train.scene_teachers` (ADE20K classes, U^2-Net-p silhouettes) and of
+:mod:`d2f_core.train.teachers` (VOC foreground, indoor depth) are turned into one relative disparity
 per photo (0 = farthest, 1 = nearest), the target the defocus network learns in stage 0:
 
 1. **Ground** (floor, road, grass, sidewalk, earth, water, sand, field...) is a plane seen by a
@@ -94,7 +94,7 @@ def scene_layout(
     ade: np.ndarray, old_layout: np.ndarray, teacher_weight: float = 0.0
 ) -> tuple[np.ndarray, float]:
     """``(layout, strength)``: the scene model's disparity blended with ``old_layout`` (the
-    ramp and indoor teacher of :func:`d2f_core.depth_train.teacher_layout`) by how much of a
+    ramp and indoor teacher of :func:`d2f_core.train.depth_train.teacher_layout`) by how much of a
     scene the photo shows.
 
     ``strength`` is 1 when sky and ground cover a quarter of the frame or more and 0 on a
@@ -245,7 +245,7 @@ def scene_target(
         teacher_weight: the indoor teacher's weight in ``old_layout``.
         mask: the human subject mask in [0, 1], when the photo has one (it wins).
         sal: U^2-Net-p's silhouette in [0, 1] (:func:`silhouette_alpha` decides).
-        voc: the VOC teacher's subject alpha (:func:`d2f_core.depth_train.teacher_subject`).
+        voc: the VOC teacher's subject alpha (:func:`d2f_core.train.depth_train.teacher_subject`).
     """
     layout, _ = scene_layout(ade, old_layout, teacher_weight)
     if mask is not None:
@@ -265,7 +265,7 @@ def scene_target(
 
 
 def read_scene_label(path, size: tuple[int, int]) -> dict | None:
-    """The scene labels of a label file (:func:`d2f_core.scene_teachers.label_scene_photos`)
+    """The scene labels of a label file (:func:`d2f_core.train.scene_teachers.label_scene_photos`)
     at ``size`` (``(H, W)``): ``{"ade": uint8 classes, "sal": float32 [0, 1] or None}``;
     ``None`` for a file written without them."""
     from PIL import Image

@@ -1,7 +1,7 @@
 """Scene labels for stage 0 from three more teachers: scene parsing, silhouettes and lines.
 
 ``d2f-train label --scene`` runs, beside the VOC and depth teachers of
-:mod:`d2f_core.teachers`, three TFLite teachers (with ``ai-edge-litert``, training only):
+:mod:`d2f_core.train.teachers`, three TFLite teachers (with ``ai-edge-litert``, training only):
 
 - ``ade``: ADE20K scene parsing (DeepLabV3 + MobileNetV2, 150 classes and "other"), the class
   of every pixel, uint8 at :data:`LABEL_SIDE` on the long side. It knows the sky, the ground
@@ -12,7 +12,7 @@
   the width and height, score), for the horizon.
 
 Every array is stored at the photo's own aspect. The teachers never ship: the project's own
-network learns from the targets built from these labels (:mod:`d2f_core.scene_targets`).
+network learns from the targets built from these labels (:mod:`d2f_core.train.scene_targets`).
 """
 
 from __future__ import annotations
@@ -153,7 +153,7 @@ def label_scene_photos(
     heldout: bool = False,
 ) -> int:
     """Write one ``.npz`` per photo of ``root`` with every teacher's label: ``fg`` and
-    ``depth`` (:class:`d2f_core.teachers.Teachers`), ``ade``, ``lines`` and, for photos
+    ``depth`` (:class:`d2f_core.train.teachers.Teachers`), ``ade``, ``lines`` and, for photos
     without a human mask, ``sal`` (:class:`SceneTeachers`).
 
     Photos already labelled in ``out`` are skipped, so a killed run resumes; each file is

@@ -11,7 +11,7 @@
 
 The teachers and their runtimes are never part of the package: ``onnxruntime`` and
 ``ai-edge-litert`` are needed only here (``pip install -e ".[teach]"``). What ships is the
-project's own network, trained with these labels (see :mod:`d2f_core.depth_train`).
+project's own network, trained with these labels (see :mod:`d2f_core.train.depth_train`).
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Generated scenes where "the bottom of the frame is near" is wrong, with exact ground truth.
 
-Three kinds, each a stack of planar layers like :func:`d2f_core.synth.make_scene`'s, so the
-thin-lens ground truth of :func:`d2f_core.synth.render_thin_lens` stays exact:
+Three kinds, each a stack of planar layers like :func:`d2f_core.train.synth.make_scene`'s, so the
+thin-lens ground truth of :func:`d2f_core.train.synth.render_thin_lens` stays exact:
 
 - ``"post"``: a tall near cut-out (a post, a pole, a trunk) that crosses the frame from top to
   bottom in front of a far scene;
