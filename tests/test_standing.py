@@ -1,0 +1,51 @@
+"""``d2f-bench standing``: the check that a depth map puts held-out subjects in front, and the
+shipped weights measured by it (generated cases always; held-out photos when
+``../shared/datasets`` is there)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from d2f_core.bench import standing
+
+DATASETS = Path(__file__).resolve().parents[2] / "shared" / "datasets"
+
+
+def test_in_front_known_answers():
+    mask = np.zeros((40, 60), bool)
+    mask[10:30, 20:35] = True
+    near = np.where(mask, 0.9, 0.2).astype(np.float32)
+    ok, margin = standing.in_front(near, mask)
+    assert ok and margin == pytest.approx(1.0, abs=0.01)  # all of the map's range
+    ok, margin = standing.in_front(1.0 - near, mask)  # upside down
+    assert not ok and margin == pytest.approx(-1.0, abs=0.01)
+    ok, margin = standing.in_front(np.full((40, 60), 0.5, np.float32), mask)  # flat
+    assert not ok and margin == 0.0
+    # a ramp: the subject's middle sits at the ring's middle: no better than chance
+    ramp = np.broadcast_to(np.linspace(0, 1, 40, dtype=np.float32)[:, None], (40, 60))
+    assert abs(standing.in_front(ramp, mask)[1]) < 0.1
+
+
+def test_generated_cases_are_held_out_and_exact():
+    cases = standing.generated_cases(6, size=(64, 96))
+    kinds = [kind for _, kind, _, _ in cases]
+    assert kinds == ["generated post", "generated over", "generated night"] * 2
+    for _, _, image, mask in cases:
+        assert image.shape == (64, 96, 3) and 0 <= image.min() and image.max() <= 1
+        assert 50 < mask.sum() < mask.size
+    assert standing.SEED_BASE >= 1 << 30  # training draws its seeds below 2**30
+
+
+def test_score_summarises_by_kind():
+    cases = standing.generated_cases(3, size=(48, 64))
+    truth = {id(c[2]): c[3].astype(np.float32) for c in cases}
+    result = standing.score(
+        {"mask": lambda image: truth[id(image)], "inverse": lambda image: 1 - truth[id(image)]},
+        cases,
+    )
+    assert result["summary"]["all"]["mask"]["share"] == 1.0
+    assert result["summary"]["all"]["inverse"]["share"] == 0.0
+    assert set(result["summary"]) == {"generated post", "generated over", "generated night", "all"}
