@@ -164,10 +164,10 @@ class RenderEvents:
     @staticmethod
     def _info(session: Session, params: RenderParams, kind: str, ms: float, extra: str = "") -> str:
         w, h = session.size
+        span = f", focal range {params.focal_range:g}" if params.focal_range else ""
         text = (
             f"{w}x{h} px | focus {params.position:.3f} (0 = near, 1 = far; disparity "
-            f"{params.focus:.3f}) | focal range {params.focal_range:g} | {params.blur_text()} | "
-            f"{kind} render {ms:.0f} ms"
+            f"{params.focus:.3f}) | {params.blur_text()}{span} | {kind} render {ms:.0f} ms"
         )
         return text + (f" | {extra}" if extra else "")
 

@@ -106,7 +106,8 @@ def test_click_sets_a_range_and_the_slider_changes_it(
             box.click()
             box.fill("0")
             box.press("Enter")
-            info = _wait_status(page, "focal range 0 |", "full render")
+            info = _wait_status(page, "--focal-range 0 ", "full render")
+            assert "focal range 0" not in info.split(" | reproduce: ")[0]
             assert "--focal-range 0" in info
             thin = _result(page, old)
             for end in ends:

@@ -87,8 +87,10 @@ class TestSubjectRange:
         d = 0.2 + 0.01 * rng.standard_normal((h, w))  # background with noise
         subject = (yy - 60) ** 2 / 40**2 + (xx - 80) ** 2 / 30**2 < 1
         # a subject 0.06 deep (a face turned a little), with a few wild pixels
-        d[subject] = 0.78 + 0.06 * ((xx[subject] - 50) / 60) + 0.002 * rng.standard_normal(
-            int(subject.sum())
+        d[subject] = (
+            0.78
+            + 0.06 * ((xx[subject] - 50) / 60)
+            + 0.002 * rng.standard_normal(int(subject.sum()))
         )
         return d.astype(np.float32)
 
