@@ -21,7 +21,16 @@ from app.cache import SceneCache
 from app.handlers import RefocusApp
 from app.reporting import one_line
 from app.sessions import delete_session
-from app.settings import DEFAULT_F_NUMBER, DEPTH_KINDS, F_NUMBER_RANGE, FORMATS, QUALITIES, VIEWS
+from app.settings import (
+    DEFAULT_F_NUMBER,
+    DEPTH_KINDS,
+    F_NUMBER_RANGE,
+    FOCAL_RANGE_MAX,
+    FOCAL_RANGE_STEP,
+    FORMATS,
+    QUALITIES,
+    VIEWS,
+)
 from app.uploads import UploadGate
 from d2f_core import bundled
 from d2f_core.depth import sources as depth_sources
@@ -263,6 +272,16 @@ def build_demo(
                     label="Focus: near ← → far",
                     elem_id="focus",
                 )
+                # a click sets it to the clicked subject's extent in depth; 0 = thin lens
+                focal_range = gr.Slider(
+                    0.0,
+                    FOCAL_RANGE_MAX,
+                    value=0.0,
+                    step=FOCAL_RANGE_STEP,
+                    label="Focal range: depth kept sharp around the focus (0 = thin lens)",
+                    info="A click sets it to cover the clicked subject",
+                    elem_id="focal_range",
+                )
                 # the f-number of a virtual lens; K in px follows from the photo's long side,
                 # and the slider's info line says what it is for this photo
                 blur = gr.Slider(
@@ -422,6 +441,17 @@ def build_demo(
             "queue": False,
         }
         loading.success(**note_io)
+        # a new photo is rendered with the thin lens (a click sets its subject's range): the
+        # slider says so (its change then finds that render and does nothing)
+        thin_lens_io = {
+            "fn": lambda: 0.0,
+            "inputs": None,
+            "outputs": [focal_range],
+            "show_progress": "hidden",
+            "api_visibility": "private",
+            "queue": False,
+        }
+        loading.success(**thin_lens_io)
         # a failed upload: the photo panel shows the loaded photo again (or nothing), and the
         # status line keeps the error after the toast is gone
         loading.failure(
@@ -447,12 +477,13 @@ def build_demo(
             example_load = examples.load_input_event.then(api_visibility="private", **load_io)
             example_load.success(logic.download, [session, fmt], [download], **chained)
             example_load.success(**note_io)
+            example_load.success(**thin_lens_io)
 
         # blur_on last: the API's inputs before it keep their places
-        render_inputs = [session, focus, blur, *options, blur_on]
+        render_inputs = [session, focus, blur, *options, blur_on, focal_range]
         # .change only (never .input as well: two concurrent runs break the image); .change
         # also follows values set by click-to-focus, whose preview is then skipped
-        for slider in (focus, blur, rotation):
+        for slider in (focus, blur, rotation, focal_range):
             # a preview also disables Download until the full render is there to save
             slider.change(
                 logic.render_preview,
@@ -514,7 +545,7 @@ def build_demo(
         clicked = photo.select(
             on_select,
             [session, blur, *options, blur_on],
-            [focus, *shown, download],
+            [focus, focal_range, *shown, download],
             api_visibility="private",
             show_progress_on=[result, compare],
             **heavy,

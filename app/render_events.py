@@ -14,9 +14,11 @@ import gradio as gr
 import numpy as np
 
 from app import imaging
+from app.command import render_command
 from app.reporting import DOWNLOAD_WAIT, NO_PHOTO, SKIP4, user_error
 from app.sessions import DISPLAY_FILES_KEPT, Session, SessionClosed, prune_files, reported
 from app.settings import (
+    FOCAL_RANGE_MAX,
     LENS_FOCAL_MM,
     MAX_BLUR_PX,
     NEAREST_M,
@@ -162,9 +164,10 @@ class RenderEvents:
     @staticmethod
     def _info(session: Session, params: RenderParams, kind: str, ms: float, extra: str = "") -> str:
         w, h = session.size
+        span = f", focal range {params.focal_range:g}" if params.focal_range else ""
         text = (
             f"{w}x{h} px | focus {params.position:.3f} (0 = near, 1 = far; disparity "
-            f"{params.focus:.3f}) | {params.blur_text()} | {kind} render {ms:.0f} ms"
+            f"{params.focus:.3f}) | {params.blur_text()}{span} | {kind} render {ms:.0f} ms"
         )
         return text + (f" | {extra}" if extra else "")
 
@@ -213,6 +216,8 @@ class RenderEvents:
         try:
             if scene is None:
                 scene = session.scene
+            photo = session.upload_name or f"{session.name}.jpg"
+            command = render_command(params, photo, getattr(scene, "disparity_source", "d2f"))
             t0 = time.perf_counter()
             result = self.model.render(scene, params.focus, params.blur, **params.render_options())
             del scene
@@ -234,7 +239,8 @@ class RenderEvents:
             session.last_full_params = params
             self._store_views(session, result, bokeh)
         extra = self._settings_text(result.settings, params.quality)
-        return (*self.view_outputs(session, view), self._info(session, params, "full", ms, extra))
+        info = self._info(session, params, "full", ms, extra) + f" | reproduce: {command}"
+        return (*self.view_outputs(session, view), info)
 
     @reported
     def render_full(
@@ -249,11 +255,14 @@ class RenderEvents:
         view: str = "Bokeh",
         quality: Any = "balanced",
         blur_on: Any = True,
+        focal_range: Any = 0.0,
     ) -> tuple:
         """Full-resolution render (slider released, option changed).
 
         ``focus`` is the focus slider's position (0 = nearest, 1 = farthest), ``f_number``
-        the aperture, ``blur_on`` False renders no blur (see :meth:`RenderParams.from_inputs`).
+        the aperture, ``blur_on`` False renders no blur, ``focal_range`` the span of
+        disparity kept sharp (see :meth:`RenderParams.from_inputs`). The status line ends
+        with the ``d2f render`` command that reproduces the picture.
 
         Without a photo loaded in the session (a slider released on an empty page, an API
         call before ``/load`` or from another session) the event is refused with a message;
@@ -266,7 +275,7 @@ class RenderEvents:
             raise user_error(NO_PHOTO)
         params = RenderParams.from_inputs(
             focus, f_number, blades, rotation, highlight_boost, fusion, quality, blur_on,
-            size=session.size,
+            focal_range, size=session.size,
         )  # fmt: skip
         session.touch()
         with session.lock:
@@ -287,6 +296,7 @@ class RenderEvents:
         view: str = "Bokeh",
         quality: Any = "balanced",
         blur_on: Any = True,
+        focal_range: Any = 0.0,
     ) -> tuple:
         """Reduced-resolution render while a slider moves.
 
@@ -303,7 +313,7 @@ class RenderEvents:
             return (*SKIP4, gr.skip())
         params = RenderParams.from_inputs(
             focus, f_number, blades, rotation, highlight_boost, fusion, quality, blur_on,
-            size=session.size,
+            focal_range, size=session.size,
         )  # fmt: skip
         session.touch()
         with session.lock:
@@ -344,15 +354,18 @@ class RenderEvents:
         quality: Any = "balanced",
         blur_on: Any = True,
     ) -> tuple:
-        """Focus on the clicked point: ``index = [x, y]`` in the shown photo's pixels.
+        """Focus on the clicked point: ``index = [x, y]`` in the shown photo's pixels, with a
+        focal range that keeps the clicked subject sharp (``D2F.focus_at(..., with_range=True)``:
+        the extent in depth of the connected region around the point).
 
         Returns:
-            ``(focus, result, compare, legend, info)``; the focus slider moves to ``focus``,
-            the position (0 = nearest, 1 = farthest) of the clicked point's disparity.
+            ``(focus, focal_range, result, compare, legend, info)``; the focus slider moves to
+            ``focus``, the position (0 = nearest, 1 = farthest) of the clicked point's
+            disparity, and the focal range slider to the subject's range.
         """
         if session is None:
             gr.Warning("Upload a photo first.")
-            return (gr.skip(), *SKIP4)
+            return (gr.skip(), gr.skip(), *SKIP4)
         session.touch()
         try:
             x, y = (float(v) for v in index)
@@ -364,17 +377,18 @@ class RenderEvents:
         xs = min(max((x + 0.5) * w / sw - 0.5, 0.0), w - 1.0)
         ys = min(max((y + 0.5) * h / sh - 0.5, 0.0), h - 1.0)
         t0 = time.perf_counter()
-        focus = position_of(self.model.focus_at(session.scene, xs, ys))
+        disparity, span = self.model.focus_at(session.scene, xs, ys, with_range=True)
+        focus, span = position_of(disparity), min(span, FOCAL_RANGE_MAX)
         ms_focus = 1000 * (time.perf_counter() - t0)
         params = RenderParams.from_inputs(
             focus, f_number, blades, rotation, highlight_boost, fusion, quality, blur_on,
-            size=session.size,
+            span, size=session.size,
         )  # fmt: skip
         outputs = self._render_full(session, params, view)
         if outputs is SKIP4:
-            return (focus, *SKIP4)
+            return (focus, span, *SKIP4)
         info = outputs[3] + f" | focused on the click at ({xs:.0f}, {ys:.0f}) in {ms_focus:.0f} ms"
-        return (focus, *outputs[:3], info)
+        return (focus, span, *outputs[:3], info)
 
     @reported
     def show_view(self, session: Session | None, view: str) -> tuple:

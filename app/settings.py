@@ -9,6 +9,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from app.reporting import user_error
+from d2f_core.lens import FOCUS_DECIMALS, focus_of_position, position_of_focus
 
 #: The adaptive renderer's error budgets (``D2F.render(budget=...)``), fastest last.
 QUALITIES = ("high", "balanced", "fast")
@@ -21,9 +22,10 @@ DEPTH_KINDS = ("disparity (bright = near)", "depth (bright = far)")
 #: File names of the pictures the app puts in the photo panel (:meth:`RefocusApp.photo_panel`):
 #: when the panel sends one back as the photo, the upload it stands for is used.
 PANEL_PREFIX = "d2f-rendered-from-"
-#: Focus values are rounded to the focus slider's step, so that a value the app sets and
-#: the value the slider sends back compare equal.
-FOCUS_DECIMALS = 3
+#: The focal range slider's top (a span of disparity kept sharp around the focus) and step;
+#: a click sets it to the clicked subject's range (``D2F.focus_at(..., with_range=True)``).
+FOCAL_RANGE_MAX = 0.5
+FOCAL_RANGE_STEP = 0.001
 
 # The controls speak a photographer's language; the library keeps its own units. The focus
 # slider reads near (0, left) to far (1, right); the library's focal plane is a disparity,
@@ -56,13 +58,13 @@ REFERENCE_SIZE = (4000, 3000)
 
 def disparity_of(position: float) -> float:
     """The library's focal plane (disparity, 1 = near) for a focus slider position (0 =
-    nearest, 1 = farthest)."""
-    return round(1.0 - float(position), FOCUS_DECIMALS)
+    nearest, 1 = farthest): ``d2f render --focus-position`` reads it the same way."""
+    return focus_of_position(position)
 
 
 def position_of(disparity: float) -> float:
     """The focus slider position (0 = nearest, 1 = farthest) of a disparity (1 = near)."""
-    return round(1.0 - float(disparity), FOCUS_DECIMALS)
+    return position_of_focus(disparity)
 
 
 def blur_px(f_number: float, long_side: int) -> float:
@@ -85,7 +87,8 @@ class RenderParams:
     """What a render depends on besides the scene; equal params give equal pictures.
 
     ``focus`` and ``blur`` are the library's (disparity, 1 = near; K in px at full
-    resolution); ``f_number`` is the aperture chosen (None: blur off, ``blur`` is 0).
+    resolution); ``f_number`` is the aperture chosen (None: blur off, ``blur`` is 0);
+    ``focal_range`` the span of disparity kept sharp around the focus (0 = thin lens).
     """
 
     focus: float
@@ -96,6 +99,7 @@ class RenderParams:
     fusion: bool = True
     quality: str = "balanced"
     f_number: float | None = None
+    focal_range: float = 0.0
 
     @classmethod
     def from_inputs(
@@ -108,6 +112,7 @@ class RenderParams:
         fusion: Any = True,
         quality: Any = "balanced",
         blur_on: Any = True,
+        focal_range: Any = 0.0,
         *,
         size: tuple[int, int] | None,
     ) -> RenderParams:
@@ -117,6 +122,8 @@ class RenderParams:
             focus: focus slider position, 0 = nearest .. 1 = farthest.
             f_number: aperture of the virtual lens (:func:`blur_px`).
             blur_on: False renders no blur (the photo as it is).
+            focal_range: the span of disparity kept sharp around the focus, 0 (thin lens)
+                to :data:`FOCAL_RANGE_MAX`.
             size: ``(width, height)`` of the photo K is computed for; None gives K = 0 (to
                 check the inputs before the photo is known; :meth:`sized` sets it).
         """
@@ -125,11 +132,14 @@ class RenderParams:
             n = round(float(f_number), 3)
             blades_n = int(float(blades or 0))
             r = round(float(rotation or 0.0), 3)
+            span = round(float(focal_range or 0.0), 3)
         except (TypeError, ValueError):
             raise user_error(
                 f"Invalid slider values: focus={focus!r}, f-number={f_number!r}, "
-                f"blades={blades!r}, rotation={rotation!r}."
+                f"blades={blades!r}, rotation={rotation!r}, focal range={focal_range!r}."
             ) from None
+        if not 0.0 <= span <= FOCAL_RANGE_MAX:
+            raise user_error(f"The focal range must be in [0, {FOCAL_RANGE_MAX:g}], got {span:g}.")
         if not 0.0 <= position <= 1.0:
             raise user_error(f"focus must be in [0, 1] (0 = near, 1 = far), got {position}.")
         if not 0.5 <= n <= 1000.0:
@@ -141,7 +151,7 @@ class RenderParams:
             raise user_error(f"quality must be one of {', '.join(QUALITIES)}, got {quality!r}.")
         on = blur_on not in (False, None, 0, "false", "False")
         params = cls(disparity_of(position), 0.0, blades_n, r, bool(highlight_boost),
-                     bool(fusion), quality, n if on else None)  # fmt: skip
+                     bool(fusion), quality, n if on else None, span)  # fmt: skip
         return params.sized(size)
 
     def sized(self, size: tuple[int, int] | None) -> RenderParams:
@@ -168,4 +178,5 @@ class RenderParams:
             "rotation": self.rotation,
             "highlight_boost": self.highlight_boost,
             "budget": self.quality,
+            "focal_range": self.focal_range,
         }

@@ -196,10 +196,24 @@ def build_parser() -> argparse.ArgumentParser:
         "--focus", type=_unit_float, metavar="F", help="focal disparity in [0, 1] (1 = nearest)"
     )
     where.add_argument(
+        "--focus-position",
+        type=_unit_float,
+        metavar="P",
+        help="focus as the app's slider says it: 0 = nearest, 1 = farthest (focal disparity 1 - P)",
+    )
+    where.add_argument(
         "--focus-at",
         type=_point,
         metavar="X,Y",
-        help="focus on the depth at this pixel of the (upright) input photo",
+        help="focus on the depth at this pixel of the (upright) input photo, with a focal "
+        "range that keeps the subject there sharp, as the app's click (unless --focal-range)",
+    )
+    focus.add_argument(
+        "--focal-range",
+        type=_unit_float,
+        metavar="R",
+        help="a span of disparity around the focus that stays perfectly sharp, the blur "
+        "growing from its edges (0 = thin lens; default: the subject's with --focus-at, else 0)",
     )
     amount = focus.add_mutually_exclusive_group(required=True)
     amount.add_argument(
@@ -240,6 +254,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="which kernel a CoC between two of them gets: nearest (on both sides of focus) or "
         "paper (the next smaller behind the focal plane); default: the weights' own (paper "
         "for the shipped ones), nearest without weights",
+    )
+    focus.add_argument(
+        "--no-highlight-boost",
+        action="store_true",
+        help="no HDR boost of saturated pixels (the app's 'Highlight boost' unticked)",
     )
     focus.add_argument(
         "--no-fusion",
@@ -436,6 +455,7 @@ class RenderInfo:
         focus_point: (x, y) in the input photo's pixels that gave the focus (``--focus-at``
             or the subject found), or ``None`` when the focus was a number.
         blur: K in px at the rendered size.
+        focal_range: the span of disparity kept sharp around the focus (0 = thin lens).
     """
 
     output: Path
@@ -444,6 +464,7 @@ class RenderInfo:
     focus: float
     focus_point: tuple[float, float] | None
     blur: float
+    focal_range: float = 0.0
 
 
 def _focus_from_map(disparity: np.ndarray, x: float, y: float) -> float:
@@ -472,6 +493,15 @@ def _say_subject(
     )
 
 
+def _range_from_map(disparity: np.ndarray, x: float, y: float, focus: float) -> float:
+    """``D2F.focus_at(..., with_range=True)``'s focal range for a bare disparity map."""
+    from .depth.subject import RANGE_MAP_SIDE, subject_range
+
+    h, w = disparity.shape
+    step = max(1, max(h, w) // RANGE_MAP_SIDE)
+    return subject_range(disparity[::step, ::step], ((x + 0.5) / w, (y + 0.5) / h), focus)
+
+
 def _subject_from_map(disparity: np.ndarray) -> tuple[float, tuple[float, float]]:
     """``D2F.subject_focus`` for a bare disparity map (the centre when nothing stands out)."""
     from .pipeline import locate_subject
@@ -489,6 +519,7 @@ def render_with_depth_only(
     blur: float,
     *,
     fusion: bool = True,
+    focal_range: float = 0.0,
     **render_options: Any,
 ) -> Rendered:
     """Render without the learned networks: the layered renderer at up to 1024 px (long side),
@@ -500,7 +531,7 @@ def render_with_depth_only(
     import torch.nn.functional as F
 
     from .rendering import render
-    from .rendering.schedule import coc_to_defocus
+    from .rendering.schedule import coc_to_defocus, fold_focal_range, outside_range
     from .sizing import resize
 
     h, w = image.shape[:2]
@@ -516,17 +547,20 @@ def render_with_depth_only(
         else:
             img_lr, disp_lr = img, disp
         ratio = 0.5 * (lr[0] / h + lr[1] / w)
-        bokeh_lr = render(img_lr, disp_lr, focus, blur * ratio, **render_options)  # [1,3,h,w]
+        bokeh_lr = render(
+            img_lr, disp_lr, focus, blur * ratio, focal_range=focal_range, **render_options
+        )  # [1,3,h,w]
         bokeh = bokeh_lr
         if lr != (h, w):
             bokeh = resize(bokeh_lr, (h, w))
-        coc = blur * (disp - focus).abs()  # [1,1,H,W] px at full resolution
+        coc = blur * outside_range((disp - focus).abs(), focal_range)  # [1,1,H,W] full-res px
         mask = ((2.0 * _SHARP_COC_PX - coc) / _SHARP_COC_PX).clamp(0, 1)
         if fusion:
             bokeh = torch.lerp(bokeh, img, mask)
         else:
             mask = torch.zeros_like(mask)
-        defocus = coc_to_defocus(blur * ratio * (disp_lr - focus).abs())
+        folded = fold_focal_range(disp_lr, focus, focal_range)
+        defocus = coc_to_defocus(blur * ratio * (folded - focus).abs())
     return Rendered(
         bokeh=bokeh[0].permute(1, 2, 0).clamp(0, 1).numpy(),
         maps={
@@ -609,6 +643,11 @@ def render_file(
         )  # fmt: skip
     blur = _blur_of(args, (h, w))
     focus = args.focus
+    if getattr(args, "focus_position", None) is not None:
+        from .lens import focus_of_position
+
+        focus = focus_of_position(args.focus_position)
+    focal_range = getattr(args, "focal_range", None)
     depth = _choose_depth(src, photo, args, depth_file)
     if depth is not None and depth.focus is not None:
         if focus is None and args.focus_at is None:
@@ -629,6 +668,8 @@ def render_file(
             point = "subject"
 
     options: dict[str, Any] = {"blades": args.aperture_blades, "rotation": args.rotation}
+    if getattr(args, "no_highlight_boost", False):
+        options["highlight_boost"] = False
     if args.placement is not None:
         options["placement"] = args.placement
     model = engine.model()
@@ -638,14 +679,18 @@ def render_file(
             focus, (sx, sy) = model.subject_focus(scene)
             _say_subject(args, src, photo, (sx, sy), focus)
             point = (sx, sy)
+        elif point is not None and focal_range is None:
+            focus, focal_range = model.focus_at(scene, *point, with_range=True)
         elif point is not None:
             focus = model.focus_at(scene, *point)
+        focal_range = focal_range or 0.0
         result = model.render(
             scene,
             focus=focus,
             blur=blur,
             fusion=not args.no_fusion,
             budget=args.quality,
+            focal_range=focal_range,
             **options,
         )
         if result.settings is not None:
@@ -665,6 +710,9 @@ def render_file(
             point = (sx, sy)
         elif point is not None:
             focus = _focus_from_map(disparity, *point)
+            if focal_range is None:
+                focal_range = _range_from_map(disparity, *point, focus)
+        focal_range = focal_range or 0.0
         logger.info("%s: rendering with the depth map only (no D2F weights)", src)
         rendered = render_with_depth_only(
             image,
@@ -672,6 +720,7 @@ def render_file(
             focus,
             blur,
             fusion=not args.no_fusion,
+            focal_range=focal_range,
             quality=args.quality,  # the renderer preset of the same name
             **options,
         )
@@ -681,7 +730,7 @@ def render_file(
             f"given, and the D2F network weights are unavailable ({engine.error}); pass "
             "--depth FILE, --depth-model transformers:MODEL or --weights CKPT"
         )
-    logger.info("%s: focus %.3f, blur %g px", src, focus, blur)
+    logger.info("%s: focus %.3f, blur %g px, focal range %g", src, focus, blur, focal_range)
 
     protect = [src] + ([depth_file] if depth_file is not None else [])
     if args.depth_model is not None and args.depth_model.kind == "file":
@@ -704,7 +753,7 @@ def render_file(
         oh, ow = photo.info.original_size
         point = (round(point[0] * ow / w, 1), round(point[1] * oh / h, 1))
     source = "d2f" if depth is None else depth.describe()
-    return RenderInfo(dst, (w, h), source, float(focus), point, float(blur))
+    return RenderInfo(dst, (w, h), source, float(focus), point, float(blur), float(focal_range))
 
 
 def _map_targets(

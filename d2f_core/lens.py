@@ -7,6 +7,9 @@ of about ``F^2 / (N z_near) * |d - d_f|``, so
 
     K = F^2 / (N z_near) * (long side in px / sensor width).
 
+The focus speaks the app's language too: a focus position 0 (nearest) .. 1 (farthest), the
+app's slider, is the focal disparity ``1 - position`` (1 = nearest), to 3 decimals.
+
 These are the numbers of the app's aperture slider (``app/handlers.py`` keeps its own copy,
 which its tests patch; ``tests/test_batch.py`` checks that the two agree), so ``d2f render
 --f-number`` and ``d2f batch --f-number`` give the app's look.
@@ -14,7 +17,16 @@ which its tests patch; ``tests/test_batch.py`` checks that the two agree), so ``
 
 from __future__ import annotations
 
-__all__ = ["BLUR_PER_PX_AT_F1", "F_NUMBER_LIMITS", "MAX_BLUR_PX", "blur_px", "f_number_for"]
+__all__ = [
+    "BLUR_PER_PX_AT_F1",
+    "FOCUS_DECIMALS",
+    "F_NUMBER_LIMITS",
+    "MAX_BLUR_PX",
+    "blur_px",
+    "f_number_for",
+    "focus_of_position",
+    "position_of_focus",
+]
 
 #: The virtual lens: focal length (mm) on a full-frame sensor whose 36 mm width spans the
 #: photo's long side, with the nearest point of the photo this far away (m).
@@ -50,3 +62,28 @@ def f_number_for(blur: float, long_side: int) -> float | None:
     if float(blur) <= 0.0:
         return None
     return round(BLUR_PER_PX_AT_F1 * int(long_side) / float(blur), 3)
+
+
+#: Focus positions and disparities are rounded to the app's focus slider step.
+FOCUS_DECIMALS = 3
+
+
+def focus_of_position(position: float) -> float:
+    """The focal disparity (1 = nearest) of a focus position (0 = nearest, 1 = farthest, the
+    app's slider), to :data:`FOCUS_DECIMALS` decimals.
+
+    Raises:
+        ValueError: ``position`` not a number in [0, 1].
+    """
+    try:
+        value = float(position)
+    except (TypeError, ValueError):
+        raise ValueError(f"focus position: expected a number in [0, 1], got {position!r}") from None
+    if not 0.0 <= value <= 1.0:
+        raise ValueError(f"focus position: expected a number in [0, 1], got {position!r}")
+    return round(1.0 - value, FOCUS_DECIMALS)
+
+
+def position_of_focus(focus: float) -> float:
+    """The focus position (0 = nearest, 1 = farthest) of a focal disparity (1 = nearest)."""
+    return round(1.0 - float(focus), FOCUS_DECIMALS)

@@ -356,6 +356,7 @@ class TestRenderParams:
             "rotation": 30.0,
             "highlight_boost": True,
             "budget": "balanced",
+            "focal_range": 0.0,
         }
         fast = RenderParams.from_inputs(0.5, 10, quality="fast", size=(320, 240))
         assert fast.render_options()["budget"] == "fast"
@@ -629,7 +630,8 @@ class TestRender:
         assert "f/1, blur 300 px" in info["high"]
         # CoCs far over 64 px: only the 30 dB budget affords fewer than 15 layers
         assert "high quality: 15 blur layers" in info["high"]
-        assert info["fast"].split(" | ")[-1].startswith("fast quality: ")
+        # the quality, then the command that reproduces the picture
+        assert info["fast"].split(" | ")[-2].startswith("fast quality: ")
         assert "15 blur layers" not in info["fast"] and " blur layers" in info["fast"]
         with pytest.raises(gr.Error, match="quality"):
             logic.render_full(session, 0.5, APERTURE, quality="ultra")

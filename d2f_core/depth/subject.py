@@ -71,6 +71,71 @@ def locate_subject(
     return focus, (fx * width - 0.5, fy * height - 0.5)
 
 
+#: A subject's focal range is never wider than this span of disparity: a click on a thing
+#: that fills the depth (a floor, a wall seen at an angle) keeps most of the photo blurred.
+MAX_FOCAL_RANGE = 0.25
+#: A step of disparity between two neighbours of the map at :data:`RANGE_MAP_SIDE` px that
+#: ends a subject (a silhouette); steps inside a face or a body are far smaller.
+SUBJECT_STEP = 0.03
+#: The long side of the map :func:`subject_range` reads.
+RANGE_MAP_SIDE = 256
+
+
+def subject_range(
+    disparity: np.ndarray,
+    point: tuple[float, float],
+    focus: float,
+    *,
+    step: float = SUBJECT_STEP,
+    cap: float = MAX_FOCAL_RANGE,
+    percentiles: tuple[float, float] = (2.0, 98.0),
+) -> float:
+    """The focal range that covers the subject at ``point``: the extent in depth of the
+    connected region around it.
+
+    The region is grown from the point over neighbours whose disparity differs by less than
+    ``step`` (a silhouette's step stops it), within ``cap / 2`` of ``focus``; its extent is
+    a percentile band of its disparity (a few noisy pixels do not widen it), and the range
+    is the band's width on both sides of ``focus``: ``2 max(f - low, high - f)``, at most
+    ``cap``.
+
+    Args:
+        disparity: ``H x W`` in [0, 1], 1 = nearest (about :data:`RANGE_MAP_SIDE` px).
+        point: ``(x, y)`` as fractions of the width and height.
+        focus: the focal disparity set at the point.
+
+    Returns:
+        The focal range in [0, ``cap``]; 0 where no region is found.
+    """
+    from skimage.measure import label
+
+    d = np.asarray(disparity, dtype=np.float64)
+    if d.ndim != 2 or d.size == 0:
+        raise ValueError(f"disparity must be a non-empty H x W map, got shape {d.shape}")
+    h, w = d.shape
+    jump = np.zeros(d.shape, dtype=bool)
+    dy = np.abs(np.diff(d, axis=0)) >= step
+    dx = np.abs(np.diff(d, axis=1)) >= step
+    jump[1:] |= dy
+    jump[:-1] |= dy
+    jump[:, 1:] |= dx
+    jump[:, :-1] |= dx
+    inside = ~jump & (np.abs(d - focus) <= 0.5 * cap)
+    labels = label(inside, connectivity=1)
+    xi = min(max(int(point[0] * w), 0), w - 1)
+    yi = min(max(int(point[1] * h), 0), h - 1)
+    # the click may land on a silhouette's step: the region most of its neighbourhood holds
+    k = max(1, round(max(h, w) / 100))
+    window = labels[max(0, yi - k) : yi + k + 1, max(0, xi - k) : xi + k + 1]
+    found = window[window > 0]
+    if not found.size:
+        return 0.0
+    region = labels == np.bincount(found).argmax()
+    low, high = np.percentile(d[region], percentiles)
+    extent = 2.0 * max(focus - low, high - focus, 0.0)
+    return round(float(min(extent, cap)), 3)
+
+
 def index_runs(columns: list[int]) -> list[tuple[int, int]]:
     """Merge sorted column indices into inclusive runs: [1, 2, 3, 7] -> [(1, 3), (7, 7)]."""
     runs: list[list[int]] = []

@@ -12,7 +12,7 @@ from torch import Tensor
 
 from ..depth.subject import index_runs
 from ..networks import rgb_to_gray
-from ..rendering.schedule import coc_to_defocus, defocus_to_coc
+from ..rendering.schedule import coc_to_defocus, defocus_to_coc, outside_range
 from .outputs import Scene
 
 FUSION_TILE = 256
@@ -83,6 +83,7 @@ class FusionStage:
         blur: float,
         lr_ratio: float,
         behind: tuple[Tensor, Tensor] | None = None,
+        focal_range: float = 0.0,
     ) -> tuple[Tensor, Tensor]:
         """``B_hr = lerp(B_up, I_hr, M)`` computed tile by tile (inference), in place.
 
@@ -100,6 +101,9 @@ class FusionStage:
         then ended in a hard edge); where nothing is in front this is the lerp. The mask
         returned is then ``M * share``, the weight of the sharp photo in the result.
 
+        ``focal_range``: CoCs count from the range's edges (``K max(0, |d - f| - r/2)``), so
+        every pixel inside the range has CoC 0 and ``M = 1``: the photo's own pixel.
+
         Returns:
             ``(bokeh, mask)``: ``(1, 3, H, W)`` (``bokeh_up``, modified) and ``(1, 1, H, W)``.
         """
@@ -108,8 +112,12 @@ class FusionStage:
         t = FUSION_TILE
         lo, hi = scene.disparity_tile_range(t)  # [gh,gw]
         # CoC range of each tile: distance of [lo, hi] to the focal plane
-        coc_lo = blur * torch.clamp(torch.maximum(lo - focus, focus - hi), min=0.0)
-        coc_hi = blur * torch.maximum((hi - focus).abs(), (lo - focus).abs())
+        coc_lo = blur * outside_range(
+            torch.clamp(torch.maximum(lo - focus, focus - hi), min=0.0), focal_range
+        )
+        coc_hi = blur * outside_range(
+            torch.maximum((hi - focus).abs(), (lo - focus).abs()), focal_range
+        )
         gate_coc = defocus_to_coc(cfg.fusion_gate) / lr_ratio * 1.01
         sharp = cfg.sharp_coc
         all_sharp = coc_hi <= sharp
@@ -143,7 +151,8 @@ class FusionStage:
                 pad = halo if use_net else 0
                 ya, yb = max(0, y0 - pad), min(height, y1 + pad)
                 xa, xb = max(0, x0 - pad), min(width, x1 + pad)
-                coc = blur * (d_full[..., ya:yb, xa:xb] - focus).abs()  # [1,1,h',w']
+                distance = (d_full[..., ya:yb, xa:xb] - focus).abs()
+                coc = blur * outside_range(distance, focal_range)  # [1,1,h',w']
                 m = ((2.0 * sharp - coc) / sharp).clamp_(0, 1)
                 if use_net:
                     defocus = coc_to_defocus(coc * lr_ratio)

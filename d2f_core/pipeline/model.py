@@ -9,27 +9,33 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 from torch import Tensor, nn
 
 from .. import rendering
 from ..depth import sources as depth_sources
 from ..depth.refine import harden_edges, snap_edges
-from ..depth.subject import locate_subject
 from ..errors import InputTypeError
 from ..io.embedded import Photo
+from ..lens import blur_px
 from ..networks import build_defocus_net, build_fusion_net, build_radiance_net, read_torch_file
 from ..rendering import adaptive
 from ..rendering.kernels import check_rotation
-from ..rendering.schedule import coc_to_defocus, defocus_to_coc
+from ..rendering.schedule import (
+    check_focal_range,
+    coc_to_defocus,
+    defocus_to_coc,
+    fold_focal_range,
+    outside_range,
+)
 from ..sizing import resize, scaled_size, size_ratio
 from .config import CHECKPOINT_VERSION, D2FConfig, default_weights_path
+from .focus import FocusStage
 from .fusion import FUSION_TILE, FusionStage, ms_since, per_sample, to_numpy_image
 from .outputs import Result, Scene
 
 
-class D2F(FusionStage, nn.Module):
+class D2F(FusionStage, FocusStage, nn.Module):
     """Defocus-to-Focus: defocus, radiance and fusion networks plus the layered renderer.
 
     Use :meth:`from_pretrained`, :meth:`from_checkpoint` or :meth:`from_config`; all return
@@ -285,10 +291,13 @@ class D2F(FusionStage, nn.Module):
         self,
         scene: Scene,
         focus: float = 0.5,
-        blur: float = 40.0,
+        blur: float | None = None,
         fusion: bool = True,
         max_side: int | None = None,
         budget: str | float | None = adaptive.DEFAULT_QUALITY,
+        *,
+        f_number: float | None = None,
+        focal_range: float = 0.0,
         **render_options: Any,
     ) -> Result:
         """Refocus a prepared photo.
@@ -296,7 +305,15 @@ class D2F(FusionStage, nn.Module):
         Args:
             scene: from :meth:`prepare`.
             focus: focal disparity in [0, 1] (1 = nearest); see :meth:`focus_at`.
-            blur: ``K``, CoC diameter in px at FULL resolution for ``|d - focus| = 1``.
+            blur: ``K``, CoC diameter in px at FULL resolution for ``|d - focus| = 1``
+                (default 40 px unless ``f_number`` is given).
+            f_number: the blur as the f-number of the stated virtual lens
+                (:func:`d2f_core.lens.blur_px` on the photo's long side), the app's aperture;
+                give ``blur`` or ``f_number``, not both.
+            focal_range: ``r``, a span of disparity around ``focus`` that stays perfectly
+                sharp, the blur growing from its edges (``CoC = K max(0, |d - f| - r/2)``);
+                with fusion every pixel inside it is the photo's own, at full resolution.
+                0 (default) is the thin lens; :meth:`focus_at` can measure a subject's range.
             fusion: apply deep Poisson fusion at full resolution (else plain upsampling; a
                 pass at the photo's own size needs none and has none).
             max_side: preview mode: render at this long side, no fusion.
@@ -317,7 +334,14 @@ class D2F(FusionStage, nn.Module):
         if not isinstance(scene, Scene):
             kind = type(scene).__name__
             raise InputTypeError(f"scene must be a Scene from prepare(), got {kind}")
-        focus, blur = rendering.check_focus_blur(focus, blur)
+        if f_number is not None:
+            if blur is not None:
+                raise ValueError("give blur or f_number, not both")
+            if isinstance(f_number, bool) or not isinstance(f_number, (int, float)):
+                raise ValueError(f"f_number must be a number, got {f_number!r}")
+            blur = blur_px(f_number, max(scene.size))
+        focus, blur = rendering.check_focus_blur(focus, 40.0 if blur is None else blur)
+        focal_range = check_focal_range(focal_range)
         if "rotation" in render_options:  # named even when no kernel needs it
             render_options["rotation"] = check_rotation(render_options["rotation"])
         if max_side is not None and (isinstance(max_side, bool) or int(max_side) < 1):
@@ -360,6 +384,8 @@ class D2F(FusionStage, nn.Module):
                 scene.disparity_lr,
                 scene.radiance_lr,
             )
+        # a focal range folded into the map: every later step sees its CoCs
+        disparity_lr = fold_focal_range(disparity_lr, focus, focal_range)  # [1,1,h,w]
         lr_size = (int(image_lr.shape[-2]), int(image_lr.shape[-1]))
         lr_ratio = size_ratio(lr_size, scene.size)
         blur_lr = blur * lr_ratio
@@ -390,6 +416,7 @@ class D2F(FusionStage, nn.Module):
                 lo, hi = scene.disparity_tile_range(FUSION_TILE)
                 far = float(torch.maximum((hi - focus).abs(), (lo - focus).abs()).max())
                 near = float(torch.clamp(torch.maximum(lo - focus, focus - hi), min=0.0).min())
+                far, near = (outside_range(v, focal_range) for v in (far, near))
                 settings.identity = blur * far < 1.0
                 settings.fusion = blur * near < max(gate_coc, 2.0 * self.config.sharp_coc)
             timings["pick"] = ms_since(t0)
@@ -446,7 +473,9 @@ class D2F(FusionStage, nn.Module):
                 behind = None
                 if behind_lr is not None:
                     behind = tuple(resize(t, scene.size).clamp_(0, 1) for t in behind_lr)
-                bokeh, mask = self._fuse_tiled(scene, bokeh, focus, blur, lr_ratio, behind)
+                bokeh, mask = self._fuse_tiled(
+                    scene, bokeh, focus, blur, lr_ratio, behind, focal_range
+                )
                 timings["fusion"] = ms_since(t0)
             else:
                 mask = torch.zeros((1, 1, *scene.size), device=bokeh.device)
@@ -464,58 +493,6 @@ class D2F(FusionStage, nn.Module):
         timings["to_numpy"] = ms_since(t0)
         timings["total"] = ms_since(t_all)
         return result
-
-    def focus_at(self, scene: Scene, x: float, y: float, radius: int | None = None) -> float:
-        """Median disparity in a ``(2r+1)^2`` window around full-res pixel ``(x, y)``.
-
-        ``(x, y)`` must lie in the photo, pixel centres at whole numbers: ``x`` in
-        ``[-0.5, W - 0.5]``, ``y`` in ``[-0.5, H - 0.5]``; the window is clipped at its
-        borders. ``radius`` defaults to ``max(2, round(max(H, W) / 200))`` px.
-
-        Returns:
-            Focal disparity in [0, 1] for :meth:`render`.
-
-        Raises:
-            ValueError: a point outside the photo, or not finite.
-        """
-        if not isinstance(scene, Scene):
-            kind = type(scene).__name__
-            raise InputTypeError(f"scene must be a Scene from prepare(), got {kind}")
-        try:
-            xf, yf = float(x), float(y)
-        except (TypeError, ValueError):
-            raise InputTypeError(f"x and y must be numbers, got {x!r}, {y!r}") from None
-        if not (math.isfinite(xf) and math.isfinite(yf)):
-            raise ValueError(f"x and y must be finite, got {x!r}, {y!r}")
-        height, width = scene.size
-        if not (-0.5 <= xf <= width - 0.5 and -0.5 <= yf <= height - 0.5):
-            raise ValueError(
-                f"the point ({x!r}, {y!r}) is outside the {width}x{height} photo: x must be in "
-                f"[0, {width - 1}] and y in [0, {height - 1}]"
-            )
-        r = max(2, round(max(height, width) / 200)) if radius is None else int(radius)
-        if r < 0:
-            raise ValueError(f"radius must be >= 0, got {radius!r}")
-        xi = min(max(round(xf), 0), width - 1)
-        yi = min(max(round(yf), 0), height - 1)
-        d = scene.disparity_full_tensor()[0, 0]
-        window = d[max(0, yi - r) : yi + r + 1, max(0, xi - r) : xi + r + 1]
-        return float(np.clip(np.median(window.detach().cpu().numpy()), 0.0, 1.0))
-
-    def subject_focus(self, scene: Scene) -> tuple[float, tuple[float, float]]:
-        """The focal disparity of the subject the disparity map shows, and where it is
-        (:func:`find_subject`); a map in which nothing stands out (flat, or a plain ramp) gets
-        the focus at the centre, as :meth:`focus_at`.
-
-        Returns:
-            ``(focus, (x, y))``, the point in full-res pixel coordinates.
-        """
-        if not isinstance(scene, Scene):
-            kind = type(scene).__name__
-            raise InputTypeError(f"scene must be a Scene from prepare(), got {kind}")
-        with torch.no_grad():
-            d = resize(scene.disparity_lr, scaled_size(scene.size, 1.0, 128))[0, 0]
-        return locate_subject(d.cpu().numpy(), scene.size, lambda x, y: self.focus_at(scene, x, y))
 
     # ---------------------------------------------------------------- training forwards
 

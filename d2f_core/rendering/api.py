@@ -29,6 +29,7 @@ from .inputs import (
 )
 from .plan import GAMMA, layer_plan
 from .radiance import HDR_THRESHOLD, hdr_boost
+from .schedule import check_focal_range, fold_focal_range
 from .threads import ThreadChoice
 from .tiled import render_tiled
 
@@ -79,6 +80,7 @@ def render(
     behind: bool = False,
     front_size: float = 0.0,
     hidden: bool = True,
+    focal_range: float = 0.0,
     checked: bool = False,
 ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Render bokeh with weighted layered rendering.
@@ -146,6 +148,10 @@ def render(
         raise ValueError(f"num_layers must be a positive integer, got {num_layers!r}")
     f = focus_tensor(focus, image.shape[0], image, check=not checked)
     blur = float(blur) if checked else check_blur(blur)
+    focal_range = check_focal_range(focal_range)
+    if focal_range > 0:
+        disparity = fold_focal_range(disparity, f, focal_range)  # [B,1,H,W]
+        disparity_range = tensor_extremes(disparity) if disparity.numel() else (0.0, 0.0)
     options = dict(
         order=order,
         num_layers=num_layers,

@@ -1,0 +1,95 @@
+"""Choosing the focus, D2F's missing step: the focal plane read from the disparity map at a
+clicked point (with the focal range that keeps the clicked subject sharp), or at the subject
+the map shows.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from ..depth.subject import RANGE_MAP_SIDE, locate_subject, subject_range
+from ..errors import InputTypeError
+from ..sizing import resize, scaled_size
+from .outputs import Scene
+
+
+class FocusStage:
+    """Click-to-focus and subject focus as methods of :class:`~d2f_core.pipeline.D2F`."""
+
+    def focus_at(
+        self,
+        scene: Scene,
+        x: float,
+        y: float,
+        radius: int | None = None,
+        *,
+        with_range: bool = False,
+    ) -> float | tuple[float, float]:
+        """Median disparity in a ``(2r+1)^2`` window around full-res pixel ``(x, y)``.
+
+        ``(x, y)`` must lie in the photo, pixel centres at whole numbers: ``x`` in
+        ``[-0.5, W - 0.5]``, ``y`` in ``[-0.5, H - 0.5]``; the window is clipped at its
+        borders. ``radius`` defaults to ``max(2, round(max(H, W) / 200))`` px.
+
+        With ``with_range``, also the focal range that keeps the clicked subject sharp: the
+        extent in depth of the connected region around the point
+        (:func:`~d2f_core.depth.subject.subject_range`), for :meth:`render`'s
+        ``focal_range``.
+
+        Returns:
+            Focal disparity in [0, 1] for :meth:`render`; with ``with_range``,
+            ``(focus, focal_range)``.
+
+        Raises:
+            ValueError: a point outside the photo, or not finite.
+        """
+        if not isinstance(scene, Scene):
+            kind = type(scene).__name__
+            raise InputTypeError(f"scene must be a Scene from prepare(), got {kind}")
+        try:
+            xf, yf = float(x), float(y)
+        except (TypeError, ValueError):
+            raise InputTypeError(f"x and y must be numbers, got {x!r}, {y!r}") from None
+        if not (math.isfinite(xf) and math.isfinite(yf)):
+            raise ValueError(f"x and y must be finite, got {x!r}, {y!r}")
+        height, width = scene.size
+        if not (-0.5 <= xf <= width - 0.5 and -0.5 <= yf <= height - 0.5):
+            raise ValueError(
+                f"the point ({x!r}, {y!r}) is outside the {width}x{height} photo: x must be in "
+                f"[0, {width - 1}] and y in [0, {height - 1}]"
+            )
+        r = max(2, round(max(height, width) / 200)) if radius is None else int(radius)
+        if r < 0:
+            raise ValueError(f"radius must be >= 0, got {radius!r}")
+        xi = min(max(round(xf), 0), width - 1)
+        yi = min(max(round(yf), 0), height - 1)
+        d = scene.disparity_full_tensor()[0, 0]
+        window = d[max(0, yi - r) : yi + r + 1, max(0, xi - r) : xi + r + 1]
+        focus = float(np.clip(np.median(window.detach().cpu().numpy()), 0.0, 1.0))
+        if not with_range:
+            return focus
+        key = ("range_map", RANGE_MAP_SIDE)
+        if key not in scene.cache:
+            with torch.no_grad():
+                small = resize(d[None, None], scaled_size(scene.size, 1.0, RANGE_MAP_SIDE))
+            scene.cache[key] = small[0, 0].clamp(0, 1).cpu().numpy()
+        point = ((xf + 0.5) / width, (yf + 0.5) / height)
+        return focus, subject_range(scene.cache[key], point, focus)
+
+    def subject_focus(self, scene: Scene) -> tuple[float, tuple[float, float]]:
+        """The focal disparity of the subject the disparity map shows, and where it is
+        (:func:`find_subject`); a map in which nothing stands out (flat, or a plain ramp) gets
+        the focus at the centre, as :meth:`focus_at`.
+
+        Returns:
+            ``(focus, (x, y))``, the point in full-res pixel coordinates.
+        """
+        if not isinstance(scene, Scene):
+            kind = type(scene).__name__
+            raise InputTypeError(f"scene must be a Scene from prepare(), got {kind}")
+        with torch.no_grad():
+            d = resize(scene.disparity_lr, scaled_size(scene.size, 1.0, 128))[0, 0]
+        return locate_subject(d.cpu().numpy(), scene.size, lambda x, y: self.focus_at(scene, x, y))
