@@ -139,7 +139,7 @@ class TestPlan:
 
 class TestLens:
     def test_same_numbers_as_the_app(self):
-        handlers = pytest.importorskip("app.handlers", reason="the app needs gradio")
+        handlers = pytest.importorskip("app.settings", reason="the app needs gradio")
         for n in (1.0, 1.4, 2.8, 8.0, 22.0):
             for side in (128, 1536, 4000, 6000):
                 assert blur_px(n, side) == handlers.blur_px(n, side)
@@ -304,7 +304,7 @@ def ray_cluster():
     ray_bin = Path(sys.executable).with_name("ray")
     if not ray_bin.is_file():
         pytest.skip(f"no ray command beside {sys.executable}")
-    from app.latency_bench import free_port
+    from app.latency_server import free_port
 
     port = free_port()
     temp = tempfile.mkdtemp(prefix="d2f-ray-", dir="/tmp")  # short: Ray's sockets live in it

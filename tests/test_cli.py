@@ -383,17 +383,17 @@ class TestBatch:
     def test_an_unexpected_error_skips_one_file_only(self, tmp_path, capsys, monkeypatch):
         """A defect raising something other than ValueError (an IndexError from a reader)
         on one photo is reported for that photo, and the batch renders the others."""
-        import d2f_core.cli as cli
+        import d2f_core.photo_render as photo_render
 
         photos, depths = self._folder(tmp_path)
-        real = cli.render_file
+        real = photo_render.render_file
 
         def flaky(src, *args, **kwargs):
             if src.name == "img0.png":
                 raise IndexError("list index out of range")
             return real(src, *args, **kwargs)
 
-        monkeypatch.setattr(cli, "render_file", flaky)
+        monkeypatch.setattr(photo_render, "render_file", flaky)
         out = tmp_path / "out"
         # one worker renders in this process, where the patch is
         code, err = _batch(capsys, photos, "-o", out, "--blur", 6, "--depth", depths)

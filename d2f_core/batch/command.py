@@ -97,7 +97,7 @@ def add_batch_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _check(args: argparse.Namespace) -> None:
-    from ..cli import UsageError
+    from ..photo_render import UsageError
 
     out: Path = args.output
     if out.exists() and not out.is_dir():
@@ -152,7 +152,7 @@ def _show(row: dict[str, Any], here: str) -> None:
 
 def run_batch(args: argparse.Namespace) -> int:
     """Run ``d2f batch``; returns the exit status (1 when a photo failed)."""
-    from ..cli import RenderError, UsageError
+    from ..photo_render import RenderError, UsageError
     from ..progress import logs_above_bar, progress
 
     _check(args)

@@ -156,7 +156,7 @@ def find_photos(
 
 
 def _depth_for(depth_dir: Path, rel_parent: Path, stem: str) -> Path | None:
-    from ..cli import find_depth_file
+    from ..photo_render import find_depth_file
 
     for folder in dict.fromkeys((depth_dir / rel_parent, depth_dir)):
         found = find_depth_file(folder, stem) if folder.is_dir() else None

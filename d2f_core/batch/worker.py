@@ -1,7 +1,7 @@
 """The one per-photo function of both engines, and the worker that holds a model for it.
 
 :func:`render_job` renders a :class:`~d2f_core.batch.plan.Job` with ``d2f render``'s own
-code (:func:`d2f_core.cli.render_file`) into a temporary name beside the output, renames it
+code (:func:`d2f_core.photo_render.render_file`) into a temporary name beside the output, renames it
 into place, and returns the manifest row; any failure becomes a ``failed`` row, never an
 exception. :class:`PhotoWorker` loads the model once (a process of the local pool, or a Ray
 actor), renders jobs and appends their rows to its manifest part.
@@ -50,12 +50,13 @@ def _partial_folder(dst: Path) -> Path:
 def render_job(job: Job, args: argparse.Namespace, engine: Any) -> dict[str, Any]:
     """Render one photo as ``d2f render`` does and return its manifest row.
 
-    ``args`` holds ``d2f render``'s options; ``engine`` is a :class:`d2f_core.cli.Engine` (the
-    model, loaded on first use and kept). The output appears under its name only once it is
-    whole; the input is only read. Never raises for a bad photo: the row says ``failed``
-    with the error's kind and one-line message.
+    ``args`` holds ``d2f render``'s options; ``engine`` is a
+    :class:`d2f_core.photo_render.Engine` (the model, loaded on first use and kept). The
+    output appears under its name only once it is whole; the input is only read. Never
+    raises for a bad photo: the row says ``failed`` with the error's kind and one-line
+    message.
     """
-    from .. import cli
+    from .. import photo_render
     from ..lens import f_number_for
 
     start = time.perf_counter()
@@ -71,7 +72,7 @@ def render_job(job: Job, args: argparse.Namespace, engine: Any) -> dict[str, Any
             raise FileNotFoundError(2, "no such file", os.fspath(src))
         partial.mkdir(parents=True, exist_ok=True)
         depth = None if job.depth_file is None else Path(job.depth_file)
-        info = cli.render_file(src, partial / dst.name, options, engine, depth)
+        info = photo_render.render_file(src, partial / dst.name, options, engine, depth)
         os.replace(partial / dst.name, dst)
         w, h = info.size
         row.update(
@@ -115,7 +116,7 @@ def failed_row(job: Job, exc: BaseException, seconds: float = 0.0) -> dict[str, 
 
 
 def _one_line(src: Path, exc: BaseException) -> str:
-    from ..cli import error_message
+    from ..photo_render import error_message
 
     msg = " ".join(error_message(exc).split())
     return msg if os.fspath(src) in msg or src.name in msg else f"{src}: {msg}"
@@ -138,7 +139,7 @@ class PhotoWorker:
         threads: int | None = None,
         level: int = logging.WARNING,
     ) -> None:
-        from ..cli import Engine
+        from ..photo_render import Engine
 
         self._threads = None
         if threads is not None:

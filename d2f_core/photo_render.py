@@ -1,0 +1,465 @@
+"""Render one photo file to one output file: what ``d2f render`` does, and ``d2f batch`` does
+for each photo of a library (:mod:`d2f_core.batch`), with the same options.
+
+It picks the depth (:func:`render_file`: a ``--depth`` file, the photo's phone depth, the
+shipped network or a hub model), the focus (a value, a point, or the subject the map shows,
+said on the terminal), the blur (px or the f-number of :mod:`d2f_core.lens`) and the focal
+range, renders with :class:`~d2f_core.pipeline.D2F` (or the renderer alone with a depth map
+and no weights) and writes the picture and the maps asked for.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .io import SAVE_FORMATS, load_photo, same_file, save_depth, save_image
+
+__all__ = [
+    "DEFAULT_MAX_PIXELS",
+    "Engine",
+    "RenderError",
+    "RenderInfo",
+    "Rendered",
+    "UsageError",
+    "check_output_name",
+    "error_message",
+    "find_depth_file",
+    "map_targets",
+    "render_file",
+    "render_with_depth_only",
+]
+
+# the CLI's own logger: these are the CLI's messages, and -v/-q set its level
+logger = logging.getLogger("d2f_core.cli")
+
+#: Photos above this many pixels are downscaled with a notice unless ``--max-pixels`` says
+#: otherwise (``--max-pixels 0``: no limit). 25 MP keeps a 24 MP phone photo whole; a PNG
+#: that decodes to 144 MP took minutes and several GB to render at its size.
+DEFAULT_MAX_PIXELS = 25_000_000
+
+DEPTH_SUFFIXES = ("", "_depth", "-depth", "_disparity", "-disparity")
+DEPTH_FILE_EXTENSIONS = (".png", ".npy", ".pfm", ".tif", ".tiff", ".jpg", ".jpeg")
+# The fallback renderer caps its working resolution like the pipeline's low-res pass.
+_FALLBACK_MAX_SIDE = 1024
+_SHARP_COC_PX = 1.0
+
+
+class UsageError(Exception):
+    """A problem with the command line itself (exit status 2)."""
+
+
+class RenderError(Exception):
+    """A photo could not be rendered (exit status 1)."""
+
+
+@dataclass
+class Engine:
+    """Loads the D2F model at most once per run; remembers why it is unavailable."""
+
+    weights: Path | None
+    _model: Any = None
+    _error: str | None = None
+    _tried: bool = False
+
+    def model(self) -> Any:
+        if self._tried:
+            return self._model
+        self._tried = True
+        from .pipeline import D2F
+
+        if self.weights is not None:
+            if not self.weights.is_file():
+                raise RenderError(f"--weights {os.fspath(self.weights)!r}: no such file")
+            try:
+                self._model = D2F.from_checkpoint(self.weights)
+            except (ValueError, FileNotFoundError) as exc:
+                raise RenderError(f"--weights: {exc}") from exc
+            return self._model
+        try:
+            self._model = D2F.from_pretrained()
+        except FileNotFoundError as exc:
+            self._error = str(exc)
+            logger.info("D2F weights unavailable (%s)", exc)
+        except ValueError as exc:  # present but unusable: worth a warning
+            self._error = str(exc)
+            logger.warning("D2F weights unusable (%s)", exc)
+        return self._model
+
+    @property
+    def error(self) -> str | None:
+        return self._error
+
+
+@dataclass
+class Rendered:
+    bokeh: np.ndarray
+    maps: dict[str, np.ndarray] = field(default_factory=dict)
+
+
+@dataclass
+class RenderInfo:
+    """What :func:`render_file` did with one photo (the columns of the batch manifest).
+
+    Attributes:
+        output: the file written.
+        size: (width, height) rendered, after any ``--max-pixels`` downscale.
+        depth_source: where the disparity came from (``d2f`` for the network).
+        focus: the focal disparity in [0, 1] (1 = nearest).
+        focus_point: (x, y) in the input photo's pixels that gave the focus (``--focus-at``
+            or the subject found), or ``None`` when the focus was a number.
+        blur: K in px at the rendered size.
+        focal_range: the span of disparity kept sharp around the focus (0 = thin lens).
+    """
+
+    output: Path
+    size: tuple[int, int]
+    depth_source: str
+    focus: float
+    focus_point: tuple[float, float] | None
+    blur: float
+    focal_range: float = 0.0
+
+
+def _focus_from_map(disparity: np.ndarray, x: float, y: float) -> float:
+    """Median disparity around pixel (x, y); same window as ``D2F.focus_at``."""
+    h, w = disparity.shape
+    r = max(2, round(max(h, w) / 200))
+    xi = min(max(round(x), 0), w - 1)
+    yi = min(max(round(y), 0), h - 1)
+    win = disparity[max(0, yi - r) : yi + r + 1, max(0, xi - r) : xi + r + 1]
+    return float(np.clip(np.median(win), 0.0, 1.0))
+
+
+def _say_subject(
+    args: argparse.Namespace, src: Path, photo: Any, point: tuple[float, float], focus: float
+) -> None:
+    """Print where the automatic focus landed, in the photo's own pixels (unless ``-q``): a
+    user who gave no focus must be able to tell whether it found the right subject."""
+    if args.quiet or getattr(args, "command", "render") != "render":
+        return  # d2f batch records the point in its manifest
+    h, w = photo.image.shape[:2]
+    oh, ow = photo.info.original_size
+    x, y = point[0] * ow / w, point[1] * oh / h
+    print(
+        f"{src}: focused on the subject at ({x:.0f}, {y:.0f}), focal disparity {focus:.3f} "
+        f"(--focus-at X,Y or --focus D to choose)"
+    )
+
+
+def _range_from_map(disparity: np.ndarray, x: float, y: float, focus: float) -> float:
+    """``D2F.focus_at(..., with_range=True)``'s focal range for a bare disparity map."""
+    from .depth.subject import RANGE_MAP_SIDE, subject_range
+
+    h, w = disparity.shape
+    step = max(1, max(h, w) // RANGE_MAP_SIDE)
+    return subject_range(disparity[::step, ::step], ((x + 0.5) / w, (y + 0.5) / h), focus)
+
+
+def _subject_from_map(disparity: np.ndarray) -> tuple[float, tuple[float, float]]:
+    """``D2F.subject_focus`` for a bare disparity map (the centre when nothing stands out)."""
+    from .pipeline import locate_subject
+
+    step = max(1, max(disparity.shape) // 128)
+    return locate_subject(
+        disparity[::step, ::step], disparity.shape, lambda x, y: _focus_from_map(disparity, x, y)
+    )
+
+
+def render_with_depth_only(
+    image: np.ndarray,
+    disparity: np.ndarray,
+    focus: float,
+    blur: float,
+    *,
+    fusion: bool = True,
+    focal_range: float = 0.0,
+    **render_options: Any,
+) -> Rendered:
+    """Render without the learned networks: the layered renderer at up to 1024 px (long side),
+    upsampled, with the in-focus prior (CoC <= 1 px keeps the sharp input) as fusion.
+
+    Shape: image HxWx3 float32 [0, 1], disparity HxW [0, 1] -> bokeh HxWx3 [0, 1].
+    """
+    import torch
+    import torch.nn.functional as F
+
+    from .rendering import render
+    from .rendering.schedule import coc_to_defocus, fold_focal_range, outside_range
+    from .sizing import resize
+
+    h, w = image.shape[:2]
+    scale = min(1.0, _FALLBACK_MAX_SIDE / max(h, w))
+    lr = (max(1, round(h * scale)), max(1, round(w * scale)))
+    img = torch.from_numpy(np.ascontiguousarray(image, dtype=np.float32)).permute(2, 0, 1)[None]
+    disp = torch.from_numpy(np.ascontiguousarray(disparity, dtype=np.float32))[None, None]
+    with torch.no_grad():
+        if lr != (h, w):
+            img_lr = F.interpolate(img, lr, mode="bilinear", antialias=True, align_corners=False)
+            disp_lr = F.interpolate(disp, lr, mode="bilinear", antialias=True, align_corners=False)
+            img_lr, disp_lr = img_lr.clamp(0, 1), disp_lr.clamp(0, 1)
+        else:
+            img_lr, disp_lr = img, disp
+        ratio = 0.5 * (lr[0] / h + lr[1] / w)
+        bokeh_lr = render(
+            img_lr, disp_lr, focus, blur * ratio, focal_range=focal_range, **render_options
+        )  # [1,3,h,w]
+        bokeh = bokeh_lr
+        if lr != (h, w):
+            bokeh = resize(bokeh_lr, (h, w))
+        coc = blur * outside_range((disp - focus).abs(), focal_range)  # [1,1,H,W] full-res px
+        mask = ((2.0 * _SHARP_COC_PX - coc) / _SHARP_COC_PX).clamp(0, 1)
+        if fusion:
+            bokeh = torch.lerp(bokeh, img, mask)
+        else:
+            mask = torch.zeros_like(mask)
+        folded = fold_focal_range(disp_lr, focus, focal_range)
+        defocus = coc_to_defocus(blur * ratio * (folded - focus).abs())
+    return Rendered(
+        bokeh=bokeh[0].permute(1, 2, 0).clamp(0, 1).numpy(),
+        maps={
+            "disparity": disparity.astype(np.float32),
+            "defocus": defocus[0, 0].numpy(),
+            "fusion_mask": mask[0, 0].numpy(),
+        },
+    )
+
+
+def find_depth_file(folder: Path, stem: str) -> Path | None:
+    for suffix in DEPTH_SUFFIXES:
+        for ext in DEPTH_FILE_EXTENSIONS:
+            candidate = folder / f"{stem}{suffix}{ext}"
+            if candidate.is_file():
+                return candidate
+    return None
+
+
+def _blur_of(args: argparse.Namespace, size: tuple[int, int]) -> float:
+    """K in px: ``--blur``, or ``--f-number`` on a photo of this (height, width)."""
+    if getattr(args, "f_number", None) is None:
+        return args.blur
+    from .lens import blur_px
+
+    return blur_px(args.f_number, max(size))
+
+
+def _choose_depth(src: Path, photo: Any, args: argparse.Namespace, depth_file: Path | None) -> Any:
+    """The photo's :class:`~d2f_core.depth.sources.DepthMap` from the source the command line
+    names (``--depth-model``, else ``--depth``, else the phone's depth), or ``None`` for the
+    D2F network; logs the source (``-v``)."""
+    from .depth.sources import DepthSource, depth_map
+
+    source = args.depth_model
+    if source is None:
+        if depth_file is not None:
+            source = DepthSource("file", str(depth_file))
+        elif photo.disparity is not None:
+            source = DepthSource("embedded")
+        else:
+            source = DepthSource("d2f")
+    elif source.kind == "file" and depth_file is not None:
+        raise UsageError("give the map once: --depth FILE or --depth-model file:PATH")
+    elif source.kind == "embedded" and args.no_embedded_depth:
+        raise UsageError("--depth-model embedded and --no-embedded-depth contradict each other")
+    if source.kind == "d2f":
+        logger.info("%s: depth from d2f (the shipped network)", src)
+        return None
+    depth = depth_map(
+        source,
+        photo.image,
+        photo=photo,
+        file_kind=args.depth_kind,
+        near=args.near,
+        zero_is_hole=True if args.zero_is_hole else None,
+    )
+    logger.info("%s: depth from %s", src, depth.describe())
+    return depth
+
+
+def render_file(
+    src: Path,
+    dst: Path,
+    args: argparse.Namespace,
+    engine: Engine,
+    depth_file: Path | None,
+) -> RenderInfo:
+    """Render one photo to ``dst``; raises ``ValueError``/``RenderError`` on failure."""
+    cap = DEFAULT_MAX_PIXELS if args.max_pixels is None else (args.max_pixels or None)
+    photo = load_photo(src, max_pixels=cap, use_embedded=not args.no_embedded_depth)
+    image = photo.image
+    h, w = image.shape[:2]
+    if photo.info.resized and args.max_pixels is None:
+        oh, ow = photo.info.original_size
+        logger.warning(
+            "%s is %dx%d (%.1f MP): rendered at %dx%d to stay within %g MP "
+            "(--max-pixels 0 renders it at its size)",
+            src, ow, oh, ow * oh / 1e6, w, h, DEFAULT_MAX_PIXELS / 1e6,
+        )  # fmt: skip
+    blur = _blur_of(args, (h, w))
+    focus = args.focus
+    if getattr(args, "focus_position", None) is not None:
+        from .lens import focus_of_position
+
+        focus = focus_of_position(args.focus_position)
+    focal_range = getattr(args, "focal_range", None)
+    depth = _choose_depth(src, photo, args, depth_file)
+    if depth is not None and depth.focus is not None:
+        if focus is None and args.focus_at is None:
+            focus = float(depth.focus)
+            logger.info("%s: focus %.3f from the photo's metadata", src, focus)
+    disparity = None if depth is None else depth.disparity
+
+    point = None
+    if focus is None:
+        oh, ow = photo.info.original_size
+        if args.focus_at is not None:
+            x, y = args.focus_at
+            if x > ow - 1 or y > oh - 1:
+                raise ValueError(f"--focus-at {x:g},{y:g} is outside the {ow}x{oh} photo {src}")
+            # into the loaded (possibly downscaled) frame, pixel area onto pixel area
+            point = ((x + 0.5) * w / ow - 0.5, (y + 0.5) * h / oh - 0.5)
+        else:
+            point = "subject"
+
+    options: dict[str, Any] = {"blades": args.aperture_blades, "rotation": args.rotation}
+    if getattr(args, "no_highlight_boost", False):
+        options["highlight_boost"] = False
+    if args.placement is not None:
+        options["placement"] = args.placement
+    model = engine.model()
+    if model is not None:
+        scene = model.prepare(image, depth=depth, refine=not args.no_refine_depth)
+        if point == "subject":
+            focus, (sx, sy) = model.subject_focus(scene)
+            _say_subject(args, src, photo, (sx, sy), focus)
+            point = (sx, sy)
+        elif point is not None and focal_range is None:
+            focus, focal_range = model.focus_at(scene, *point, with_range=True)
+        elif point is not None:
+            focus = model.focus_at(scene, *point)
+        focal_range = focal_range or 0.0
+        result = model.render(
+            scene,
+            focus=focus,
+            blur=blur,
+            fusion=not args.no_fusion,
+            budget=args.quality,
+            focal_range=focal_range,
+            **options,
+        )
+        if result.settings is not None:
+            logger.info("%s: %s", src, result.settings.describe())
+        rendered = Rendered(
+            bokeh=result.bokeh,
+            maps={
+                "disparity": scene.disparity_full(),
+                "defocus": result.defocus,
+                "fusion_mask": result.fusion_mask,
+            },
+        )
+    elif disparity is not None:
+        if point == "subject":
+            focus, (sx, sy) = _subject_from_map(disparity)
+            _say_subject(args, src, photo, (sx, sy), focus)
+            point = (sx, sy)
+        elif point is not None:
+            focus = _focus_from_map(disparity, *point)
+            if focal_range is None:
+                focal_range = _range_from_map(disparity, *point, focus)
+        focal_range = focal_range or 0.0
+        logger.info("%s: rendering with the depth map only (no D2F weights)", src)
+        rendered = render_with_depth_only(
+            image,
+            disparity,
+            focus,
+            blur,
+            fusion=not args.no_fusion,
+            focal_range=focal_range,
+            quality=args.quality,  # the renderer preset of the same name
+            **options,
+        )
+    else:
+        raise RenderError(
+            f"{src}: no depth map: the photo has no embedded phone depth and no --depth was "
+            f"given, and the D2F network weights are unavailable ({engine.error}); pass "
+            "--depth FILE, --depth-model transformers:MODEL or --weights CKPT"
+        )
+    logger.info("%s: focus %.3f, blur %g px, focal range %g", src, focus, blur, focal_range)
+
+    protect = [src] + ([depth_file] if depth_file is not None else [])
+    if args.depth_model is not None and args.depth_model.kind == "file":
+        protect.append(Path(args.depth_model.arg))
+    maps = map_targets(args.save_maps, dst, rendered.maps, protect)  # checked before writing
+    save_image(
+        dst,
+        rendered.bokeh,
+        quality=args.jpeg_quality,
+        icc_profile=photo.info.icc_profile,
+        exif=photo.info.exif,
+        protect=protect,
+    )
+    for target, arr in maps:
+        try:
+            save_depth(target, np.clip(arr, 0.0, 1.0))
+        except (OSError, ValueError) as exc:
+            raise RenderError(f"{dst} was written, but not its map {target}: {exc}") from exc
+    if point is not None:  # back into the input photo's pixels
+        oh, ow = photo.info.original_size
+        point = (round(point[0] * ow / w, 1), round(point[1] * oh / h, 1))
+    source = "d2f" if depth is None else depth.describe()
+    return RenderInfo(dst, (w, h), source, float(focus), point, float(blur), float(focal_range))
+
+
+def map_targets(
+    folder: Path | None, dst: Path, maps: dict[str, np.ndarray], protect: list[Path]
+) -> list[tuple[Path, np.ndarray]]:
+    """The ``--save-maps`` files of ``dst``, after checking that the folder can be made and
+    written and that no map would replace an input: a failure stops the render before
+    anything is written."""
+    if folder is None:
+        return []
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as exc:
+        reason = exc.strerror or type(exc).__name__
+        raise RenderError(
+            f"--save-maps {os.fspath(folder)}: cannot write there ({reason})"
+        ) from exc
+    out = []
+    for name, arr in maps.items():
+        target = folder / f"{dst.stem}_{name}.png"
+        if any(same_file(target, p) for p in protect):
+            raise ValueError(f"--save-maps: {target} would overwrite an input file")
+        out.append((target, arr))
+    return out
+
+
+# --------------------------------------------------------------------------- commands
+
+
+def check_output_name(path: Path) -> None:
+    if path.suffix.lower() not in SAVE_FORMATS:
+        known = " ".join(sorted(SAVE_FORMATS))
+        raise UsageError(f"output {os.fspath(path)!r}: unknown image extension (use {known})")
+
+
+_EXPECTED_ERRORS = (RenderError, ValueError, OSError, RuntimeError)
+
+
+def error_message(exc: BaseException) -> str:
+    """One line naming what went wrong (``unexpected ...`` for a defect of d2f)."""
+    text = str(exc) or type(exc).__name__
+    if isinstance(exc, OSError) and exc.strerror and exc.filename:
+        text = f"{exc.filename}: {exc.strerror}"
+    if not isinstance(exc, _EXPECTED_ERRORS):  # a defect of d2f, not of the input
+        text = f"unexpected {type(exc).__name__}: {text} (please report it)"
+    return text
