@@ -12,7 +12,8 @@ import pytest
 from _io_writers import lensblur_jpeg
 from PIL import Image, ImageCms
 
-from d2f_core.cli import main, render_with_depth_only
+from d2f_core.cli import main
+from d2f_core.photo_render import render_with_depth_only
 from d2f_core.io import load_image, save_depth
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
