@@ -190,6 +190,19 @@ class TestRender:
         for name in ("disparity", "defocus", "fusion_mask"):
             assert (tmp_path / "maps" / f"o_{name}.png").is_file()
 
+    def test_save_maps_writes_every_map_at_the_photos_size(self, tmp_path, capsys, checkpoint):
+        # 200x150: the network's low-resolution pass (and so the defocus map) is smaller
+        img = np.random.default_rng(0).integers(0, 256, (150, 200, 3), dtype=np.uint8)
+        src = _write_photo(tmp_path / "photo.png", img)
+        depth = tmp_path / "d.npy"
+        np.save(depth, np.tile(np.linspace(1, 0, 200, dtype=np.float32), (150, 1)))
+        for args in ((), ("--depth", depth)):
+            code, err = _run(capsys, "render", src, "-o", tmp_path / "o.jpg", "--blur", 8,
+                             "--weights", checkpoint, "--save-maps", tmp_path / "maps", *args)  # fmt: skip
+            assert code == 0, err
+            for name in ("disparity", "defocus", "fusion_mask"):
+                assert load_image(tmp_path / "maps" / f"o_{name}.png").shape[:2] == (150, 200)
+
     def test_quality_sets_the_error_budget(self, tmp_path, capsys, checkpoint):
         img, _ = _scene()
         src = _write_photo(tmp_path / "photo.png", img)
