@@ -197,8 +197,9 @@ class TestRender:
         depth = tmp_path / "d.npy"
         np.save(depth, np.tile(np.linspace(1, 0, 200, dtype=np.float32), (150, 1)))
         for args in ((), ("--depth", depth)):
+            maps = ("--save-maps", tmp_path / "maps")
             code, err = _run(capsys, "render", src, "-o", tmp_path / "o.jpg", "--blur", 8,
-                             "--weights", checkpoint, "--save-maps", tmp_path / "maps", *args)  # fmt: skip
+                             "--weights", checkpoint, *maps, *args)  # fmt: skip
             assert code == 0, err
             for name in ("disparity", "defocus", "fusion_mask"):
                 assert load_image(tmp_path / "maps" / f"o_{name}.png").shape[:2] == (150, 200)
