@@ -185,10 +185,12 @@ class LoadEvents:
         t_prepare = time.perf_counter()
         subject = ""
         if search:
+            t_search = time.perf_counter()
             focus_found, (sx, sy) = self.model.subject_focus(scene)
+            ms_search = 1000 * (time.perf_counter() - t_search)
             new_focus = position_of(focus_found)
             params = dataclasses.replace(params, focus=disparity_of(new_focus))
-            subject = f" | focus on the subject at ({sx:.0f}, {sy:.0f})"
+            subject = f" | focus on the subject at ({sx:.0f}, {sy:.0f}) in {ms_search:.0f} ms"
         new = Session(
             key=key,
             get_scene=no_scene,  # set below, once the upload is kept
