@@ -25,6 +25,9 @@ MAX_PIXELS = 4096 * 3072
 MIN_SIDE = 16
 #: Long side of the pictures sent to the browser; the download keeps full resolution.
 DISPLAY_MAX_SIDE = 1600
+#: File formats (Pillow's names) that browsers show; the photo panel gets a JPEG of any
+#: other upload (HEIC, TIFF, ...), or the browser shows a broken image and cannot be clicked.
+BROWSER_FORMATS = frozenset({"JPEG", "MPO", "PNG", "GIF", "WEBP", "BMP", "AVIF"})
 
 
 @dataclass
@@ -46,6 +49,8 @@ class Photo:
         from_original: True when :attr:`image` is not the file's main picture but the
             all-in-focus original embedded in it (a Google Lens Blur JPEG, whose main
             picture is the phone's blurred rendering).
+        browser_shows: whether a browser can show the uploaded file (its format is one of
+            :data:`BROWSER_FORMATS`).
     """
 
     image: np.ndarray
@@ -57,6 +62,7 @@ class Photo:
     icc_profile: bytes | None = None
     exif: bytes | None = None
     from_original: bool = False
+    browser_shows: bool = True
 
     @property
     def size(self) -> tuple[int, int]:
@@ -123,9 +129,10 @@ def load_photo(
     if loaded.disparity is not None:
         source = str((loaded.depth_info or {}).get("source", "embedded"))
     from_original = bool((loaded.depth_info or {}).get("used_original_image"))
+    shows = str(info.format or "").upper() in BROWSER_FORMATS
     return Photo(
         image, (ow, oh), notice, loaded.disparity, loaded.focus, source, info.icc_profile,
-        info.exif, from_original,
+        info.exif, from_original, shows,
     )  # fmt: skip
 
 

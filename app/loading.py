@@ -111,10 +111,10 @@ class LoadEvents:
 
         Returns:
             ``(session, focus, result, compare, legend, info)``; ``focus`` is the slider
-            position of the focal plane the photo's camera used when it carries one, of the
-            subject the network found when the photo comes with no depth
-            (:meth:`D2F.subject_focus`), and skipped otherwise (a depth map given without a
-            focal plane keeps the slider's focus).
+            position of the focal plane the photo's camera used when it carries one, else of
+            the subject found in the depth (:meth:`D2F.subject_focus`: the network's, or the
+            phone's depth recorded without a focal plane), and skipped for a depth map of
+            the user's own (the slider's focus is kept).
         """
         path = _payload_path(image)
         if path is None:  # the input was cleared
@@ -171,6 +171,9 @@ class LoadEvents:
             if photo.focus is not None:
                 new_focus = position_of(photo.focus)
                 params = dataclasses.replace(params, focus=disparity_of(new_focus))
+        # no focal plane from the camera (none recorded with the phone's depth, or no depth):
+        # focus on the subject; a map of the user's own keeps the slider's focus
+        search = not own_map and (disparity is None or photo.focus is None)
         params = params.sized(photo.size)
         t_decode = time.perf_counter()
         self._admit(session)
@@ -181,12 +184,13 @@ class LoadEvents:
         source = sources.describe(scene, source)
         t_prepare = time.perf_counter()
         subject = ""
-        if disparity is None:
-            # no depth and no focal plane from the camera: focus on the subject the network found
+        if search:
+            t_search = time.perf_counter()
             focus_found, (sx, sy) = self.model.subject_focus(scene)
+            ms_search = 1000 * (time.perf_counter() - t_search)
             new_focus = position_of(focus_found)
             params = dataclasses.replace(params, focus=disparity_of(new_focus))
-            subject = f" | focus on the subject at ({sx:.0f}, {sy:.0f})"
+            subject = f" | focus on the subject at ({sx:.0f}, {sy:.0f}) in {ms_search:.0f} ms"
         new = Session(
             key=key,
             get_scene=no_scene,  # set below, once the upload is kept
@@ -204,7 +208,7 @@ class LoadEvents:
         # session's copy, when the panel showed the app's picture)
         if session is not None:
             session.close()
-        if photo.from_original:
+        if photo.from_original or not photo.browser_shows:
             self._write_panel(new)
         self._register(new)
         session = new
@@ -289,8 +293,9 @@ class LoadEvents:
 
         A Lens Blur file's main picture is the phone's blurred rendering; the app renders
         from the all-in-focus original embedded in it (``d2f_core.io.load_photo``), which
-        can differ in size. The panel gets that original at display size, and clicks on it
-        are mapped from its size (:attr:`Session.shown_size`).
+        can differ in size. A file the browser cannot show (HEIC, TIFF) would be a broken
+        image that cannot be clicked. The panel gets the decoded photo at display size, and
+        clicks on it are mapped from its size (:attr:`Session.shown_size`).
         """
         folder = self._session_dir(session, "panel")
         stem = Path(session.upload_name or session.name).stem
@@ -303,8 +308,9 @@ class LoadEvents:
     @staticmethod
     def photo_panel(session: Session | None) -> Any:
         """The photo panel after a successful load: the picture the app renders from when
-        it is not the uploaded file's main picture (a Lens Blur file's embedded original),
-        else ``gr.skip()`` (the panel already shows the upload).
+        it is not the uploaded file's main picture (a Lens Blur file's embedded original) or
+        the browser cannot show the file (HEIC), else ``gr.skip()`` (the panel already shows
+        the upload).
 
         Setting the panel fires the input's ``.change`` only; the app loads on ``.upload``.
         """

@@ -462,18 +462,18 @@ def build_demo(
             show_progress="hidden",
             api_visibility="private",
         )
-        # the photo's own depth is offered only when the photo has some
-        photo.upload(
-            lambda payload: gr.update(
-                choices=depth_choice.choices(depth_choice.has_embedded_depth(payload, files))
-            ),
-            [photo],
-            [depth_source],
-            preprocess=False,
-            api_visibility="private",
-            show_progress="hidden",
-        )
+        # the photo's own depth is offered only when the photo has some (a sample too)
+        offer_io = {
+            "fn": lambda payload: depth_choice.offer(payload, files),
+            "inputs": [photo],
+            "outputs": [depth_source],
+            "preprocess": False,
+            "api_visibility": "private",
+            "show_progress": "hidden",
+        }
+        photo.upload(**offer_io)
         if examples is not None:
+            examples.load_input_event.then(**offer_io)
             example_load = examples.load_input_event.then(api_visibility="private", **load_io)
             example_load.success(logic.download, [session, fmt], [download], **chained)
             example_load.success(**note_io)

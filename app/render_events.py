@@ -213,6 +213,7 @@ class RenderEvents:
             session.full_seq += 1
             seq = session.full_seq
             session.full_params = params
+            session.wanted = params
         try:
             if scene is None:
                 scene = session.scene
@@ -231,6 +232,11 @@ class RenderEvents:
         with session.lock:
             if session.full_seq != seq or session.closed:
                 return SKIP4  # a newer full render is on its way
+            if not session.still_wanted(params):
+                # another value was set while this one rendered (its preview is shown, its
+                # full render will follow): an older value's picture must not replace it
+                session.full_params = None
+                return SKIP4
             # the full render waits on disk for the download, not in memory
             folder = self._session_dir(session, "")
             part = folder / "last_full.part.npy"
@@ -279,6 +285,7 @@ class RenderEvents:
         )  # fmt: skip
         session.touch()
         with session.lock:
+            session.wanted = params
             if params == session.full_params:
                 return SKIP4  # already rendered (or being rendered) at full resolution
         return self._render_full(session, params, view)
@@ -317,6 +324,7 @@ class RenderEvents:
         )  # fmt: skip
         session.touch()
         with session.lock:
+            session.wanted = params
             if params == session.full_params:
                 return (*SKIP4, gr.skip())
             seq = session.full_seq
@@ -331,7 +339,8 @@ class RenderEvents:
         ms = 1000 * (time.perf_counter() - t0)
         bokeh = imaging.to_uint8(result.bokeh)
         with session.lock:
-            if session.full_seq != seq or params == session.full_params or session.closed:
+            stale = not session.still_wanted(params)
+            if session.full_seq != seq or params == session.full_params or session.closed or stale:
                 return (*SKIP4, gr.skip())
             self._store_views(session, result, bokeh)
             # the views no longer hold the full render: releasing at its params renders again

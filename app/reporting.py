@@ -26,6 +26,12 @@ CLOSED_MESSAGE = (
     "please upload it again."
 )
 
+#: What an event on a session closed for another user's photo answers.
+MADE_ROOM_MESSAGE = (
+    "This photo was closed to make room for another photo (the server keeps a limited "
+    "number open at once); please upload it again."
+)
+
 
 SKIP4 = (gr.skip(), gr.skip(), gr.skip(), gr.skip())
 

@@ -19,7 +19,7 @@ from typing import Any
 import gradio as gr
 import numpy as np
 
-from app.reporting import CLOSED_MESSAGE, one_line, user_error
+from app.reporting import CLOSED_MESSAGE, MADE_ROOM_MESSAGE, one_line, user_error
 from app.settings import RenderParams
 
 # the app's events log under one name, whichever module holds them
@@ -67,6 +67,9 @@ class Session:
         full_params: params of the full-resolution render the views hold or will hold
             (None: none, or a preview has replaced it).
         full_seq: counts full-resolution renders; a preview that overlaps one is dropped.
+        wanted: params of the latest render asked for (full or preview): a
+            render of other params that finishes after it was asked for is dropped, so the
+            picture always belongs to the last value the user set (:meth:`still_wanted`).
         last_full_params: params of the full render saved for the download.
         download_file: ``(params, format, path)`` of the latest download file written.
         folder: this session's folder for display and download files (removed with it).
@@ -80,6 +83,8 @@ class Session:
             at display size (:meth:`RefocusApp.photo_panel`).
         last_used: ``time.monotonic()`` of its latest event.
         closed: True once :meth:`close` ran.
+        closed_message: what an event on the closed session tells its user (None: the
+            usual :data:`~app.reporting.CLOSED_MESSAGE`).
     """
 
     key: str
@@ -92,6 +97,7 @@ class Session:
     pass_width: int = 0
     full_params: RenderParams | None = None
     full_seq: int = 0
+    wanted: RenderParams | None = None
     last_full_params: RenderParams | None = None
     download_file: tuple[RenderParams, str, Path] | None = None
     folder: Path | None = None
@@ -104,6 +110,7 @@ class Session:
     panel: Path | None = None
     last_used: float = field(default_factory=time.monotonic)
     closed: bool = False
+    closed_message: str | None = None
     files_written: int = 0
     on_close: Callable[[Session], None] | None = field(default=None, repr=False)
     busy: int = 0
@@ -125,6 +132,11 @@ class Session:
             return np.load(self.folder / "last_full.npy")
         except FileNotFoundError:
             return None
+
+    def still_wanted(self, params: RenderParams) -> bool:
+        """Whether no render of other params was asked for since ``params`` (call with
+        :attr:`lock` held, where the render's picture is stored)."""
+        return self.wanted is None or self.wanted == params
 
     def touch(self) -> None:
         """Mark the session used now (idle sessions are closed); raise if it is closed."""
@@ -218,6 +230,10 @@ def prune_files(folder: Path, keep: int, min_age_s: float = FILE_MIN_AGE_S) -> N
             continue
 
 
+def _closed_message(held: list[Session]) -> str:
+    return next((s.closed_message for s in held if s.closed and s.closed_message), CLOSED_MESSAGE)
+
+
 def reported(fn: Callable) -> Callable:
     """Turn bad-input exceptions into ``gr.Error`` and anything else into a short one.
 
@@ -238,7 +254,7 @@ def reported(fn: Callable) -> Callable:
             raise
         except SessionClosed:
             log.info("%s refused: the session was closed", fn.__name__)
-            raise user_error(CLOSED_MESSAGE) from None
+            raise user_error(_closed_message(held)) from None
         except Exception as err:
             if any(session.closed for session in held):
                 # the tab was closed (or the session expired) while the event ran, and its
@@ -247,7 +263,7 @@ def reported(fn: Callable) -> Callable:
                     "%s stopped: the session was closed while it ran (%s)",
                     fn.__name__, type(err).__name__,
                 )  # fmt: skip
-                raise user_error(CLOSED_MESSAGE) from None
+                raise user_error(_closed_message(held)) from None
             if isinstance(err, (ValueError, TypeError)):
                 log.info("%s refused: %s", fn.__name__, one_line(err))
                 raise user_error(str(err)) from None
@@ -317,22 +333,38 @@ class SessionRegistry:
                 log.exception("session sweep failed")
 
     def _admit(self, replacing: Session | None) -> None:
-        """Make room for one more session or refuse with a message (``replacing`` is the
-        uploader's own previous session, which the new one replaces)."""
+        """Make room for one more session (``replacing`` is the uploader's own previous
+        session, which the new one replaces): past :attr:`max_sessions`, the least recently
+        used photo that no event is using is closed, and its user is told why when they come
+        back; when every open photo is in use the upload is refused with a message."""
         if self._sweeper is None:
             self._sweeper = threading.Thread(
                 target=self._sweep_forever, name="d2f-session-sweeper", daemon=True
             )
             self._sweeper.start()
         self.expire_idle()
-        with self._sessions_lock:
-            others = sum(1 for s in self._sessions.values() if s is not replacing)
-        if others >= self.max_sessions:
-            minutes = max(1, round(self.session_idle_s / 60))
-            raise user_error(
-                f"The app is at its limit of {self.max_sessions} open photos. Please try again "
-                f"in a few minutes (a photo unused for {minutes} min is closed)."
-            )
+        freed = False
+        while True:
+            with self._sessions_lock:
+                others = [s for s in self._sessions.values() if s is not replacing]
+            if len(others) < self.max_sessions:
+                break
+            idle = [s for s in others if not s.busy]
+            if not idle:
+                raise user_error(
+                    f"The app is at its limit of {self.max_sessions} open photos and all of "
+                    "them are in use. Please try again in a moment."
+                )
+            oldest = min(idle, key=lambda s: s.last_used)
+            with oldest.lock:
+                if oldest.busy:  # an event took it up meanwhile: look again
+                    continue
+                oldest.closed_message = MADE_ROOM_MESSAGE
+                oldest.close()
+            log.info("closed session %s to make room for a new photo", oldest.name)
+            freed = True
+        if freed:
+            give_back_memory()
 
     def _register(self, session: Session) -> None:
         session.on_close = self._forget

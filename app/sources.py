@@ -151,6 +151,14 @@ def has_embedded_depth(payload: Any, files: Any = None) -> bool | None:
         return None
 
 
+def offer(payload: Any, files: Any = None) -> dict:
+    """The update of the depth source control for a photo just put in the panel (an upload
+    or a bundled sample): the photo's own depth is offered only when it has some."""
+    import gradio as gr
+
+    return gr.update(choices=choices(has_embedded_depth(payload, files)))
+
+
 def choices(has_embedded: bool | None = None) -> list[tuple[str, str]]:
     """The choices to offer: the photo's own depth only when it has some (``None``: not
     known yet, offered), the hub model only when ``transformers`` is installed and the

@@ -297,7 +297,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--save-maps",
         type=Path,
         metavar="DIR",
-        help="also write STEM_disparity.png (16-bit), STEM_defocus.png, STEM_fusion_mask.png",
+        help="also write STEM_disparity.png (16-bit), STEM_defocus.png, STEM_fusion_mask.png, "
+        "each at the photo's size",
     )
     out.add_argument(
         "--jpeg-quality", type=_jpeg_quality, default=95, metavar="Q", help="default 95"

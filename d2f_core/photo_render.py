@@ -396,7 +396,10 @@ def render_file(
     protect = [src] + ([depth_file] if depth_file is not None else [])
     if args.depth_model is not None and args.depth_model.kind == "file":
         protect.append(Path(args.depth_model.arg))
-    maps = map_targets(args.save_maps, dst, rendered.maps, protect)  # checked before writing
+    # checked before writing; every map at the photo's size (the defocus map comes at the
+    # low-resolution pass's)
+    size = rendered.bokeh.shape[:2]
+    maps = map_targets(args.save_maps, dst, rendered.maps, protect, size)
     save_image(
         dst,
         rendered.bokeh,
@@ -418,10 +421,15 @@ def render_file(
 
 
 def map_targets(
-    folder: Path | None, dst: Path, maps: dict[str, np.ndarray], protect: list[Path]
+    folder: Path | None,
+    dst: Path,
+    maps: dict[str, np.ndarray],
+    protect: list[Path],
+    size: tuple[int, int] | None = None,
 ) -> list[tuple[Path, np.ndarray]]:
-    """The ``--save-maps`` files of ``dst``, after checking that the folder can be made and
-    written and that no map would replace an input: a failure stops the render before
+    """The ``--save-maps`` files of ``dst`` and their maps resized to ``size`` ``(H, W)``
+    (bilinear; the values keep their meaning), after checking that the folder can be made
+    and written and that no map would replace an input: a failure stops the render before
     anything is written."""
     if folder is None:
         return []
@@ -439,8 +447,21 @@ def map_targets(
         target = folder / f"{dst.stem}_{name}.png"
         if any(same_file(target, p) for p in protect):
             raise ValueError(f"--save-maps: {target} would overwrite an input file")
-        out.append((target, arr))
+        out.append((target, arr if size is None else _map_at_size(arr, size)))
     return out
+
+
+def _map_at_size(arr: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """``(h, w)`` map -> ``(H, W)`` float32, bilinear (unchanged when already that size)."""
+    from PIL import Image
+
+    arr = np.asarray(arr, dtype=np.float32)
+    if arr.shape[:2] == tuple(size):
+        return arr
+    resized = Image.fromarray(np.ascontiguousarray(arr)).resize(
+        (size[1], size[0]), Image.Resampling.BILINEAR
+    )
+    return np.asarray(resized, dtype=np.float32)
 
 
 # --------------------------------------------------------------------------- commands

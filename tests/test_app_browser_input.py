@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from _browser import TIMEOUT_MS, open_app
+from _browser import TIMEOUT_MS, click_photo_at, open_app
 from _io_writers import lensblur_jpeg
 from PIL import Image
 
@@ -283,6 +283,48 @@ def test_lens_blur_panel_shows_the_original(
             browser.close()
     log = server.log.read_text()
     assert log.count("loaded PXL_lensblur") == 1, log[-3000:]  # the panel's update loads nothing
+    assert "Traceback" not in log, log[-3000:]
+
+
+def test_heic_upload_shows_and_clicks(
+    app_server, chromium_launch_options, two_plane_scene, tmp_path
+):
+    """A HEIC upload, which Chromium cannot show: the photo panel shows a JPEG of the decoded
+    photo (a loaded image, not a broken one), the focus goes to the subject found, and a click
+    on the panel refocuses."""
+    from playwright.sync_api import sync_playwright
+
+    pillow_heif = pytest.importorskip("pillow_heif")
+    pillow_heif.register_heif_opener()
+    path = tmp_path / "IMG_0001.HEIC"
+    Image.fromarray(two_plane_scene.image).save(path, format="HEIF", quality=95)
+
+    server = app_server()
+    with sync_playwright() as p:
+        browser = p.chromium.launch(**chromium_launch_options)
+        try:
+            page = open_app(browser, server.url)
+            # with the type a phone's file carries (Playwright names no type for .HEIC, and
+            # Gradio's image input then drops the file)
+            heic = {"name": path.name, "mimeType": "image/heic", "buffer": path.read_bytes()}
+            page.set_input_files("#input input[type=file]", files=[heic])
+            page.wait_for_function(f"() => {STATUS}.includes('full render')")
+            assert "focus on the subject at" in page.locator("#info textarea").input_value()
+            page.wait_for_function(f"() => JSON.stringify(({PHOTO_SIZE})()) === '[320,240]'")
+            src = page.evaluate("() => document.querySelector('#input img').getAttribute('src')")
+            assert "d2f-rendered-from-" in src and not src.lower().endswith(".heic")
+
+            nx, ny = two_plane_scene.near_point
+            click_photo_at(page, nx, ny)
+            page.wait_for_function(f"() => {STATUS}.includes('focused on the click')")
+            status = page.locator("#info textarea").input_value()
+            # the click lands on the photo where it was made (the panel is the photo's size)
+            x, y = status.split("focused on the click at (")[1].split(")")[0].split(", ")
+            assert abs(float(x) - nx) <= 2 and abs(float(y) - ny) <= 2, status
+        finally:
+            browser.close()
+    log = server.log.read_text()
+    assert log.count("loaded IMG_0001") == 1, log[-3000:]  # the panel's update loads nothing
     assert "Traceback" not in log, log[-3000:]
 
 

@@ -193,8 +193,9 @@ def test_forty_sessions_bounded_memory(app_server, scene_factory, client_env, tm
     """44 API sessions, each with its own 800x600 photo, open in waves of six, and their
     clients go away with the photo open (the client's heartbeat ends, as when a tab is
     closed): the app closes their sessions and files at once. Past the cap of eight live
-    sessions an upload gets a message. The server's memory stays under a bound; an upload
-    past the size limit is refused. (Before, every session stayed for an hour.)"""
+    sessions an upload closes the least recently used photo, whose user gets a message. The
+    server's memory stays under a bound; an upload past the size limit is refused. (Before,
+    every session stayed for an hour.)"""
     from gradio_client import Client, handle_file
     from gradio_client.exceptions import AppError
 
@@ -263,16 +264,25 @@ def test_forty_sessions_bounded_memory(app_server, scene_factory, client_env, tm
                 clients = list(pool.map(open_session, range(WAVE * wave, WAVE * wave + WAVE)))
             assert len(session_folders()) == WAVE
             if wave == 0:
-                # six live sessions and the cap at eight: two more open, the next is refused
+                # six live sessions and the cap at eight: two more open, and the next closes
+                # the least recently used one of the first six, whose user is told so
                 clients += [open_session(42), open_session(43)]
-                with pytest.raises(AppError, match=f"limit of {MAX_LIVE} open photos") as err:
-                    open_session(44)
-                refused = str(err.value)
+                clients.append(open_session(44))
+                assert len(session_folders()) == MAX_LIVE
+                told = []
+                for client in clients[:WAVE]:
+                    try:
+                        client.predict(0.4, F1, *options, False, api_name="/render_blur")
+                    except AppError as err:
+                        told.append(str(err))
+                assert len(told) == 1 and "closed to make room" in told[0], told
+                refused = told[0]
             leave(clients)
     rss_after = rss_mb(server.process.pid)
     print(
         f"44 sessions ({size[0]}x{size[1]}, cap {MAX_LIVE}, cache {CACHE_MB} MB): RSS "
-        f"{rss_before:.0f} -> peak {peak[0]:.0f} -> {rss_after:.0f} MB; refused: {refused!r}"
+        f"{rss_before:.0f} -> peak {peak[0]:.0f} -> {rss_after:.0f} MB; closed to make room: "
+        f"{refused!r}"
     )
     assert peak[0] - rss_before < FORTY_PEAK_BOUND_MB
     assert rss_after - rss_before < FORTY_AFTER_BOUND_MB

@@ -907,14 +907,14 @@ class TestSessions:
         args = (str(two_plane_scene.photo), None, "disparity", None, 0.5, APERTURE)
         a = logic.load(*args)[0]
         b = logic.load(*args)[0]
-        with pytest.raises(gr.Error, match="limit of 2 open photos"):
-            logic.load(*args)
-        # the same user uploading again replaces their own session: no refusal
+        # the same user uploading again replaces their own session: nothing else is closed
         b2 = logic.load(str(two_plane_scene.photo), None, "disparity", b, 0.5, APERTURE)[0]
-        assert b.closed and not b2.closed and logic.live_sessions == 2
+        assert b.closed and not b2.closed and not a.closed and logic.live_sessions == 2
         a.close()
         assert logic.live_sessions == 1
         assert logic.load(*args)[0] is not None
+        # a third photo closes the least recently used one (tests/test_app_sessions_order.py)
+        assert logic.load(*args)[0] is not None and b2.closed and logic.live_sessions == 2
 
     def test_idle_sessions_are_closed_with_their_files(self, tiny_model, tmp_path, two_plane_scene):
         logic = RefocusApp(

@@ -13,8 +13,8 @@ from _io_writers import lensblur_jpeg
 from PIL import Image, ImageCms
 
 from d2f_core.cli import main
-from d2f_core.photo_render import render_with_depth_only
 from d2f_core.io import load_image, save_depth
+from d2f_core.photo_render import render_with_depth_only
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 
@@ -190,6 +190,20 @@ class TestRender:
         assert load_image(out).shape == (48, 64, 3)
         for name in ("disparity", "defocus", "fusion_mask"):
             assert (tmp_path / "maps" / f"o_{name}.png").is_file()
+
+    def test_save_maps_writes_every_map_at_the_photos_size(self, tmp_path, capsys, checkpoint):
+        # 200x150: the network's low-resolution pass (and so the defocus map) is smaller
+        img = np.random.default_rng(0).integers(0, 256, (150, 200, 3), dtype=np.uint8)
+        src = _write_photo(tmp_path / "photo.png", img)
+        depth = tmp_path / "d.npy"
+        np.save(depth, np.tile(np.linspace(1, 0, 200, dtype=np.float32), (150, 1)))
+        for args in ((), ("--depth", depth)):
+            maps = ("--save-maps", tmp_path / "maps")
+            code, err = _run(capsys, "render", src, "-o", tmp_path / "o.jpg", "--blur", 8,
+                             "--weights", checkpoint, *maps, *args)  # fmt: skip
+            assert code == 0, err
+            for name in ("disparity", "defocus", "fusion_mask"):
+                assert load_image(tmp_path / "maps" / f"o_{name}.png").shape[:2] == (150, 200)
 
     def test_quality_sets_the_error_budget(self, tmp_path, capsys, checkpoint):
         img, _ = _scene()
