@@ -27,6 +27,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from . import photo_render
 from .io import SAVE_FORMATS, same_file
 from .photo_render import (
     DEFAULT_MAX_PIXELS,
@@ -35,7 +36,6 @@ from .photo_render import (
     UsageError,
     check_output_name,
     error_message,
-    render_file,
 )
 
 # named explicitly: under "python -m d2f_core.cli" __name__ is "__main__"
@@ -401,7 +401,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
             raise UsageError(f"output {os.fspath(dst)!r} is the --depth file")
     if not dst.parent.exists():
         raise RenderError(f"output folder {os.fspath(dst.parent)!r} does not exist")
-    render_file(src, dst, args, Engine(args.weights), args.depth)
+    photo_render.render_file(src, dst, args, Engine(args.weights), args.depth)
     logger.info("wrote %s", dst)
     return 0
 

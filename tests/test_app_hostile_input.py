@@ -12,7 +12,7 @@ from PIL import Image
 
 gr = pytest.importorskip("gradio", reason="the app extra is not installed")
 
-from app import handlers, sources  # noqa: E402
+from app import loading, sources  # noqa: E402
 from app.cache import SceneCache  # noqa: E402
 from app.handlers import RefocusApp  # noqa: E402
 from d2f_core.depth import sources as depth_sources  # noqa: E402
@@ -32,13 +32,13 @@ def logic(tiny_model, tmp_path):
 def decodes(monkeypatch):
     """Counts the photos the app decodes."""
     calls = []
-    original = handlers.imaging.load_photo
+    original = loading.imaging.load_photo
 
     def counted(*args, **kwargs):
         calls.append(args)
         return original(*args, **kwargs)
 
-    monkeypatch.setattr(handlers.imaging, "load_photo", counted)
+    monkeypatch.setattr(loading.imaging, "load_photo", counted)
     return calls
 
 

@@ -482,11 +482,11 @@ def test_default_pixel_cap(tmp_path, capsys, checkpoint, monkeypatch):
     """Photos above the default cap are downscaled with a one-line notice (a 144 MP PNG
     rendered for minutes at its size); ``--max-pixels 0`` lifts the cap, ``--max-pixels N``
     sets it without a notice."""
-    from d2f_core import cli
+    from d2f_core import photo_render
 
     img, disp = _scene()  # 48x64 = 3072 px
     src = _write_photo(tmp_path / "big.png", img)
-    monkeypatch.setattr(cli, "DEFAULT_MAX_PIXELS", 1200)
+    monkeypatch.setattr(photo_render, "DEFAULT_MAX_PIXELS", 1200)
     common = ["--blur", 8, "--focus", 0.5, "--weights", checkpoint]
     code, err = _run(capsys, "render", src, "-o", tmp_path / "a.png", *common)
     assert code == 0, err
