@@ -16,7 +16,7 @@ from PIL import Image
 from d2f_core.bench import depth_bench
 from d2f_core.depth.refine import box_mean, harden_edges, snap_edges
 from d2f_core.pipeline import D2F, find_subject
-from d2f_core.train import depth_train, teachers
+from d2f_core.train import depth_losses, depth_train, distill, scene_targets, teachers
 
 # ------------------------------------------------------------------------------ metrics
 
@@ -280,10 +280,10 @@ class TestSubjectFocus:
 
 def test_subject_target_stands_on_the_layout():
     h, w = 64, 64
-    layout = depth_train.ramp(h, w)
+    layout = scene_targets.ramp(h, w)
     mask = np.zeros((h, w), np.float32)
     mask[10:40, 20:40] = 1.0  # bottom row 39: ramp 39/63
-    t = depth_train.subject_target(layout, mask, lift=0.0)
+    t = scene_targets.subject_target(layout, mask, lift=0.0)
     inside = t[10:40, 20:40]
     assert np.allclose(inside, inside[0, 0])
     # at least the contact disparity, and nearer than the layout above the contact row
@@ -293,17 +293,17 @@ def test_subject_target_stands_on_the_layout():
     np.testing.assert_array_equal(t[:, :15], layout[:, :15])
     # a flat layout: the lift makes the part stand out
     flat = np.full((h, w), 0.3, np.float32)
-    assert depth_train.subject_target(flat, mask, lift=0.05)[20, 30] == pytest.approx(0.35)
+    assert scene_targets.subject_target(flat, mask, lift=0.05)[20, 30] == pytest.approx(0.35)
 
 
 def test_ground_in_front_of_a_subject_stays_nearer():
     """A subject standing on a floor is no nearer than the floor in front of it: the lift
     counts only what surrounds it at and above its lowest row."""
     h, w = 64, 64
-    layout = depth_train.ramp(h, w)
+    layout = scene_targets.ramp(h, w)
     mask = np.zeros((h, w), np.float32)
     mask[10:40, 20:40] = 1.0  # stands at row 39
-    t = depth_train.subject_target(layout, mask, lift=0.0)
+    t = scene_targets.subject_target(layout, mask, lift=0.0)
     # the floor rows below the subject stay as they were and nearer than the subject
     np.testing.assert_array_equal(t[45:, 20:40], layout[45:, 20:40])
     assert t[20, 30] == pytest.approx(39 / 63, abs=0.02)
@@ -311,36 +311,36 @@ def test_ground_in_front_of_a_subject_stays_nearer():
 
 
 def test_teacher_weight_trusts_a_teacher_that_agrees_with_the_ramp():
-    ramp = depth_train.ramp(48, 32)
-    assert depth_train.teacher_weight(ramp) == pytest.approx(0.8)  # capped
-    assert depth_train.teacher_weight(ramp, cap=1.0) == pytest.approx(1.0)
-    assert depth_train.teacher_weight(1.0 - ramp) == 0.0  # upside down: not trusted
-    assert depth_train.teacher_weight(np.full((48, 32), 0.5, np.float32)) == 0.0  # flat
+    ramp = scene_targets.ramp(48, 32)
+    assert scene_targets.teacher_weight(ramp) == pytest.approx(0.8)  # capped
+    assert scene_targets.teacher_weight(ramp, cap=1.0) == pytest.approx(1.0)
+    assert scene_targets.teacher_weight(1.0 - ramp) == 0.0  # upside down: not trusted
+    assert scene_targets.teacher_weight(np.full((48, 32), 0.5, np.float32)) == 0.0  # flat
     # half ramp, half noise: the correlation, about 0.7
     rng = np.random.default_rng(0)
     noisy = ramp + rng.normal(0, ramp.std(), ramp.shape).astype(np.float32)
-    assert depth_train.teacher_weight(noisy) == pytest.approx(2**-0.5, abs=0.05)
+    assert scene_targets.teacher_weight(noisy) == pytest.approx(2**-0.5, abs=0.05)
 
 
 def test_teacher_layout_and_subject():
     """The layout is the ramp blended with the teacher at its weight (a fixed one, or the
     teacher's agreement with the ramp); the VOC foreground is a subject only where it
     covers 1-80 % of the frame, ramped from 0.3 to 0.7."""
-    ramp = depth_train.ramp(40, 30)
+    ramp = scene_targets.ramp(40, 30)
     upside = 1.0 - ramp
-    np.testing.assert_allclose(depth_train.teacher_layout(upside), ramp)  # not trusted
+    np.testing.assert_allclose(scene_targets.teacher_layout(upside), ramp)  # not trusted
     np.testing.assert_allclose(
-        depth_train.teacher_layout(upside, 0.25), 0.75 * ramp + 0.25 * upside
+        scene_targets.teacher_layout(upside, 0.25), 0.75 * ramp + 0.25 * upside
     )
-    np.testing.assert_allclose(depth_train.teacher_layout(ramp), ramp, atol=1e-6)
+    np.testing.assert_allclose(scene_targets.teacher_layout(ramp), ramp, atol=1e-6)
     fg = np.zeros((40, 30), np.float32)
-    assert depth_train.teacher_subject(fg) is None  # nothing
-    assert depth_train.teacher_subject(np.ones_like(fg)) is None  # the whole frame
+    assert scene_targets.teacher_subject(fg) is None  # nothing
+    assert scene_targets.teacher_subject(np.ones_like(fg)) is None  # the whole frame
     fg[10:30, 10:20] = 0.9
-    alpha = depth_train.teacher_subject(fg)
+    alpha = scene_targets.teacher_subject(fg)
     assert alpha[20, 15] == pytest.approx(1.0, abs=1e-3) and alpha[2, 2] == pytest.approx(0.0)
     fg[10:30, 10:20] = 0.5
-    assert depth_train.teacher_subject(fg)[20, 15] == pytest.approx(0.5, abs=0.01)
+    assert scene_targets.teacher_subject(fg)[20, 15] == pytest.approx(0.5, abs=0.01)
 
 
 @pytest.mark.shared_data
@@ -388,12 +388,12 @@ def test_rank_mix_known_answers():
 def test_ssi_align_and_gradient_loss():
     target = torch.rand(2, 1, 16, 16)
     pred = 0.5 * target + 0.2
-    assert torch.allclose(depth_train.ssi_align(pred, target), target, atol=1e-5)
-    assert float(depth_train.gradient_matching_loss(target, target)) == 0.0
-    assert float(depth_train.gradient_matching_loss(target.flip(-1), target)) > 0.05
-    loss, parts = depth_train.depth_loss(pred, target, torch.tensor([True, True]), 0.0)
+    assert torch.allclose(depth_losses.ssi_align(pred, target), target, atol=1e-5)
+    assert float(depth_losses.gradient_matching_loss(target, target)) == 0.0
+    assert float(depth_losses.gradient_matching_loss(target.flip(-1), target)) > 0.05
+    loss, parts = depth_losses.depth_loss(pred, target, torch.tensor([True, True]), 0.0)
     assert float(loss) < 1e-4  # relative targets: scale and shift are free
-    loss, parts = depth_train.depth_loss(pred, target, torch.tensor([False, False]), 0.0)
+    loss, parts = depth_losses.depth_loss(pred, target, torch.tensor([False, False]), 0.0)
     assert parts["l1"] > 0.05  # absolute targets: they are not
 
 
@@ -625,7 +625,7 @@ def test_distiller_starts_at_one_and_learns_a_linear_teacher(one_thread):
     division by a near-zero spread); a teacher that is a linear map of the encoder's maps is
     learnt to a small fraction of that."""
     torch.manual_seed(0)
-    distiller = depth_train.Distiller((8, 8, 6, 10), 5)
+    distiller = distill.Distiller((8, 8, 6, 10), 5)
     f3, f4 = torch.randn(4, 6, 8, 8), torch.randn(4, 10, 4, 4)
     up = torch.nn.functional.interpolate(f4, size=(8, 8), mode="bilinear", align_corners=False)
     mix = torch.randn(5, 16)

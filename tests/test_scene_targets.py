@@ -34,7 +34,7 @@ def test_ground_plane_is_linear_from_the_horizon():
 
 def test_sky_is_farthest_and_things_stand_on_the_ground():
     ade = _street()
-    layout, strength = scene_targets.scene_layout(ade, depth_train.ramp(60, 80))
+    layout, strength = scene_targets.scene_layout(ade, scene_targets.ramp(60, 80))
     assert strength == 1.0  # sky and road cover two thirds of the frame
     sky, building, road = layout[:20], layout[20:40], layout[40:]
     assert sky.max() == 0.0 and building.min() > 0.0  # the sky is farthest
@@ -47,7 +47,7 @@ def test_sky_is_farthest_and_things_stand_on_the_ground():
 
 def test_a_close_up_keeps_the_old_layout():
     ade = np.full((40, 40), 13, np.uint8)  # a person filling the frame: no scene
-    old = depth_train.ramp(40, 40)
+    old = scene_targets.ramp(40, 40)
     layout, strength = scene_targets.scene_layout(ade, old)
     assert strength == 0.0
     np.testing.assert_array_equal(layout, old)
@@ -67,8 +67,8 @@ def test_subject_stands_at_its_ground_contact_and_in_front():
     ade = _street()
     mask = np.zeros((60, 80), np.float32)
     mask[25:50, 30:45] = 1.0  # a person on the road, feet at row 49
-    target = scene_targets.scene_target(ade, depth_train.ramp(60, 80), mask=mask)
-    layout, _ = scene_targets.scene_layout(ade, depth_train.ramp(60, 80))
+    target = scene_targets.scene_target(ade, scene_targets.ramp(60, 80), mask=mask)
+    layout, _ = scene_targets.scene_layout(ade, scene_targets.ramp(60, 80))
     layout = (layout - layout.min()) / (layout.max() - layout.min())
     inside = target[30:45, 33:42]
     # the whole subject has one disparity, at least the road's where it stands
@@ -84,7 +84,7 @@ def test_a_post_across_the_frame_comes_in_front():
     sky, building and road that it cuts."""
     ade = _street()
     ade[:, 50:56] = POLE
-    target = scene_targets.scene_target(ade, depth_train.ramp(60, 80))
+    target = scene_targets.scene_target(ade, scene_targets.ramp(60, 80))
     pole = target[:, 51:55]
     for rows in (slice(0, 20), slice(20, 40), slice(40, 55)):
         assert pole[rows].mean() > target[rows, 60:].mean()
@@ -102,7 +102,7 @@ def test_upside_down_target_scores_badly():
     truth = np.zeros((h, w), np.float32)
     truth[20:40] = 0.3
     truth[40:] = np.linspace(0.3, 1.0, 20)[:, None]
-    target = scene_targets.scene_target(ade, depth_train.ramp(h, w))
+    target = scene_targets.scene_target(ade, scene_targets.ramp(h, w))
     assert spearman(target, truth) > 0.8
     assert spearman(target[::-1], truth) < -0.3
 

@@ -302,9 +302,9 @@ def teacher_predictors(folder: str | Path, threads: int = 1) -> dict[str, Predic
 
     - ``"teacher"``: the indoor depth teacher's smoothed, ranked disparity;
     - ``"layout"``: the ramp blended with it by
-      :func:`~d2f_core.train.depth_train.teacher_weight`, the background of the older targets;
+      :func:`~d2f_core.train.scene_targets.teacher_weight`, the background of the older targets;
     - ``"targets"``: the older targets on a photo without a mask: that layout with the VOC
-      teacher's subject stood on it by :func:`~d2f_core.train.depth_train.subject_target`.
+      teacher's subject stood on it by :func:`~d2f_core.train.scene_targets.subject_target`.
 
     With the scene teachers in ``folder`` (:mod:`d2f_core.train.scene_teachers`), also:
 
@@ -317,7 +317,7 @@ def teacher_predictors(folder: str | Path, threads: int = 1) -> dict[str, Predic
     """
     from PIL import Image
 
-    from ..train.depth_train import (
+    from ..train.scene_targets import (
         ramp,
         subject_target,
         teacher_layout,

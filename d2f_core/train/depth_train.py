@@ -45,8 +45,18 @@ from torch import Tensor
 
 from ..io import load_image
 from ..networks import build_defocus_net, count_parameters
+from .depth_losses import depth_loss, gradient_matching_loss, ssi_align
+from .distill import Distiller, teacher_grid
 from .heldout import is_heldout
-from .scene_targets import read_scene_label, scene_target, subject_target
+from .scene_targets import (
+    normalise,
+    read_scene_label,
+    scene_target,
+    subject_target,
+    teacher_layout,
+    teacher_subject,
+    teacher_weight,
+)
 from .synth.photo import feather
 from .teachers import FeatureTeacher, Photo, iter_photos, read_label, read_mask, subject_cutout
 
@@ -66,62 +76,6 @@ logger = logging.getLogger(__name__)
 #: folders of whole scenes (streets, rooms, landscapes): the layouts that the depth teacher
 #: knows; ``scene_weight`` draws them more often
 SCENE_SOURCES = ("photos/sun_hays80", "photos/urban100", "photos/bsds500")
-#: the encoder map that feature distillation reads (with the next one upsampled onto it)
-DISTILL_STRIDE = 16
-
-
-# ------------------------------------------------------------------------------ targets
-
-
-def ramp(height: int, width: int) -> np.ndarray:
-    """``H x W`` float32: 0 at the top row, 1 at the bottom row ("the bottom is near")."""
-    col = np.linspace(0.0, 1.0, height, dtype=np.float32)[:, None]
-    return np.broadcast_to(col, (height, width)).copy()
-
-
-def teacher_weight(teacher: np.ndarray, cap: float = 0.8) -> float:
-    """Weight of the depth teacher in a photo's layout: its correlation with the ramp,
-    clipped to ``[0, cap]``.
-
-    The indoor teacher is right on rooms, streets and ground planes, where its map falls
-    off towards the top like the ramp, and wrong on close-ups and dark scenes, where it
-    does not. On the 12 measured-depth photos of ``d2f-bench depth`` (teacher and VOC subject
-    run on each), the targets built with a fixed 0.4 blend score 0.689 mean Spearman, with
-    this weight 0.722 (the teacher alone 0.548, the ramp 0.607). A teacher that disagrees
-    with the ramp is not trusted.
-    """
-    h, w = teacher.shape
-    r = np.broadcast_to(np.linspace(0.0, 1.0, h, dtype=np.float32)[:, None], (h, w))
-    t = teacher - teacher.mean()
-    rr = r - r.mean()
-    denom = float(np.sqrt((t * t).sum() * (rr * rr).sum()))
-    c = float((t * rr).sum()) / denom if denom > 0 else 0.0
-    return float(np.clip(c, 0.0, cap))
-
-
-def teacher_subject(
-    fg: np.ndarray, min_area: float = 0.01, max_area: float = 0.8
-) -> np.ndarray | None:
-    """The subject alpha of a photo without a mask: the VOC teacher's foreground ``fg``,
-    ramped from 0.3 to 0.7 and feathered by a pixel, where it covers ``min_area`` to
-    ``max_area`` of the frame; ``None`` elsewhere (no subject, or the whole frame)."""
-    area = float((fg >= 0.5).mean())
-    if not min_area <= area <= max_area:
-        return None
-    return feather(np.clip((fg - 0.3) / 0.4, 0, 1), 1.0)
-
-
-def teacher_layout(teacher: np.ndarray, weight: float = -1.0) -> np.ndarray:
-    """A photo's layout: the ramp blended with the depth teacher's ranked disparity, at
-    ``weight`` of the teacher, or per photo by :func:`teacher_weight` when negative."""
-    h, w = teacher.shape
-    wt = teacher_weight(teacher) if weight < 0 else weight
-    return ((1 - wt) * ramp(h, w) + wt * teacher).astype(np.float32)
-
-
-def _normalise(t: np.ndarray) -> np.ndarray:
-    lo, hi = float(t.min()), float(t.max())
-    return ((t - lo) / max(hi - lo, 1e-6)).astype(np.float32)
 
 
 # ------------------------------------------------------------------------------ data
@@ -287,7 +241,7 @@ class RealDepthData:
         img, target = img.copy(), target.copy()
         img[ya:yb, xa:xb] = a_c[..., None] * rgb_c + (1 - a_c[..., None]) * img[ya:yb, xa:xb]
         target[ya:yb, xa:xb] = a_c * value + (1 - a_c) * target[ya:yb, xa:xb]
-        return img, _normalise(target)
+        return img, normalise(target)
 
     def _synth(self, rng: random.Random, size: tuple[int, int]) -> DepthSample:
         from .synth import linear_to_srgb, make_scene, render_pinhole
@@ -318,7 +272,7 @@ class RealDepthData:
             photo = rng.choices(self.photos, cum_weights=self._cum_weights)[0]
         img, alpha, layout = self._photo(photo, rng, size)
         target = subject_target(layout, alpha) if alpha is not None else layout
-        target = _normalise(target)
+        target = normalise(target)
         if rng.random() < self.paste:
             cut = self._cutout(rng, size)
             if cut is not None:
@@ -389,104 +343,6 @@ class _Batches(torch.utils.data.IterableDataset):
             if teacher is not None:
                 batch = (*batch, teacher_grid(teacher, batch[0]))
             yield batch
-
-
-def teacher_grid(teacher: FeatureTeacher, images: Tensor) -> Tensor:
-    """The teacher's features of ``images`` (B x 3 x H x W in [0, 1]) averaged onto the
-    grid of the network's stride-16 map, ``(H // 16, W // 16)``, as float16.
-
-    Shape: (B, 3, H, W) -> (B, C, H // 16, W // 16).
-    """
-    h, w = images.shape[-2:]
-    feats = torch.from_numpy(teacher(images.permute(0, 2, 3, 1).numpy()))
-    grid = F.adaptive_avg_pool2d(feats, (max(1, h // DISTILL_STRIDE), max(1, w // DISTILL_STRIDE)))
-    return grid.half()
-
-
-class Distiller(torch.nn.Module):
-    """Feature distillation head (training only; never part of a checkpoint that ships).
-
-    A 1x1 convolution maps the encoder's stride-16 map and its stride-32 map (upsampled)
-    onto the teacher's channels; the loss is the mean squared difference to the teacher's
-    features, centred per channel and scaled by statistics fixed from the first batch (it
-    starts at about 1: the convolution starts at zero). The network
-    must then carry, linearly readable from its encoder, what the teacher's features hold.
-    """
-
-    def __init__(self, encoder_channels: Sequence[int], teacher_channels: int) -> None:
-        super().__init__()
-        self.proj = torch.nn.Conv2d(encoder_channels[2] + encoder_channels[3], teacher_channels, 1)
-        torch.nn.init.zeros_(self.proj.weight)
-        torch.nn.init.zeros_(self.proj.bias)
-        self.register_buffer("mean", torch.zeros(1, teacher_channels, 1, 1))
-        self.register_buffer("std", torch.ones(1, teacher_channels, 1, 1))
-        self.register_buffer("ready", torch.zeros((), dtype=torch.bool))
-
-    def fix_statistics(self, feats: Tensor) -> None:
-        """Centre each channel on its mean over ``feats`` and scale all channels by one
-        factor, their pooled standard deviation (a scale per channel would blow up the
-        channels that happen to be near zero in one batch)."""
-        flat = feats.float().transpose(0, 1).flatten(1)  # [C, N]
-        mean = flat.mean(1)
-        self.mean.copy_(mean.view_as(self.mean))
-        pooled = (flat - mean[:, None]).pow(2).mean().sqrt().clamp_min(1e-6)
-        self.std.fill_(float(pooled))
-        self.ready.fill_(True)
-
-    def forward(self, encoder_feats: Sequence[Tensor], teacher: Tensor) -> Tensor:
-        f3, f4 = encoder_feats[2], encoder_feats[3]
-        f4 = F.interpolate(f4, size=f3.shape[-2:], mode="bilinear", align_corners=False)
-        pred = self.proj(torch.cat([f3, f4], dim=1))
-        h, w = teacher.shape[-2:]
-        target = (teacher.float() - self.mean) / self.std
-        return (pred[..., :h, :w] - target).pow(2).mean()
-
-
-# ------------------------------------------------------------------------------ losses
-
-
-def ssi_align(pred: Tensor, target: Tensor) -> Tensor:
-    """``pred`` scaled and shifted per sample to fit ``target`` in least squares.
-
-    Shape: (B, 1, H, W) and (B, 1, H, W) -> (B, 1, H, W).
-    """
-    p = pred.flatten(1)
-    t = target.flatten(1)
-    pm, tm = p.mean(1, keepdim=True), t.mean(1, keepdim=True)
-    pc = p - pm
-    scale = (pc * (t - tm)).sum(1, keepdim=True) / pc.pow(2).sum(1, keepdim=True).clamp_min(1e-6)
-    return (scale * pc + tm).view_as(pred)
-
-
-def gradient_matching_loss(pred: Tensor, target: Tensor, scales: int = 4) -> Tensor:
-    """MiDaS gradient matching: mean |grad(pred - target)| over ``scales`` halvings."""
-    diff = pred - target
-    total = pred.new_zeros(())
-    for s in range(scales):
-        if s:
-            diff = F.avg_pool2d(diff, 2)
-        gx = (diff[..., :, 1:] - diff[..., :, :-1]).abs().mean()
-        gy = (diff[..., 1:, :] - diff[..., :-1, :]).abs().mean()
-        total = total + gx + gy
-    return total / scales
-
-
-def depth_loss(
-    pred: Tensor,
-    target: Tensor,
-    relative: Tensor,
-    absolute_weight: float = 0.25,
-    grad_weight: float = 1.0,
-) -> tuple[Tensor, dict[str, float]]:
-    """Stage-0 loss of a batch (see the module docstring)."""
-    rel = relative.to(pred.device).view(-1, 1, 1, 1).to(pred.dtype)
-    aligned = ssi_align(pred, target)
-    fit = rel * aligned + (1 - rel) * pred
-    l1 = (fit - target).abs().mean()
-    absolute = (rel * (pred - target).abs()).mean()
-    grad = gradient_matching_loss(fit, target)
-    loss = l1 + absolute_weight * absolute + grad_weight * grad
-    return loss, {"l1": l1.item(), "abs": absolute.item(), "grad": grad.item()}
 
 
 # ------------------------------------------------------------------------------ training

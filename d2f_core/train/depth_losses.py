@@ -1,0 +1,53 @@
+"""Stage 0's losses: a scale- and shift-invariant L1 (relative targets of real photos), a
+plain L1 (absolute targets of generated scenes) and multi-scale gradient matching (MiDaS)."""
+
+from __future__ import annotations
+
+import torch.nn.functional as F
+from torch import Tensor
+
+__all__ = ["depth_loss", "gradient_matching_loss", "ssi_align"]
+
+
+def ssi_align(pred: Tensor, target: Tensor) -> Tensor:
+    """``pred`` scaled and shifted per sample to fit ``target`` in least squares.
+
+    Shape: (B, 1, H, W) and (B, 1, H, W) -> (B, 1, H, W).
+    """
+    p = pred.flatten(1)
+    t = target.flatten(1)
+    pm, tm = p.mean(1, keepdim=True), t.mean(1, keepdim=True)
+    pc = p - pm
+    scale = (pc * (t - tm)).sum(1, keepdim=True) / pc.pow(2).sum(1, keepdim=True).clamp_min(1e-6)
+    return (scale * pc + tm).view_as(pred)
+
+
+def gradient_matching_loss(pred: Tensor, target: Tensor, scales: int = 4) -> Tensor:
+    """MiDaS gradient matching: mean |grad(pred - target)| over ``scales`` halvings."""
+    diff = pred - target
+    total = pred.new_zeros(())
+    for s in range(scales):
+        if s:
+            diff = F.avg_pool2d(diff, 2)
+        gx = (diff[..., :, 1:] - diff[..., :, :-1]).abs().mean()
+        gy = (diff[..., 1:, :] - diff[..., :-1, :]).abs().mean()
+        total = total + gx + gy
+    return total / scales
+
+
+def depth_loss(
+    pred: Tensor,
+    target: Tensor,
+    relative: Tensor,
+    absolute_weight: float = 0.25,
+    grad_weight: float = 1.0,
+) -> tuple[Tensor, dict[str, float]]:
+    """Stage-0 loss of a batch (see the module docstring)."""
+    rel = relative.to(pred.device).view(-1, 1, 1, 1).to(pred.dtype)
+    aligned = ssi_align(pred, target)
+    fit = rel * aligned + (1 - rel) * pred
+    l1 = (fit - target).abs().mean()
+    absolute = (rel * (pred - target).abs()).mean()
+    grad = gradient_matching_loss(fit, target)
+    loss = l1 + absolute_weight * absolute + grad_weight * grad
+    return loss, {"l1": l1.item(), "abs": absolute.item(), "grad": grad.item()}
