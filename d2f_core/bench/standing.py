@@ -110,9 +110,14 @@ def in_front(pred: np.ndarray, mask: np.ndarray) -> tuple[bool, float]:
     return margin > 0, margin
 
 
-def score(predictors: dict[str, Callable[[np.ndarray], np.ndarray]], cases: Sequence[Case]) -> dict:
+def score(
+    predictors: dict[str, Callable[[np.ndarray], np.ndarray]],
+    cases: Sequence[Case],
+    maps: dict | None = None,
+) -> dict:
     """Per case and predictor ``(passes, margin)``, and per kind and predictor the share
-    of cases passing and the median margin."""
+    of cases passing and the median margin; ``maps`` (a dict) receives each predictor's map
+    by ``(case name, predictor)``, for :func:`contact_sheet`."""
     from ..train.depth_train import resize_array
 
     per_case: dict[str, dict] = {}
@@ -120,6 +125,8 @@ def score(predictors: dict[str, Callable[[np.ndarray], np.ndarray]], cases: Sequ
         row = {}
         for pname, fn in predictors.items():
             pred = resize_array(fn(image), mask.shape)
+            if maps is not None:
+                maps[(name, pname)] = pred
             ok, margin = in_front(pred, mask)
             row[pname] = {"in_front": bool(ok), "margin": margin}
         per_case[name] = {"kind": kind, **row}
@@ -136,6 +143,53 @@ def score(predictors: dict[str, Callable[[np.ndarray], np.ndarray]], cases: Sequ
             for p in predictors
         }
     return {"cases": per_case, "summary": summary}
+
+
+def contact_sheet(
+    cases: Sequence[Case],
+    maps: dict,
+    result: dict,
+    predictors: Sequence[str],
+    path: str | Path,
+    per_kind: int = 3,
+    cell: int = 150,
+) -> Path:
+    """A sheet of ``per_kind`` cases of each kind: photo | subject | each predictor's map,
+    with "in front" or "BEHIND" and the margin in each map's corner."""
+    from PIL import Image, ImageDraw
+
+    chosen: list[Case] = []
+    for kind in sorted({c[1] for c in cases}):
+        chosen += [c for c in cases if c[1] == kind][:per_kind]
+    cols, header = 2 + len(predictors), 18
+    sheet = Image.new("RGB", (cols * cell, header + len(chosen) * cell), (255, 255, 255))
+    draw = ImageDraw.Draw(sheet)
+    for j, title in enumerate(["photo", "subject", *predictors]):
+        draw.text((j * cell + 4, 3), title, fill=(0, 0, 0))
+
+    def tile(arr: np.ndarray) -> Image.Image:
+        if arr.ndim == 2:
+            lo, hi = np.percentile(arr, [1, 99])
+            arr = np.repeat(np.clip((arr - lo) / max(hi - lo, 1e-9), 0, 1)[..., None], 3, 2)
+        im = Image.fromarray((np.clip(arr, 0, 1) * 255).astype(np.uint8))
+        im.thumbnail((cell, cell))
+        return im
+
+    for i, (name, kind, image, mask) in enumerate(chosen):
+        y = header + i * cell
+        tiles = [image, mask.astype(np.float32)] + [maps[(name, p)] for p in predictors]
+        for j, arr in enumerate(tiles):
+            sheet.paste(tile(arr), (j * cell, y))
+        draw.text((4, y + 2), kind, fill=(255, 255, 0))
+        for j, pname in enumerate(predictors):
+            row = result["cases"][name][pname]
+            word = "in front" if row["in_front"] else "BEHIND"
+            colour = (80, 255, 80) if row["in_front"] else (255, 60, 60)
+            draw.text(((2 + j) * cell + 4, y + 2), f"{word} {row['margin']:+.2f}", fill=colour)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    sheet.save(path)
+    return path
 
 
 def format_table(result: dict, predictors: Sequence[str]) -> str:
@@ -161,6 +215,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--no-photos", action="store_true", help="generated scenes only")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--json", type=Path, default=None)
+    p.add_argument("--sheet", type=Path, default=None, help="write a contact sheet here")
     args = p.parse_args(argv)
     import torch
 
@@ -183,8 +238,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             cases += photo_cases(args.datasets, args.teachers)
         else:
             print(f"held-out photos skipped: {args.datasets} not found", file=sys.stderr)
-    result = score(predictors, cases)
+    maps: dict = {}
+    result = score(predictors, cases, maps)
     print(format_table(result, list(predictors)))
+    if args.sheet is not None:
+        print(f"contact sheet: {contact_sheet(cases, maps, result, list(predictors), args.sheet)}")
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(result, indent=1))
