@@ -277,6 +277,7 @@ def build_demo(
                         depth_choice.choices(),
                         value=depth_choice.AUTO,
                         label="Depth from",
+                        info=depth_choice.NETWORK_NOTE,
                         elem_id="depth_source",
                     )
                     hub_model, hub_events = hub_model_input()

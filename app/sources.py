@@ -31,6 +31,13 @@ CHOICES = (
     ("Shipped network (offline)", "d2f"),
     ("Hugging Face model (id or folder below)", "transformers"),
 )
+#: What the app tells of the shipped network under the depth source choice.
+NETWORK_NOTE = (
+    "Without phone depth the shipped network guesses the depth: right for one clear subject "
+    "(a person, a pet, an object); often wrong for a thin post or pole crossing the frame, "
+    "a subject over water or a floor, rooms and flower beds. If the blur lands on your "
+    "subject, click the subject."
+)
 HUB_PLACEHOLDER = "depth-anything/Depth-Anything-V2-Small-hf"
 #: Longest model id or folder name taken from a client (hub ids are at most 96 + 1 + 96).
 MAX_MODEL_NAME = 200
