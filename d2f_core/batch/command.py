@@ -133,13 +133,21 @@ def _remove_stale_partials(folders: set[Path]) -> None:
 
 
 def _alive(pid: int) -> bool:
+    """Whether process ``pid`` still runs. A killed worker whose parent died too can stay a
+    zombie that nothing reaps (a container's first process may not), and a signal still
+    reaches it: it counts as gone."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
         return False
     except PermissionError:
         return True
-    return True
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return True  # no /proc here: trust the signal
+    # the state follows the command name, which is in parentheses and may hold spaces
+    return stat[stat.rfind(")") + 2 : stat.rfind(")") + 3] not in ("Z", "X")
 
 
 def _show(row: dict[str, Any], here: str) -> None:
