@@ -129,19 +129,14 @@ class SceneTeachers:
 
 def _interleaved(photos: list) -> list:
     """The photos taken round-robin over their sources, so that any first part of the list
-    (labels written so far) holds every kind of photo in proportion."""
+    (labels written so far) holds every kind of photo in proportion: a source's k-th photo
+    comes at the fraction (k + 0.5) / its count of the way."""
     by_source: dict[str, list] = {}
     for p in photos:
         by_source.setdefault(p.source, []).append(p)
     queues = sorted(by_source.values(), key=len, reverse=True)
-    total = len(photos)
-    out = []
-    # source i contributes its k-th photo at position (k + 0.5) / len_i of the way
     keyed = [((k + 0.5) / len(q), i, p) for i, q in enumerate(queues) for k, p in enumerate(q)]
-    for _, _, p in sorted(keyed, key=lambda t: (t[0], t[1])):
-        out.append(p)
-    assert len(out) == total
-    return out
+    return [p for _, _, p in sorted(keyed, key=lambda t: (t[0], t[1]))]
 
 
 def label_scene_photos(
@@ -161,41 +156,20 @@ def label_scene_photos(
     from the i-th, for ``n`` processes side by side. Held-out photos are skipped unless
     ``heldout``. Returns the number labelled in this call.
     """
-    import logging
-    import time
-
     from .heldout import is_heldout
-    from .teachers import Teachers, iter_photos
+    from .teachers import Teachers, iter_photos, write_labels
 
-    log = logging.getLogger(__name__)
-    root, out = Path(root), Path(out)
+    root = Path(root)
     folder = Path(teachers) if teachers is not None else root / "teachers"
-    out.mkdir(parents=True, exist_ok=True)
     photos = [p for p in iter_photos(root) if heldout or not is_heldout(p)]
     index, count = shard
-    mine = _interleaved(photos)[index::count]
     old, new = Teachers(folder, threads), SceneTeachers(folder, threads)
-    done, t0 = 0, time.perf_counter()
-    for photo in mine:
-        dst = out / f"{photo.key}.npz"
-        if dst.is_file():
-            continue
-        try:
-            with Image.open(photo.path) as im:
-                rgb = im.convert("RGB")
-        except OSError as exc:
-            log.warning("%s: unreadable, skipped (%s)", photo.path, exc)
-            continue
+
+    def label(photo, rgb: Image.Image) -> dict[str, np.ndarray]:
         fg, depth = old(rgb)
-        maps = new(rgb, saliency=photo.mask is None)
-        tmp = dst.with_suffix(".tmp.npz")
-        np.savez_compressed(tmp, fg=fg, depth=depth, **maps)
-        tmp.replace(dst)
-        done += 1
-        if done % 50 == 0:
-            rate = done / (time.perf_counter() - t0)
-            log.info("labelled %d of %d photos (%.2f per s)", done, len(mine), rate)
-    return done
+        return {"fg": fg, "depth": depth, **new(rgb, saliency=photo.mask is None)}
+
+    return write_labels(_interleaved(photos)[index::count], Path(out), label, log_every=50)
 
 
 def run_label_scene(argv=None) -> int:

@@ -19,7 +19,7 @@ from __future__ import annotations
 import argparse
 import logging
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -39,6 +39,7 @@ __all__ = [
     "read_mask",
     "run_label",
     "subject_cutout",
+    "write_labels",
 ]
 
 logger = logging.getLogger(__name__)
@@ -240,21 +241,22 @@ class FeatureTeacher:
         return np.concatenate(feats, axis=0).astype(np.float32)
 
 
-def label_photos(
-    root: str | Path, out: str | Path, teachers: str | Path | None = None, threads: int = 2
+def write_labels(
+    photos: Iterable[Photo],
+    out: Path,
+    label: Callable[[Photo, Image.Image], dict[str, np.ndarray]],
+    log_every: int = 200,
 ) -> int:
-    """Run the teachers over every photo of ``root`` that has no label in ``out`` yet.
+    """Write ``label(photo, rgb)``'s arrays to ``out/<key>.npz`` for each photo that has no
+    label there yet (so a killed run resumes), each file under a temporary name and renamed.
 
     Returns the number of photos labelled in this call. A photo that cannot be read is
     logged and skipped.
     """
-    root, out = Path(root), Path(out)
-    teachers = Path(teachers) if teachers is not None else root / "teachers"
     out.mkdir(parents=True, exist_ok=True)
-    net = Teachers(teachers, threads)
     done = 0
     t0 = time.perf_counter()
-    for photo in iter_photos(root):
+    for photo in photos:
         dst = out / f"{photo.key}.npz"
         if dst.is_file():
             continue
@@ -264,14 +266,28 @@ def label_photos(
         except OSError as exc:
             logger.warning("%s: unreadable, skipped (%s)", photo.path, exc)
             continue
-        fg, depth = net(rgb)
         tmp = dst.with_suffix(".tmp.npz")
-        np.savez_compressed(tmp, fg=fg, depth=depth)
+        np.savez_compressed(tmp, **label(photo, rgb))
         tmp.replace(dst)
         done += 1
-        if done % 200 == 0:
+        if done % log_every == 0:
             logger.info("labelled %d photos (%.1f s)", done, time.perf_counter() - t0)
     return done
+
+
+def label_photos(
+    root: str | Path, out: str | Path, teachers: str | Path | None = None, threads: int = 2
+) -> int:
+    """Run the teachers over every photo of ``root`` that has no label in ``out`` yet
+    (:func:`write_labels`); returns the number of photos labelled in this call."""
+    root = Path(root)
+    net = Teachers(Path(teachers) if teachers is not None else root / "teachers", threads)
+
+    def label(photo: Photo, rgb: Image.Image) -> dict[str, np.ndarray]:
+        fg, depth = net(rgb)
+        return {"fg": fg, "depth": depth}
+
+    return write_labels(iter_photos(root), Path(out), label)
 
 
 def read_label(path: str | Path, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
