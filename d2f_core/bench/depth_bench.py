@@ -42,6 +42,7 @@ __all__ = [
     "heldout_masks",
     "main",
     "measured_photos",
+    "network_predictors",
     "ramp_predictor",
     "rank_mix",
     "rankdata",
@@ -268,6 +269,19 @@ def network_predictor(weights: str | Path | None = None) -> Predictor:
     return _remember_last(lambda image: model.prepare(image).disparity_full())
 
 
+def network_predictors(specs: Sequence[str] | None) -> dict[str, Predictor]:
+    """``--weights [NAME=]PATH`` options as predictors, by name (the shipped weights, as
+    ``"network"``, when there are none; a path without a name is named by its stem)."""
+    out: dict[str, Predictor] = {}
+    for spec in specs or [None]:
+        if spec is not None and "=" in spec:
+            name, path = spec.split("=", 1)
+        else:
+            name, path = ("network" if spec is None else Path(spec).stem), spec
+        out[name] = network_predictor(path)
+    return out
+
+
 def _remember_last(fn: Callable[[np.ndarray], Any]) -> Callable[[np.ndarray], Any]:
     """``fn`` that keeps its result for the photo it last ran on, for predictors that ask
     for the same photo's maps in turn (photos are never changed in place)."""
@@ -339,7 +353,10 @@ def teacher_predictors(folder: str | Path, threads: int = 1) -> dict[str, Predic
         rgb = Image.fromarray((np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8))
         size = _eval_size(*image.shape[:2])
         fg, disp = label_maps(*net(rgb), size)
-        out: dict[str, Any] = {"fg": fg, "disp": disp}
+        weight = teacher_weight(disp)
+        out: dict[str, Any] = {"fg": fg, "disp": disp, "weight": weight}
+        out["layout"] = teacher_layout(disp, weight)
+        out["voc"] = teacher_subject(fg)
         if scene_net is not None:
             h, w = size
             labels = scene_net(rgb)
@@ -352,13 +369,11 @@ def teacher_predictors(folder: str | Path, threads: int = 1) -> dict[str, Predic
         return maps(image)["disp"]
 
     def layout(image: np.ndarray) -> np.ndarray:
-        return teacher_layout(maps(image)["disp"])
+        return maps(image)["layout"]
 
     def targets(image: np.ndarray) -> np.ndarray:
         m = maps(image)
-        alpha = teacher_subject(m["fg"])
-        base = teacher_layout(m["disp"])
-        return base if alpha is None else subject_target(base, alpha)
+        return m["layout"] if m["voc"] is None else subject_target(m["layout"], m["voc"])
 
     found = {"teacher": teacher, "layout": layout, "targets": targets}
     if scene_net is None:
@@ -367,7 +382,7 @@ def teacher_predictors(folder: str | Path, threads: int = 1) -> dict[str, Predic
 
     def sky_ground(image: np.ndarray) -> np.ndarray:
         m = maps(image)
-        return scene_layout(m["ade"], teacher_layout(m["disp"]), teacher_weight(m["disp"]))[0]
+        return scene_layout(m["ade"], m["layout"], m["weight"])[0]
 
     def silhouette(image: np.ndarray) -> np.ndarray:
         sal = maps(image)["sal"]
@@ -376,9 +391,7 @@ def teacher_predictors(folder: str | Path, threads: int = 1) -> dict[str, Predic
 
     def new_targets(image: np.ndarray) -> np.ndarray:
         m = maps(image)
-        base, wt = teacher_layout(m["disp"]), teacher_weight(m["disp"])
-        voc = teacher_subject(m["fg"])
-        return scene_target(m["ade"], base, wt, sal=m["sal"], voc=voc)
+        return scene_target(m["ade"], m["layout"], m["weight"], sal=m["sal"], voc=m["voc"])
 
     found.update({"sky+ground": sky_ground, "silhouette": silhouette, "scene targets": new_targets})
     return found
@@ -549,20 +562,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     logging.basicConfig(level=logging.WARNING)
     predictors: dict[str, Predictor] = {"ramp": ramp_predictor}
     try:
-        networks = []
-        for spec in args.weights or [None]:
-            if spec is not None and "=" in spec:
-                name, path = spec.split("=", 1)
-            else:
-                name, path = ("network" if spec is None else Path(spec).stem), spec
-            predictors[name] = network_predictor(path)
-            networks.append(name)
+        networks = network_predictors(args.weights)
+        predictors.update(networks)
         if args.teachers is not None:
             found = teacher_predictors(args.teachers, args.threads)
             predictors.update(found)
             # how far the first network's map and the teachers' maps go together: a
             # ceiling for what stage 0 can learn from these teachers
-            net = networks[0]
+            net = next(iter(networks))
             for key in ("layout", "targets", "scene targets"):
                 if key in found:
                     predictors[f"{net}+{key}"] = rank_mix(predictors[net], found[key])

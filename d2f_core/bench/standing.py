@@ -205,7 +205,7 @@ def format_table(result: dict, predictors: Sequence[str]) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from .depth_bench import DEFAULT_DATASETS, network_predictor, ramp_predictor
+    from .depth_bench import DEFAULT_DATASETS, network_predictors, ramp_predictor
 
     p = argparse.ArgumentParser(prog="d2f-bench standing", description=__doc__.split("\n\n")[0])
     p.add_argument("--weights", action="append", default=None, metavar="[NAME=]PATH")
@@ -223,12 +223,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     logging.basicConfig(level=logging.WARNING)
     predictors: dict[str, Callable] = {"ramp": ramp_predictor}
     try:
-        for spec in args.weights or [None]:
-            if spec is not None and "=" in spec:
-                name, path = spec.split("=", 1)
-            else:
-                name, path = ("network" if spec is None else Path(spec).stem), spec
-            predictors[name] = network_predictor(path)
+        predictors.update(network_predictors(args.weights))
     except (FileNotFoundError, ValueError) as exc:
         print(f"d2f-bench standing: error: {exc}", file=sys.stderr)
         return 1

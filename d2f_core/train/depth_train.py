@@ -182,10 +182,10 @@ class RealDepthData:
             alpha = feather(resize_array(mask, (rh, rw)) >= 0.5, 1.0)
         else:
             alpha = teacher_subject(fg, self.fg_min_area, self.fg_max_area)
-        layout = teacher_layout(teacher, self.layout_teacher)
+        wt = teacher_weight(teacher) if self.layout_teacher < 0 else self.layout_teacher
+        layout = teacher_layout(teacher, wt)
         scene = read_scene_label(label, (rh, rw)) if self.scene else None
         if scene is not None:  # the scene model's target, subjects and occluders stood on it
-            wt = teacher_weight(teacher) if self.layout_teacher < 0 else self.layout_teacher
             voc = None if mask is not None else alpha
             layout = scene_target(scene["ade"], layout, wt, alpha if mask is not None else None,
                                   scene["sal"], voc)  # fmt: skip
