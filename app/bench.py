@@ -38,7 +38,8 @@ from PIL import Image
 from app import imaging
 from app.cache import SceneCache
 from app.handlers import RefocusApp
-from app.settings import PREVIEW_MAX_SIDE, f_number_for
+from app.settings import PREVIEW_MAX_SIDE
+from d2f_core.lens import f_number_for
 
 #: Targets on the project's 2-core CPU, in ms (see the issue).
 TARGETS_MS = {"preview_core": 60.0, "full_core": 1500.0, "prepare": 3000.0}

@@ -19,17 +19,13 @@ from app.reporting import DOWNLOAD_WAIT, NO_PHOTO, SKIP4, user_error
 from app.sessions import DISPLAY_FILES_KEPT, Session, SessionClosed, prune_files, reported
 from app.settings import (
     FOCAL_RANGE_MAX,
-    LENS_FOCAL_MM,
-    MAX_BLUR_PX,
-    NEAREST_M,
     PREVIEW_MAX_SIDE,
     REFERENCE_SIZE,
-    SENSOR_WIDTH_MM,
     VIEWS,
     RenderParams,
-    blur_px,
     position_of,
 )
+from d2f_core.lens import LENS_FOCAL_MM, MAX_BLUR_PX, NEAREST_M, SENSOR_WIDTH_MM, blur_px
 from d2f_core.rendering.kernels import PAPER_GROWING_SIZES
 
 MAX_DEFOCUS_COC = max(PAPER_GROWING_SIZES)

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from app.reporting import user_error
-from d2f_core.lens import FOCUS_DECIMALS, focus_of_position, position_of_focus
+from d2f_core.lens import FOCUS_DECIMALS, blur_px, focus_of_position, position_of_focus
 
 #: The adaptive renderer's error budgets (``D2F.render(budget=...)``), fastest last.
 QUALITIES = ("high", "balanced", "fast")
@@ -39,19 +39,11 @@ FOCAL_RANGE_STEP = 0.001
 # sensor is about F^2 / N * |1/z - 1/z_f| = F^2 / (N z_near) * |d - d_f|, so the library's K
 # (blur circle diameter in px at full resolution for |d - f| = 1) is
 #     K = F^2 / (N z_near) * (long side in px / sensor width).
-#: The virtual lens: focal length F (mm) on a full-frame sensor (its 36 mm width spans the
-#: photo's long side), with the nearest point of the photo this far away (m).
-LENS_FOCAL_MM = 50.0
-SENSOR_WIDTH_MM = 36.0
-NEAREST_M = 1.0
-#: K per pixel of the photo's long side at f/1: F^2 / (z_near * sensor width) = 0.0694.
-BLUR_PER_PX_AT_F1 = LENS_FOCAL_MM**2 / (NEAREST_M * 1000.0 * SENSOR_WIDTH_MM)
+# The lens itself (F, sensor, z_near, K per px at f/1, the 300 px cap) is d2f_core.lens's,
+# which d2f render --f-number reads too.
 #: The aperture slider's range and default: f/1 (most blur) to f/22.
 F_NUMBER_RANGE = (1.0, 22.0)
 DEFAULT_F_NUMBER = 1.4
-#: K is capped here (the old px slider's top, and the range the renderer is timed for):
-#: f/1 reaches it on a long side of 4320 px and more (12 MP at 3:2), 278 px at 4000 px.
-MAX_BLUR_PX = 300.0
 #: The photo size the blur note under the aperture slider describes before an upload.
 REFERENCE_SIZE = (4000, 3000)
 
@@ -65,18 +57,6 @@ def disparity_of(position: float) -> float:
 def position_of(disparity: float) -> float:
     """The focus slider position (0 = nearest, 1 = farthest) of a disparity (1 = near)."""
     return position_of_focus(disparity)
-
-
-def blur_px(f_number: float, long_side: int) -> float:
-    """K (px at full resolution, for |d - f| = 1) of the virtual lens at ``f_number`` on a
-    photo whose long side is ``long_side`` px, capped at :data:`MAX_BLUR_PX`, to 0.1 px."""
-    return round(min(MAX_BLUR_PX, BLUR_PER_PX_AT_F1 * long_side / float(f_number)), 1)
-
-
-def f_number_for(blur: float, long_side: int) -> float:
-    """The f-number whose K is ``blur`` px on a photo with this long side (inverse of
-    :func:`blur_px` below the cap), to 3 decimals."""
-    return round(BLUR_PER_PX_AT_F1 * long_side / float(blur), 3)
 
 
 #: The CoC (px at the render pass) that the defocus map draws as 1 (the paper's schedule).

@@ -27,7 +27,7 @@ SESSIONS = 16
 #: The /load inputs of the Depth source control: automatic choice, no hub model.
 SOURCE = {"depth_source": "auto", "hub_model": ""}
 #: The aperture slider's widest: f/1 gives K = 11-19 px on the 160-280 px photos of the
-#: 16-session test and 55.6 px on the 800x600 ones (app.settings.blur_px).
+#: 16-session test and 55.6 px on the 800x600 ones (d2f_core.lens.blur_px).
 F1 = 1.0
 #: RSS growth allowed while 16 sessions open and move sliders. Measured on the 2-core
 #: machine: 170-220 MB (16 scenes and session states of ~4 MB each, malloc arenas of the

@@ -25,13 +25,13 @@ from app.settings import (
     RenderParams,
     blur_px,
     disparity_of,
-    f_number_for,
     position_of,
 )
 from d2f_core import io as d2f_io
+from d2f_core.lens import f_number_for
 
 #: f/0.5, the widest aperture the handlers take (the page's slider starts at f/1): K = 44.4 px
-#: on the 320 px wide test photo (app.settings.blur_px), both planes far out of focus when
+#: on the 320 px wide test photo (d2f_core.lens.blur_px), both planes far out of focus when
 #: the other is focused. (The tiny random model's fusion keeps much of the sharp input where
 #: a blur is under about 30 px: at f/1, 22 px, the far plane kept 60 % of its sharpness.)
 APERTURE = 0.5
@@ -409,10 +409,10 @@ class TestRenderParams:
 
 class TestLoad:
     def test_upload_with_disparity(self, logic, two_plane_scene, sharpness, monkeypatch):
-        from app import settings
+        from d2f_core import lens
 
         # a lens whose f/1 blurs the 320 px photo by K = 120 px
-        monkeypatch.setattr(settings, "BLUR_PER_PX_AT_F1", 120 / 320)
+        monkeypatch.setattr(lens, "BLUR_PER_PX_AT_F1", 120 / 320)
         scene = two_plane_scene
         out = logic.load(str(scene.photo), str(scene.disparity), "disparity", None, 0.5, 1.0)
         session = out[0]
@@ -619,11 +619,11 @@ class TestRender:
         assert "layers" in logic.render_preview(session, 0.45, APERTURE)[3]
 
     def test_quality_option_sets_the_budget(self, loaded, monkeypatch):
-        from app import settings
+        from d2f_core import lens
 
         logic, session, _ = loaded
         # a lens whose f/1 reaches the 300 px cap on the 320 px photo
-        monkeypatch.setattr(settings, "BLUR_PER_PX_AT_F1", 1.0)
+        monkeypatch.setattr(lens, "BLUR_PER_PX_AT_F1", 1.0)
         info = {}
         for quality in ("high", "fast"):
             info[quality] = logic.render_full(session, 0.0, 1.0, quality=quality)[-1]

@@ -139,11 +139,12 @@ class TestPlan:
 
 class TestLens:
     def test_same_numbers_as_the_app(self):
-        handlers = pytest.importorskip("app.settings", reason="the app needs gradio")
+        settings = pytest.importorskip("app.settings", reason="the app needs gradio")
+        app_bench = pytest.importorskip("app.bench", reason="the app needs gradio")
         for n in (1.0, 1.4, 2.8, 8.0, 22.0):
             for side in (128, 1536, 4000, 6000):
-                assert blur_px(n, side) == handlers.blur_px(n, side)
-                assert f_number_for(40.0, side) == handlers.f_number_for(40.0, side)
+                assert blur_px(n, side) == settings.blur_px(n, side)
+                assert f_number_for(40.0, side) == app_bench.f_number_for(40.0, side)
 
     def test_bad_input(self):
         with pytest.raises(ValueError, match="f_number"):
