@@ -5,8 +5,10 @@ Chromium (Debian's ``/usr/bin/chromium`` through Playwright) and times what a ph
 waits for: from the action in the page to the new picture loaded in the result panel
 (``#result img`` with another ``src``, ``naturalWidth > 0``):
 
-* ``upload``: the photo file given to ``#input``'s file input -> the first bokeh shown. Each
-  repeat uploads another file (one corner block differs), so no upload hits the scene cache.
+* ``upload``: the photo file given to ``#input``'s file input -> the first bokeh shown (a
+  large photo's first look at the render pass's size). Each repeat uploads another file (one
+  corner block differs), so no upload hits the scene cache.
+* ``upload_full``: the same upload -> its full-resolution render shown.
 * ``click``: a click on the photo (click-to-focus) -> the refocused picture.
 * ``release``: the mouse let go at the end of a drag of the ``#blur`` slider -> the
   full-resolution picture (the status line ``#info`` names a full render).
@@ -51,14 +53,16 @@ SIZES = {"small": (800, 600), "12mp": (4000, 3000)}
 #: Rows of the table: key -> what is timed.
 ROWS = {
     "upload": "upload -> first bokeh",
+    "upload_full": "upload -> full-resolution bokeh",
     "click": "click on photo -> refocused",
     "release": "slider release -> full render",
     "drag_step": "drag step -> preview",
 }
 
 
-#: Targets at 12 MP in ms (the issue "The app, as a photographer uses it"); upload has none.
-TARGETS_MS = {"click": 1500.0, "release": 2000.0, "drag_step": 150.0}
+#: Targets at 12 MP in ms on a quiet machine (the issues "The app, as a photographer uses
+#: it" and "The clicked subject stays sharp"); the full render after an upload has none.
+TARGETS_MS = {"upload": 2500.0, "click": 1500.0, "release": 2000.0, "drag_step": 150.0}
 
 
 #: Photos of at least this many pixels are held to :data:`TARGETS_MS`.
@@ -99,7 +103,9 @@ def bench_size(
     warmup = probe.upload(photos[0], upload_timeout_ms)
     probe.settle()
     for path in photos[1 : repeats + 1]:
-        results["upload"].append(probe.upload(path, upload_timeout_ms))
+        out = probe.upload(path, upload_timeout_ms)
+        results["upload"].append({**out, "ms": out["first_ms"]})
+        results["upload_full"].append(out)
         probe.settle()
     for i in range(repeats + 1):
         out = probe.click_photo(*CLICK_POINTS[i % len(CLICK_POINTS)])

@@ -211,12 +211,21 @@ class Probe:
 
     # ------------------------------------------------------------------ actions
     def upload(self, path: Path, timeout_ms: float) -> dict[str, Any]:
+        """Upload ``path``; :meth:`wait_result`'s figures of its full render, and
+        ``first_ms``: the time to the first picture (a large photo's first look)."""
         old = self.state()
         start = self.event_count()
         self.page.set_input_files("#input input[type=file]", str(path))
         since = self.event_time(start, "change", "input")
+        # the first picture: a large photo's first look, else its full render
+        first_js = """([since, old]) => window.__bench.loads.find(
+            (l) => l.t >= since && l.src !== old && l.w > 0)?.t ?? null"""
+        self.page.wait_for_function(f"(a) => ({first_js})(a) !== null", arg=[since, old[0]],
+                                    timeout=timeout_ms, polling=20)  # fmt: skip
+        first = float(self.page.evaluate(first_js, [since, old[0]])) - since
         out = self.wait_result(since, old, f"upload of {path.name}", FULL_RENDER_RE,
                                timeout_ms=timeout_ms)  # fmt: skip
+        out["first_ms"] = first
         # the photo panel's picture is what the next click lands on
         self.page.wait_for_function(
             "() => { const i = document.querySelector('#input img');"

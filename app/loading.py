@@ -11,7 +11,7 @@ import logging
 import shutil
 import time
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -22,7 +22,14 @@ from app import imaging, sources
 from app.cache import content_key
 from app.reporting import user_error
 from app.sessions import Session, SessionClosed, no_scene, reported
-from app.settings import PANEL_PREFIX, VIEWS, RenderParams, disparity_of, position_of
+from app.settings import (
+    FIRST_LOOK_PIXELS,
+    PANEL_PREFIX,
+    VIEWS,
+    RenderParams,
+    disparity_of,
+    position_of,
+)
 from app.uploads import NOT_AN_UPLOAD
 
 # the app's events log under one name, whichever module holds them
@@ -63,13 +70,28 @@ def _remember_load_error(fn: Callable) -> Callable:
     chained :meth:`RefocusApp.after_failed_load` can show it in the status line."""
     signature = inspect.signature(fn)
 
+    def note(self, args: tuple, kwargs: dict, err: gr.Error) -> None:
+        request = signature.bind_partial(self, *args, **kwargs).arguments.get("request")
+        self.note_load_error(getattr(request, "session_hash", None), str(err.message))
+
+    if inspect.isgeneratorfunction(fn):
+
+        @functools.wraps(fn)
+        def steps(self, *args, **kwargs):
+            try:
+                yield from fn(self, *args, **kwargs)
+            except gr.Error as err:
+                note(self, args, kwargs, err)
+                raise
+
+        return steps
+
     @functools.wraps(fn)
     def wrapper(self, *args, **kwargs):
         try:
             return fn(self, *args, **kwargs)
         except gr.Error as err:
-            request = signature.bind_partial(self, *args, **kwargs).arguments.get("request")
-            self.note_load_error(getattr(request, "session_hash", None), str(err.message))
+            note(self, args, kwargs, err)
             raise
 
     return wrapper
@@ -79,9 +101,15 @@ class LoadEvents:
     """The upload events of a :class:`~app.handlers.RefocusApp`: a photo and its depth
     source loaded into a session."""
 
+    def load(self, *args: Any, **kwargs: Any) -> tuple:
+        """:meth:`load_steps` without a first look: the outputs of the full-resolution
+        render (the same arguments)."""
+        *_, last = self.load_steps(*args, first_look=False, **kwargs)
+        return last
+
     @_remember_load_error
     @reported
-    def load(
+    def load_steps(
         self,
         image: Any,
         depth: Any,
@@ -99,8 +127,15 @@ class LoadEvents:
         hub_model: Any = "",
         blur_on: Any = True,
         request: gr.Request | None = None,
-    ) -> tuple:
+        *,
+        first_look: bool = True,
+    ) -> Iterator[tuple]:
         """Decode an upload (and optional depth map), prepare it (cached), render it.
+
+        A generator of the outputs: with ``first_look``, a photo over
+        :data:`~app.settings.FIRST_LOOK_PIXELS` is shown first at the size of the render
+        pass (:meth:`_render_first_look`, a fifth of the full render's time at 12 MP), then at
+        full resolution; else the full render only.
 
         ``focus`` is the focus slider's position (0 = nearest, 1 = farthest), ``f_number``
         the aperture (K follows from the photo's long side, :func:`blur_px`), ``blur_on``
@@ -121,7 +156,8 @@ class LoadEvents:
             if session is not None:
                 session.close()
             cleared = (gr.update(value=None), gr.update(value=None), gr.update(visible=False))
-            return (None, gr.skip(), *cleared, "")
+            yield (None, gr.skip(), *cleared, "")
+            return
         params = RenderParams.from_inputs(
             focus, f_number, blades, rotation, highlight_boost, fusion, quality, blur_on,
             size=None,
@@ -212,21 +248,31 @@ class LoadEvents:
             self._write_panel(new)
         self._register(new)
         session = new
-        try:
-            outputs = self._render_full(session, params, view, scene)
-        except BaseException:
-            session.close()
-            raise
         prep = "cached scene" if cached else f"prepare {1000 * (t_prepare - t_decode):.0f} ms"
         log.info(
             "loaded %s (%dx%d), depth: %s, %s %r", session.name, *session.size, source, prep, image
         )
-        info = (
-            outputs[3]
-            + f" | decode {1000 * (t_decode - t0):.0f} ms | {prep} | depth: {source}"
-            + subject
-        )
-        return (session, new_focus, *outputs[:3], info)
+        loaded = f" | decode {1000 * (t_decode - t0):.0f} ms | {prep} | depth: {source}{subject}"
+        looked = first_look and session.size[0] * session.size[1] > FIRST_LOOK_PIXELS
+        if looked:
+            try:
+                outputs = self._render_first_look(session, params, view, scene)
+            except Exception:
+                session.close()
+                raise
+            yield (session, new_focus, *outputs[:3], outputs[3] + loaded)
+            new_focus = gr.skip()  # set by the first look (the user may have moved it since)
+        try:
+            outputs = self._render_full(session, params, view, scene, newest=not looked)
+        except Exception:
+            session.close()
+            raise
+        del scene
+        if not isinstance(outputs[3], str):
+            # another value was set after the first look: its own render replaces it
+            yield (session, new_focus, *outputs)
+            return
+        yield (session, new_focus, *outputs[:3], outputs[3] + loaded)
 
     def _decode(
         self,

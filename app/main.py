@@ -312,17 +312,28 @@ def build_demo(
         shown = [result, compare, legend, info]
 
         def load_ui(*values):
-            outputs = logic.load(*values)
-            # a Lens Blur file: the panel shows the embedded original the app renders from
-            return (*holding_download(outputs), logic.photo_panel(outputs[0]))
+            # a large photo's first look, then its full render (an API client gets the last)
+            panel = None
+            for outputs in logic.load_steps(*values):
+                # a Lens Blur file: the panel shows the embedded original the app renders
+                # from (set once)
+                panel = logic.photo_panel(outputs[0]) if panel is None else gr.skip()
+                yield (*holding_download(outputs), panel)
 
         def render_full_ui(*values):
             return holding_download(logic.render_full(*values))
 
         # the handlers' parameters name the API's inputs, and Gradio passes the request
         # (the tab's session hash, for load) by its annotation
-        for ui, fn in ((load_ui, logic.load), (render_full_ui, logic.render_full)):
-            ui.__signature__ = inspect.signature(fn)
+        load_signature = inspect.signature(logic.load_steps)
+        load_signature = load_signature.replace(
+            parameters=[p for p in load_signature.parameters.values() if p.name != "first_look"]
+        )
+        for ui, signature in (
+            (load_ui, load_signature),
+            (render_full_ui, inspect.signature(logic.render_full)),
+        ):
+            ui.__signature__ = signature
             ui.__annotations__ = {"request": gr.Request}
 
         load_io = {

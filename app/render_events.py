@@ -18,6 +18,7 @@ from app.command import render_command
 from app.reporting import DOWNLOAD_WAIT, NO_PHOTO, SKIP4, user_error
 from app.sessions import DISPLAY_FILES_KEPT, Session, SessionClosed, prune_files, reported
 from app.settings import (
+    FIRST_LOOK_MAX_SIDE,
     FOCAL_RANGE_MAX,
     PREVIEW_MAX_SIDE,
     REFERENCE_SIZE,
@@ -202,10 +203,22 @@ class RenderEvents:
         return f"f/{n:g}: blur K = {k:g} px{capped} on {where} ({lens})"
 
     def _render_full(
-        self, session: Session, params: RenderParams, view: str, scene: Any = None
+        self,
+        session: Session,
+        params: RenderParams,
+        view: str,
+        scene: Any = None,
+        *,
+        newest: bool = True,
     ) -> tuple:
+        """Render ``params`` at full resolution and show it: ``(result, compare, legend,
+        info)``, or skips when another value was set meanwhile. ``newest`` False: the render
+        of values set earlier (an upload's, after its first look), skipped at once when the
+        user has set others since."""
         session.touch()
         with session.lock:
+            if not newest and not session.still_wanted(params):
+                return SKIP4
             session.full_seq += 1
             seq = session.full_seq
             session.full_params = params
@@ -242,6 +255,33 @@ class RenderEvents:
             self._store_views(session, result, bokeh)
         extra = self._settings_text(result.settings, params.quality)
         info = self._info(session, params, "full", ms, extra) + f" | reproduce: {command}"
+        return (*self.view_outputs(session, view), info)
+
+    def _render_first_look(
+        self, session: Session, params: RenderParams, view: str, scene: Any
+    ) -> tuple:
+        """A new upload's first picture, rendered at :data:`FIRST_LOOK_MAX_SIDE` while its
+        full-resolution render follows (:meth:`LoadEvents.load_steps`).
+
+        It holds ``params`` as the full render's (being rendered): a preview of the same
+        values (the focus slider set by the load) is skipped. Returns ``(result, compare,
+        legend, info)``.
+        """
+        with session.lock:
+            session.full_seq += 1
+            session.full_params = params
+            session.wanted = params
+        t0 = time.perf_counter()
+        result = self.model.render(
+            scene, params.focus, params.blur, max_side=FIRST_LOOK_MAX_SIDE,
+            **params.render_options(),
+        )  # fmt: skip
+        ms = 1000 * (time.perf_counter() - t0)
+        bokeh = imaging.to_uint8(result.bokeh)
+        with session.lock:
+            self._store_views(session, result, bokeh)
+        w, h = bokeh.shape[1], bokeh.shape[0]
+        info = self._info(session, params, "first look", ms, f"{w}x{h}, full resolution follows")
         return (*self.view_outputs(session, view), info)
 
     @reported

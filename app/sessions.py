@@ -7,6 +7,7 @@ turns its failures into messages.
 from __future__ import annotations
 
 import functools
+import inspect
 import logging
 import shutil
 import threading
@@ -234,46 +235,72 @@ def _closed_message(held: list[Session]) -> str:
     return next((s.closed_message for s in held if s.closed and s.closed_message), CLOSED_MESSAGE)
 
 
+def _refusal(name: str, err: Exception, held: list[Session]) -> Exception:
+    """The ``gr.Error`` a user sees for ``err`` raised by the event ``name``, logged."""
+    if isinstance(err, gr.Error):
+        log.info("%s refused: %s", name, one_line(err.message))
+        return err
+    if isinstance(err, SessionClosed):
+        log.info("%s refused: the session was closed", name)
+        return user_error(_closed_message(held))
+    if any(session.closed for session in held):
+        # the tab was closed (or the session expired) while the event ran, and its
+        # files were removed under it: no fault of the input nor of the event
+        log.info("%s stopped: the session was closed while it ran (%s)", name, type(err).__name__)
+        return user_error(_closed_message(held))
+    if isinstance(err, (ValueError, TypeError)):
+        log.info("%s refused: %s", name, one_line(err))
+        return user_error(str(err))
+    if isinstance(err, MemoryError):
+        log.error("out of memory in %s", name, exc_info=err)
+        return user_error("The server ran out of memory; try a smaller photo.")
+    log.error("unexpected failure in %s", name, exc_info=err)
+    return user_error(f"Something went wrong ({type(err).__name__}); please retry.")
+
+
 def reported(fn: Callable) -> Callable:
     """Turn bad-input exceptions into ``gr.Error`` and anything else into a short one.
 
     A refused event (bad input, a closed session) logs one line naming the reason; only an
-    unexpected failure logs its traceback.
+    unexpected failure logs its traceback. A generator (an event that shows a first
+    picture, then the final one) is reported the same way while it runs.
     """
 
-    @functools.wraps(fn)
-    def wrapper(*args, **kwargs):
+    def held_by(args: tuple) -> list[Session]:
         # the session an event works on is not idle while the event runs
         held = [a for a in args if isinstance(a, Session)]
         for session in held:
             session.hold()
+        return held
+
+    if inspect.isgeneratorfunction(fn):
+
+        @functools.wraps(fn)
+        def steps(*args, **kwargs):
+            held = held_by(args)
+            try:
+                yield from fn(*args, **kwargs)
+            except Exception as err:
+                refusal = _refusal(fn.__name__, err, held)
+                if refusal is err:
+                    raise
+                raise refusal from None
+            finally:
+                for session in held:
+                    session.let_go()
+
+        return steps
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        held = held_by(args)
         try:
             return fn(*args, **kwargs)
-        except gr.Error as err:
-            log.info("%s refused: %s", fn.__name__, one_line(err.message))
-            raise
-        except SessionClosed:
-            log.info("%s refused: the session was closed", fn.__name__)
-            raise user_error(_closed_message(held)) from None
         except Exception as err:
-            if any(session.closed for session in held):
-                # the tab was closed (or the session expired) while the event ran, and its
-                # files were removed under it: no fault of the input nor of the event
-                log.info(
-                    "%s stopped: the session was closed while it ran (%s)",
-                    fn.__name__, type(err).__name__,
-                )  # fmt: skip
-                raise user_error(_closed_message(held)) from None
-            if isinstance(err, (ValueError, TypeError)):
-                log.info("%s refused: %s", fn.__name__, one_line(err))
-                raise user_error(str(err)) from None
-            if isinstance(err, MemoryError):
-                log.exception("out of memory in %s", fn.__name__)
-                raise user_error("The server ran out of memory; try a smaller photo.") from None
-            log.exception("unexpected failure in %s", fn.__name__)
-            raise user_error(
-                f"Something went wrong ({type(err).__name__}); please retry."
-            ) from None
+            refusal = _refusal(fn.__name__, err, held)
+            if refusal is err:
+                raise
+            raise refusal from None
         finally:
             for session in held:
                 session.let_go()

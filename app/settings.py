@@ -17,6 +17,10 @@ VIEWS = ("Bokeh", "Before / after", "Disparity", "Defocus", "Fusion mask")
 
 
 PREVIEW_MAX_SIDE = 512
+#: An upload of more pixels than this is shown first at the long side of the render pass
+#: (1024 px, as large as the result panel shows it), then at full resolution
+FIRST_LOOK_PIXELS = 4_000_000
+FIRST_LOOK_MAX_SIDE = 1024
 FORMATS = ("PNG", "JPEG")
 DEPTH_KINDS = ("disparity (bright = near)", "depth (bright = far)")
 #: File names of the pictures the app puts in the photo panel (:meth:`RefocusApp.photo_panel`):

@@ -46,8 +46,8 @@ def _row(median: float) -> dict:
 
 
 def test_table_marks_targets_at_12mp_only():
-    rows = {"upload": _row(9000), "click": _row(1400), "release": _row(2100),
-            "drag_step": _row(150)}  # fmt: skip
+    rows = {"upload": _row(2600), "upload_full": _row(9000), "click": _row(1400),
+            "release": _row(2100), "drag_step": _row(150)}  # fmt: skip
     entry = {"rows": rows, "warmup_upload_ms": 9500.0, "file_mb": 1.3}
     result = {
         "commit": "abc1234",
@@ -67,8 +67,9 @@ def test_table_marks_targets_at_12mp_only():
     assert big[ROWS["click"]].endswith("| <= 1500 ms: ok |")
     assert big[ROWS["release"]].endswith("| <= 2000 ms: MISSED |")
     assert big[ROWS["drag_step"]].endswith("| <= 150 ms: ok |")  # at the target is on it
-    assert big[ROWS["upload"]].endswith("| none |")
-    assert len(small) == 4 and not any(": ok" in line or "MISSED" in line for line in small)
+    assert big[ROWS["upload"]].endswith("| <= 2500 ms: MISSED |")
+    assert big[ROWS["upload_full"]].endswith("| none |")
+    assert len(small) == 5 and not any(": ok" in line or "MISSED" in line for line in small)
     assert "at start 1.00 0.50 0.25, at end 2.00 1.00 0.50" in lines[1]
 
 
@@ -91,7 +92,7 @@ def test_bench_in_browser_small(chromium_path, tmp_path, capsys):
     assert entry["size"] == [800, 600]
     rows = entry["rows"]
     assert list(rows) == list(ROWS)
-    counts = {"upload": 2, "click": 2, "release": 2, "drag_step": 4}
+    counts = {"upload": 2, "upload_full": 2, "click": 2, "release": 2, "drag_step": 4}
     for key, row in rows.items():
         runs = row["runs_ms"]
         assert row["n"] == len(runs) == counts[key], key
@@ -101,6 +102,8 @@ def test_bench_in_browser_small(chromium_path, tmp_path, capsys):
         assert all(row["new_src"]), (key, row["status"])
     # the clicks refocused: not the same picture again (0.0 when two clicks land at one depth)
     assert all(d > 0.5 for d in rows["click"]["picture_diff"]), rows["click"]
+    # a photo of 0.5 MP gets no first look: its first picture is the full render
+    assert rows["upload"]["runs_ms"] == rows["upload_full"]["runs_ms"]
     for status in rows["upload"]["status"] + rows["release"]["status"]:
         assert re.search(FULL_RENDER_RE, status), status
     for status in rows["drag_step"]["status"]:

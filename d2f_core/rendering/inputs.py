@@ -6,6 +6,7 @@ CoC ``K |d - focus|`` (D2F step 2, ``D = |D_d - f|``, kept signed).
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 import torch
@@ -101,6 +102,19 @@ def focus_tensor(focus, batch: int, ref: torch.Tensor, check: bool = True) -> to
 
 
 # --------------------------------------------------------------------------------------
+def _planar(image: np.ndarray) -> torch.Tensor:
+    """``(H, W, 3)`` numpy -> contiguous ``(1, 3, H, W)`` tensor of the same dtype, copied once
+    (a strided copy into planes; 0.15 s at 12 MP where a copy through a float view took 0.8)."""
+    if any(step < 0 for step in image.strides):
+        image = np.ascontiguousarray(image)  # torch cannot view negative strides
+    # always a copy (a 1x1 photo's view is already contiguous, and would share the array)
+    with warnings.catch_warnings():
+        # a read-only array (a decoded file's) is only read here: the planes are a copy
+        warnings.filterwarnings("ignore", "The given NumPy array is not writable")
+        planes = torch.from_numpy(image).permute(2, 0, 1)
+    return planes.clone(memory_format=torch.contiguous_format)[None]
+
+
 def image_tensor(image) -> torch.Tensor:
     """Check an image (numpy ``H x W x 3`` or tensor ``[1, 3, H, W]`` / ``[3, H, W]``, uint8
     or float in [0, 1]) and return it as a ``(1, 3, H, W)`` float32 tensor.
@@ -122,14 +136,21 @@ def image_tensor(image) -> torch.Tensor:
     elif isinstance(image, np.ndarray):
         if image.ndim != 3 or image.shape[2] != 3:
             raise ValueError(f"image must have shape (H, W, 3), got {image.shape}")
+        if min(image.shape[:2]) < 1:
+            raise ValueError(f"image is empty: shape {image.shape}")
         if image.dtype == np.uint8:
-            x = torch.from_numpy(np.ascontiguousarray(image)).permute(2, 0, 1)[None]
-            x = x.float().div_(255.0)
-        elif np.issubdtype(image.dtype, np.floating):
-            x = torch.from_numpy(np.ascontiguousarray(image, dtype=np.float32))
-            x = x.permute(2, 0, 1)[None]
-        else:
+            return _planar(image).float().div_(255.0)  # in [0, 1] and finite by its type
+        if not np.issubdtype(image.dtype, np.floating):
             raise InputTypeError(f"image must be uint8 or float, got {image.dtype}")
+        image = np.asarray(image, dtype=np.float32)
+        # NaN carries through min and max, and an infinity is one of them: two passes over
+        # the photo check it all (torch's checks of the strided view took 0.6 s at 12 MP)
+        lo, hi = float(image.min()), float(image.max())
+        if not (math.isfinite(lo) and math.isfinite(hi)):
+            raise ValueError("image contains NaN or inf")
+        if lo < 0 or hi > 1:
+            raise ValueError(f"image float values must be in [0, 1], got [{lo:.3g}, {hi:.3g}]")
+        return _planar(image)
     else:
         kind = type(image).__name__
         raise InputTypeError(f"image must be a numpy array or torch tensor, got {kind}")
