@@ -790,3 +790,21 @@ def test_flip_average_makes_the_map_mirror_with_the_photo(tiny_checkpoint):
     np.testing.assert_allclose(a[:, ::-1], b, atol=1e-5)
     with pytest.raises(ValueError, match="true or false"):
         apply_overrides(model.config.to_dict(), ["flip_average=maybe"])
+
+
+@pytest.mark.parametrize("radius", [0, 1, 2, 3, 7, 8, 16, 40])
+def test_local_max_equals_max_pooling(radius):
+    """The doubling window maximum of the edge snapping gives torch's max pooling exactly,
+    at every window size (powers of two and not, wider than the map)."""
+    import torch.nn.functional as F
+
+    from d2f_core.depth.refine import _local_max
+
+    g = torch.Generator().manual_seed(radius)
+    k = 2 * radius + 1
+    for shape in ((1, 1, 7, 5), (2, 1, 37, 53), (1, 1, 96, 128)):
+        x = torch.rand(shape, generator=g)
+        padded = F.pad(x, (0, 0, radius, radius), mode="replicate")
+        ref = F.max_pool2d(padded, (k, 1), 1)
+        ref = F.max_pool2d(F.pad(ref, (radius, radius, 0, 0), mode="replicate"), (1, k), 1)
+        assert torch.equal(_local_max(x, radius), ref)

@@ -42,10 +42,29 @@ def box_mean(x: Tensor, radius: int) -> Tensor:
     return s / count
 
 
+def _window_max(x: Tensor, k: int, dim: int) -> Tensor:
+    """Maximum over every run of ``k`` elements along ``dim`` (the output is ``k - 1``
+    shorter): windows of 1, 2, 4, ... elements by doubling, then two overlapping ones of the
+    largest power of two cover ``k``; ``log2(k) + 1`` elementwise passes, where torch's
+    ``max_pool2d`` on the CPU costs ``k`` compares a pixel (0.5 s of a 12 MP upload's
+    1.3 s prepare went to it). The same values: a maximum is exact."""
+    n = x.shape[dim]
+    width = 1
+    while 2 * width <= k:
+        x = torch.maximum(x.narrow(dim, 0, n - width), x.narrow(dim, width, n - width))
+        n -= width
+        width *= 2
+    out = n - (k - width)
+    if width == k:
+        return x
+    return torch.maximum(x.narrow(dim, 0, out), x.narrow(dim, k - width, out))
+
+
 def _local_max(x: Tensor, radius: int) -> Tensor:
+    """Maximum over the ``(2r+1)^2`` window around every pixel, the border replicated."""
     k = 2 * radius + 1
-    x = F.max_pool2d(F.pad(x, (0, 0, radius, radius), mode="replicate"), (k, 1), 1)
-    return F.max_pool2d(F.pad(x, (radius, radius, 0, 0), mode="replicate"), (1, k), 1)
+    x = _window_max(F.pad(x, (0, 0, radius, radius), mode="replicate"), k, 2)
+    return _window_max(F.pad(x, (radius, radius, 0, 0), mode="replicate"), k, 3)
 
 
 def _check_pair(image: Tensor, disparity: Tensor) -> None:
