@@ -1,6 +1,7 @@
 """A large upload in the real page (headless Chromium): the result panel shows a first look
 at the render pass's size, then the full-resolution render replaces it, and Download saves
-the full render only once it is there."""
+the full render only once it is there. An API client of the same server gets the full
+render."""
 
 from __future__ import annotations
 
@@ -36,14 +37,19 @@ RECORDER = """
 """
 
 
-def test_large_upload_first_look_then_full(app_server, chromium_launch_options, tmp_path):
-    from playwright.sync_api import sync_playwright
-
+def _large_photo(folder):
     assert WIDTH * HEIGHT > FIRST_LOOK_PIXELS
     rng = np.random.default_rng(5)
     cells = rng.integers(20, 236, size=(HEIGHT // 8, WIDTH // 8, 3), dtype=np.uint8)
-    photo = tmp_path / "large.jpg"
+    photo = folder / "large.jpg"
     Image.fromarray(cells.repeat(8, 0).repeat(8, 1)).save(photo, quality=90)
+    return photo
+
+
+def test_large_upload_first_look_then_full(app_server, chromium_launch_options, tmp_path):
+    from playwright.sync_api import sync_playwright
+
+    photo = _large_photo(tmp_path)
     server = app_server()
     errors: list[str] = []
     with sync_playwright() as p:
@@ -72,3 +78,22 @@ def test_large_upload_first_look_then_full(app_server, chromium_launch_options, 
     assert "full render" in last["status"] and "first look" not in last["status"]
     assert f"({WIDTH}x{HEIGHT})" in label
     assert server.log.read_text().count("Traceback") == 0
+
+
+def test_api_client_gets_the_full_render(app_server, tmp_path):
+    from gradio_client import Client, handle_file
+
+    photo = _large_photo(tmp_path)
+    server = app_server()
+    client = Client(server.url, verbose=False, analytics_enabled=False,
+                    download_files=str(tmp_path / "dl"))  # fmt: skip
+    out = client.predict(handle_file(str(photo)), None, "disparity (bright = near)", 0.5, 1.0,
+                         0, 0.0, True, True, "Bokeh", "balanced", depth_source="auto",
+                         hub_model="", api_name="/load")  # fmt: skip
+    result, info = out[1], out[4]  # the session (state) is not an API output
+    assert "full render" in info and "first look" not in info
+    shown = Image.open(result["value"] if isinstance(result, dict) else result)
+    assert shown.size == (DISPLAY_MAX_SIDE, DISPLAY_MAX_SIDE * 3 // 4)
+    download = client.predict("PNG", api_name="/download")
+    download = download["value"] if isinstance(download, dict) else download
+    assert Image.open(download).size == (WIDTH, HEIGHT)
