@@ -6,13 +6,14 @@ turns its failures into messages.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import inspect
 import logging
 import shutil
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -258,6 +259,25 @@ def _refusal(name: str, err: Exception, held: list[Session]) -> Exception:
     return user_error(f"Something went wrong ({type(err).__name__}); please retry.")
 
 
+@contextlib.contextmanager
+def _reporting(name: str, args: tuple) -> Iterator[None]:
+    """The body of :func:`reported`: the sessions among ``args`` held (not idle) while the
+    event ``name`` runs, and its exceptions turned into what the user sees."""
+    held = [a for a in args if isinstance(a, Session)]
+    for session in held:
+        session.hold()
+    try:
+        yield
+    except Exception as err:
+        refusal = _refusal(name, err, held)
+        if refusal is err:
+            raise
+        raise refusal from None
+    finally:
+        for session in held:
+            session.let_go()
+
+
 def reported(fn: Callable) -> Callable:
     """Turn bad-input exceptions into ``gr.Error`` and anything else into a short one.
 
@@ -266,44 +286,19 @@ def reported(fn: Callable) -> Callable:
     picture, then the final one) is reported the same way while it runs.
     """
 
-    def held_by(args: tuple) -> list[Session]:
-        # the session an event works on is not idle while the event runs
-        held = [a for a in args if isinstance(a, Session)]
-        for session in held:
-            session.hold()
-        return held
-
     if inspect.isgeneratorfunction(fn):
 
         @functools.wraps(fn)
         def steps(*args, **kwargs):
-            held = held_by(args)
-            try:
+            with _reporting(fn.__name__, args):
                 yield from fn(*args, **kwargs)
-            except Exception as err:
-                refusal = _refusal(fn.__name__, err, held)
-                if refusal is err:
-                    raise
-                raise refusal from None
-            finally:
-                for session in held:
-                    session.let_go()
 
         return steps
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
-        held = held_by(args)
-        try:
+        with _reporting(fn.__name__, args):
             return fn(*args, **kwargs)
-        except Exception as err:
-            refusal = _refusal(fn.__name__, err, held)
-            if refusal is err:
-                raise
-            raise refusal from None
-        finally:
-            for session in held:
-                session.let_go()
 
     return wrapper
 
