@@ -217,15 +217,9 @@ class Probe:
         start = self.event_count()
         self.page.set_input_files("#input input[type=file]", str(path))
         since = self.event_time(start, "change", "input")
-        # the first picture: a large photo's first look, else its full render
-        first_js = """([since, old]) => window.__bench.loads.find(
-            (l) => l.t >= since && l.src !== old && l.w > 0)?.t ?? null"""
-        self.page.wait_for_function(f"(a) => ({first_js})(a) !== null", arg=[since, old[0]],
-                                    timeout=timeout_ms, polling=20)  # fmt: skip
-        first = float(self.page.evaluate(first_js, [since, old[0]])) - since
         out = self.wait_result(since, old, f"upload of {path.name}", FULL_RENDER_RE,
                                timeout_ms=timeout_ms)  # fmt: skip
-        out["first_ms"] = first
+        out["first_ms"] = self.first_picture_ms(since, old[0], out["ms"])
         # the photo panel's picture is what the next click lands on
         self.page.wait_for_function(
             "() => { const i = document.querySelector('#input img');"
@@ -251,7 +245,20 @@ class Probe:
         start = self.event_count()
         self.page.locator("#input img").click(position={"x": x, "y": y})
         since = self.event_time(start, "click", "input")
-        return self.wait_result(since, old, "click on the photo", same_ok=True)
+        out = self.wait_result(since, old, "click on the photo", FULL_RENDER_RE, same_ok=True)
+        out["first_ms"] = self.first_picture_ms(since, old[0], out["ms"])
+        return out
+
+    def first_picture_ms(self, since: float, old_src: str | None, full_ms: float) -> float:
+        """Time from ``since`` to the first new picture the result panel loaded (a large
+        photo's first look), read from the page's records; ``full_ms`` when there was none
+        before the full render."""
+        t = self.page.evaluate(
+            """([since, old]) => window.__bench.loads.find(
+                (l) => l.t >= since && l.src !== old && l.w > 0)?.t ?? null""",
+            [since, old_src],
+        )
+        return full_ms if t is None else min(float(t) - since, full_ms)
 
     def track(self) -> dict[str, float]:
         """The ``#blur`` track: its box and the thumb's place as a fraction of it."""

@@ -23,12 +23,12 @@ from app.cache import content_key
 from app.reporting import user_error
 from app.sessions import Session, SessionClosed, no_scene, reported
 from app.settings import (
-    FIRST_LOOK_PIXELS,
     PANEL_PREFIX,
     VIEWS,
     RenderParams,
     disparity_of,
     position_of,
+    wants_first_look,
 )
 from app.uploads import NOT_AN_UPLOAD
 
@@ -253,7 +253,7 @@ class LoadEvents:
             "loaded %s (%dx%d), depth: %s, %s %r", session.name, *session.size, source, prep, image
         )
         loaded = f" | decode {1000 * (t_decode - t0):.0f} ms | {prep} | depth: {source}{subject}"
-        looked = first_look and session.size[0] * session.size[1] > FIRST_LOOK_PIXELS
+        looked = first_look and wants_first_look(session.size)
         if looked:
             try:
                 outputs = self._render_first_look(session, params, view, scene)

@@ -469,20 +469,20 @@ def build_demo(
             blur_on_v,
             evt: gr.SelectData,
         ):
-            return holding_download(
-                logic.click(
-                    state,
-                    evt.index,
-                    blur_v,
-                    blades_v,
-                    rotation_v,
-                    hdr_v,
-                    fusion_v,
-                    view_v,
-                    quality_v,
-                    blur_on_v,
-                )  # fmt: skip
-            )
+            # a large photo refocused at the render pass's size first, then in full
+            for outputs in logic.click_steps(
+                state,
+                evt.index,
+                blur_v,
+                blades_v,
+                rotation_v,
+                hdr_v,
+                fusion_v,
+                view_v,
+                quality_v,
+                blur_on_v,
+            ):  # fmt: skip
+                yield holding_download(outputs)
 
         clicked = photo.select(
             on_select,

@@ -7,6 +7,7 @@ from __future__ import annotations
 import os
 import time
 import uuid
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +26,7 @@ from app.settings import (
     VIEWS,
     RenderParams,
     position_of,
+    wants_first_look,
 )
 from d2f_core.lens import LENS_FOCAL_MM, MAX_BLUR_PX, NEAREST_M, SENSOR_WIDTH_MM, blur_px
 from d2f_core.rendering.kernels import PAPER_GROWING_SIZES
@@ -385,8 +387,14 @@ class RenderEvents:
         info = self._info(session, params, "preview", ms, extra)
         return (*self.view_outputs(session, view), info, gr.update(**DOWNLOAD_WAIT))
 
+    def click(self, *args: Any, **kwargs: Any) -> tuple:
+        """:meth:`click_steps` without a first look: the outputs of the full-resolution render
+        (the same arguments)."""
+        *_, last = self.click_steps(*args, first_look=False, **kwargs)
+        return last
+
     @reported
-    def click(
+    def click_steps(
         self,
         session: Session | None,
         index: Any,
@@ -398,19 +406,28 @@ class RenderEvents:
         view: str = "Bokeh",
         quality: Any = "balanced",
         blur_on: Any = True,
-    ) -> tuple:
+        *,
+        first_look: bool = True,
+    ) -> Iterator[tuple]:
         """Focus on the clicked point: ``index = [x, y]`` in the shown photo's pixels, with a
         focal range that keeps the clicked subject sharp (``D2F.focus_at(..., with_range=True)``:
         the extent in depth of the connected region around the point).
 
-        Returns:
+        A generator of the outputs: with ``first_look``, a photo over
+        :data:`~app.settings.FIRST_LOOK_PIXELS` is shown refocused first at the render pass's
+        size (:meth:`_render_first_look`), then at full resolution, unless another value was
+        set in between; else the full render only.
+
+        Yields:
             ``(focus, focal_range, result, compare, legend, info)``; the focus slider moves to
             ``focus``, the position (0 = nearest, 1 = farthest) of the clicked point's
-            disparity, and the focal range slider to the subject's range.
+            disparity, and the focal range slider to the subject's range (set by the first
+            picture only).
         """
         if session is None:
             gr.Warning("Upload a photo first.")
-            return (gr.skip(), gr.skip(), *SKIP4)
+            yield (gr.skip(), gr.skip(), *SKIP4)
+            return
         session.touch()
         try:
             x, y = (float(v) for v in index)
@@ -429,11 +446,17 @@ class RenderEvents:
             focus, f_number, blades, rotation, highlight_boost, fusion, quality, blur_on,
             span, size=session.size,
         )  # fmt: skip
-        outputs = self._render_full(session, params, view)
+        clicked = f" | focused on the click at ({xs:.0f}, {ys:.0f}) in {ms_focus:.0f} ms"
+        looked = first_look and wants_first_look(session.size)
+        if looked:
+            outputs = self._render_first_look(session, params, view, session.scene)
+            yield (focus, span, *outputs[:3], outputs[3] + clicked)
+            focus, span = gr.skip(), gr.skip()  # set by the first picture
+        outputs = self._render_full(session, params, view, newest=not looked)
         if outputs is SKIP4:
-            return (focus, span, *SKIP4)
-        info = outputs[3] + f" | focused on the click at ({xs:.0f}, {ys:.0f}) in {ms_focus:.0f} ms"
-        return (focus, span, *outputs[:3], info)
+            yield (focus, span, *SKIP4)
+            return
+        yield (focus, span, *outputs[:3], outputs[3] + clicked)
 
     @reported
     def show_view(self, session: Session | None, view: str) -> tuple:

@@ -21,6 +21,13 @@ PREVIEW_MAX_SIDE = 512
 #: (1024 px, as large as the result panel shows it), then at full resolution
 FIRST_LOOK_PIXELS = 4_000_000
 FIRST_LOOK_MAX_SIDE = 1024
+
+
+def wants_first_look(size: tuple[int, int]) -> bool:
+    """Whether a photo of ``size`` (W, H) is shown first at :data:`FIRST_LOOK_MAX_SIDE`."""
+    return size[0] * size[1] > FIRST_LOOK_PIXELS
+
+
 FORMATS = ("PNG", "JPEG")
 DEPTH_KINDS = ("disparity (bright = near)", "depth (bright = far)")
 #: File names of the pictures the app puts in the photo panel (:meth:`RefocusApp.photo_panel`):

@@ -1,13 +1,13 @@
 """A large upload in the real page (headless Chromium): the result panel shows a first look
 at the render pass's size, then the full-resolution render replaces it, and Download saves
-the full render only once it is there. An API client of the same server gets the full
-render."""
+the full render only once it is there; a click on the photo does the same. An API client of
+the same server gets the full render."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
-from _browser import TIMEOUT_MS, open_app
+from _browser import TIMEOUT_MS, click_photo_at, open_app
 from PIL import Image
 
 from app.imaging import DISPLAY_MAX_SIDE
@@ -65,6 +65,15 @@ def test_large_upload_first_look_then_full(app_server, chromium_launch_options, 
             )
             loads = page.evaluate("() => window.__loads")
             label = page.locator("#download").inner_text()
+            # a click on the photo: refocused at the pass's size first, then in full
+            page.evaluate("() => { window.__loads = []; }")
+            click_photo_at(page, WIDTH // 2, HEIGHT // 2)
+            page.wait_for_function(
+                """() => window.__loads.some((l) => l.status.includes("full render")
+                    && l.status.includes("focused on the click"))""",
+                timeout=TIMEOUT_MS * 2,
+            )
+            clicks = page.evaluate("() => window.__loads")
         finally:
             browser.close()
     assert not errors, errors
@@ -77,6 +86,10 @@ def test_large_upload_first_look_then_full(app_server, chromium_launch_options, 
     assert (last["w"], last["h"]) == (DISPLAY_MAX_SIDE, DISPLAY_MAX_SIDE * 3 // 4)
     assert "full render" in last["status"] and "first look" not in last["status"]
     assert f"({WIDTH}x{HEIGHT})" in label
+    first, last = clicks[0], clicks[-1]
+    assert first["w"] == FIRST_LOOK_MAX_SIDE and "first look render" in first["status"]
+    assert "focused on the click" in first["status"] and first["download"] is False
+    assert last["w"] == DISPLAY_MAX_SIDE and "full render" in last["status"]
     assert server.log.read_text().count("Traceback") == 0
 
 

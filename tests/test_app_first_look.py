@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-import app.loading
 import app.render_events
+import app.settings
 from app.cache import SceneCache
 from app.handlers import RefocusApp
 
@@ -37,7 +37,7 @@ def logic(shipped_model, tmp_path):
 @pytest.fixture
 def small_threshold(monkeypatch):
     """The 320x240 test photo counts as large, and its first look is 160 px wide."""
-    monkeypatch.setattr(app.loading, "FIRST_LOOK_PIXELS", 320 * 240 - 1)
+    monkeypatch.setattr(app.settings, "FIRST_LOOK_PIXELS", 320 * 240 - 1)
     monkeypatch.setattr(app.render_events, "FIRST_LOOK_MAX_SIDE", 160)
 
 
@@ -80,7 +80,7 @@ def test_load_and_small_uploads_render_once(logic, two_plane_scene, small_thresh
 
 
 def test_photo_at_the_threshold_is_rendered_once(logic, two_plane_scene, monkeypatch):
-    monkeypatch.setattr(app.loading, "FIRST_LOOK_PIXELS", 320 * 240)
+    monkeypatch.setattr(app.settings, "FIRST_LOOK_PIXELS", 320 * 240)
     steps = list(logic.load_steps(*upload_args(two_plane_scene)))
     assert len(steps) == 1 and "full render" in steps[0][5]
 
@@ -105,3 +105,34 @@ def test_first_look_of_a_bad_file_is_an_error(logic, tmp_path, small_threshold):
     with pytest.raises(Exception) as err:
         list(logic.load_steps(str(bad), None, "disparity", None, 0.5, APERTURE))
     assert type(err.value).__name__ == "Error" and "broken.jpg" in str(err.value.message)
+
+
+def test_click_on_a_large_photo_refocuses_a_first_look_then_in_full(
+    logic, two_plane_scene, small_threshold
+):
+    session = logic.load(*upload_args(two_plane_scene))[0]
+    steps = list(logic.click_steps(session, list(two_plane_scene.near_point), APERTURE))
+    assert len(steps) == 2
+    (focus, span, first, _, _, first_info), last = steps
+    # the sliders are set once, by the first picture: the near plane, and a range
+    assert isinstance(focus, float) and focus < 0.2 and isinstance(span, float)
+    assert "first look render" in first_info and "focused on the click" in first_info
+    assert pixels(first).shape == (120, 160, 3)
+    assert last[0] == last[1] == {"__type__": "update"}
+    assert pixels(last[2]).shape == (240, 320, 3)
+    assert "full render" in last[5] and "focused on the click" in last[5]
+    assert session.last_full_params.position == pytest.approx(focus, abs=1e-9)
+    # click (the API's and the bench's) renders once, at full resolution
+    out = logic.click(session, list(two_plane_scene.far_point), APERTURE)
+    assert len(out) == 6 and "full render" in out[5] and "first look" not in out[5]
+    assert out[0] > 0.5
+
+
+def test_value_set_after_a_clicks_first_look_wins(logic, two_plane_scene, small_threshold):
+    session = logic.load(*upload_args(two_plane_scene))[0]
+    steps = logic.click_steps(session, list(two_plane_scene.near_point), APERTURE)
+    next(steps)
+    assert "preview render" in logic.render_preview(session, 0.7, APERTURE)[3]
+    focus, span, *shown = next(steps)
+    assert focus == span == {"__type__": "update"}
+    assert all(update == {"__type__": "update"} for update in shown)

@@ -47,7 +47,7 @@ def _row(median: float) -> dict:
 
 def test_table_marks_targets_at_12mp_only():
     rows = {"upload": _row(2600), "upload_full": _row(9000), "click": _row(1400),
-            "release": _row(2100), "drag_step": _row(150)}  # fmt: skip
+            "click_full": _row(2400), "release": _row(2100), "drag_step": _row(150)}  # fmt: skip
     entry = {"rows": rows, "warmup_upload_ms": 9500.0, "file_mb": 1.3}
     result = {
         "commit": "abc1234",
@@ -69,7 +69,8 @@ def test_table_marks_targets_at_12mp_only():
     assert big[ROWS["drag_step"]].endswith("| <= 150 ms: ok |")  # at the target is on it
     assert big[ROWS["upload"]].endswith("| <= 2500 ms: MISSED |")
     assert big[ROWS["upload_full"]].endswith("| none |")
-    assert len(small) == 5 and not any(": ok" in line or "MISSED" in line for line in small)
+    assert big[ROWS["click_full"]].endswith("| none |")
+    assert len(small) == 6 and not any(": ok" in line or "MISSED" in line for line in small)
     assert "at start 1.00 0.50 0.25, at end 2.00 1.00 0.50" in lines[1]
 
 
@@ -92,7 +93,8 @@ def test_bench_in_browser_small(chromium_path, tmp_path, capsys):
     assert entry["size"] == [800, 600]
     rows = entry["rows"]
     assert list(rows) == list(ROWS)
-    counts = {"upload": 2, "upload_full": 2, "click": 2, "release": 2, "drag_step": 4}
+    counts = {"upload": 2, "upload_full": 2, "click": 2, "click_full": 2, "release": 2,
+              "drag_step": 4}  # fmt: skip
     for key, row in rows.items():
         runs = row["runs_ms"]
         assert row["n"] == len(runs) == counts[key], key
@@ -104,6 +106,7 @@ def test_bench_in_browser_small(chromium_path, tmp_path, capsys):
     assert all(d > 0.5 for d in rows["click"]["picture_diff"]), rows["click"]
     # a photo of 0.5 MP gets no first look: its first picture is the full render
     assert rows["upload"]["runs_ms"] == rows["upload_full"]["runs_ms"]
+    assert rows["click"]["runs_ms"] == rows["click_full"]["runs_ms"]
     for status in rows["upload"]["status"] + rows["release"]["status"]:
         assert re.search(FULL_RENDER_RE, status), status
     for status in rows["drag_step"]["status"]:
