@@ -28,7 +28,6 @@ from app.settings import (
     RenderParams,
     disparity_of,
     position_of,
-    wants_first_look,
 )
 from app.uploads import NOT_AN_UPLOAD
 
@@ -253,26 +252,15 @@ class LoadEvents:
             "loaded %s (%dx%d), depth: %s, %s %r", session.name, *session.size, source, prep, image
         )
         loaded = f" | decode {1000 * (t_decode - t0):.0f} ms | {prep} | depth: {source}{subject}"
-        looked = first_look and wants_first_look(session.size)
-        if looked:
-            try:
-                outputs = self._render_first_look(session, params, view, scene)
-            except Exception:
-                session.close()
-                raise
-            yield (session, new_focus, *outputs[:3], outputs[3] + loaded)
-            new_focus = gr.skip()  # set by the first look (the user may have moved it since)
+        steps = self._render_shown(session, params, view, scene, loaded, first_look)
+        del scene
         try:
-            outputs = self._render_full(session, params, view, scene, newest=not looked)
+            for outputs in steps:
+                yield (session, new_focus, *outputs)
+                new_focus = gr.skip()  # set by the first picture (the user may move it since)
         except Exception:
             session.close()
             raise
-        del scene
-        if not isinstance(outputs[3], str):
-            # another value was set after the first look: its own render replaces it
-            yield (session, new_focus, *outputs)
-            return
-        yield (session, new_focus, *outputs[:3], outputs[3] + loaded)
 
     def _decode(
         self,

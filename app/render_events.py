@@ -259,11 +259,46 @@ class RenderEvents:
         info = self._info(session, params, "full", ms, extra) + f" | reproduce: {command}"
         return (*self.view_outputs(session, view), info)
 
+    def _render_small(
+        self, scene: Any, params: RenderParams, max_side: int
+    ) -> tuple[Any, np.ndarray, float]:
+        """``(result, bokeh as uint8, ms)`` of ``params`` rendered at ``max_side`` (a preview's
+        or a first look's size)."""
+        t0 = time.perf_counter()
+        result = self.model.render(
+            scene, params.focus, params.blur, max_side=max_side, **params.render_options()
+        )
+        ms = 1000 * (time.perf_counter() - t0)
+        return result, imaging.to_uint8(result.bokeh), ms
+
+    def _render_shown(
+        self,
+        session: Session,
+        params: RenderParams,
+        view: str,
+        scene: Any,
+        note: str,
+        first_look: bool = True,
+    ) -> Iterator[tuple]:
+        """The pictures of a render the user waits for (an upload, a click): with
+        ``first_look``, a photo over :data:`~app.settings.FIRST_LOOK_PIXELS` is shown first
+        at :data:`FIRST_LOOK_MAX_SIDE` (:meth:`_render_first_look`), then at full resolution,
+        unless another value was set in between (then skips); else the full render only.
+
+        Yields ``(result, compare, legend, info)``, ``note`` ending the status line.
+        """
+        looked = first_look and wants_first_look(session.size)
+        if looked:
+            outputs = self._render_first_look(session, params, view, scene)
+            yield (*outputs[:3], outputs[3] + note)
+        outputs = self._render_full(session, params, view, scene, newest=not looked)
+        yield outputs if outputs is SKIP4 else (*outputs[:3], outputs[3] + note)
+
     def _render_first_look(
         self, session: Session, params: RenderParams, view: str, scene: Any
     ) -> tuple:
-        """A new upload's first picture, rendered at :data:`FIRST_LOOK_MAX_SIDE` while its
-        full-resolution render follows (:meth:`LoadEvents.load_steps`).
+        """The first picture of an upload or a click, rendered at :data:`FIRST_LOOK_MAX_SIDE`
+        while its full-resolution render follows (:meth:`_render_shown`).
 
         It holds ``params`` as the full render's (being rendered): a preview of the same
         values (the focus slider set by the load) is skipped. Returns ``(result, compare,
@@ -273,13 +308,7 @@ class RenderEvents:
             session.full_seq += 1
             session.full_params = params
             session.wanted = params
-        t0 = time.perf_counter()
-        result = self.model.render(
-            scene, params.focus, params.blur, max_side=FIRST_LOOK_MAX_SIDE,
-            **params.render_options(),
-        )  # fmt: skip
-        ms = 1000 * (time.perf_counter() - t0)
-        bokeh = imaging.to_uint8(result.bokeh)
+        result, bokeh, ms = self._render_small(scene, params, FIRST_LOOK_MAX_SIDE)
         with session.lock:
             self._store_views(session, result, bokeh)
         w, h = bokeh.shape[1], bokeh.shape[0]
@@ -366,16 +395,7 @@ class RenderEvents:
             if params == session.full_params:
                 return (*SKIP4, gr.skip())
             seq = session.full_seq
-        t0 = time.perf_counter()
-        result = self.model.render(
-            session.scene,
-            params.focus,
-            params.blur,
-            max_side=PREVIEW_MAX_SIDE,
-            **params.render_options(),
-        )
-        ms = 1000 * (time.perf_counter() - t0)
-        bokeh = imaging.to_uint8(result.bokeh)
+        result, bokeh, ms = self._render_small(session.scene, params, PREVIEW_MAX_SIDE)
         with session.lock:
             stale = not session.still_wanted(params)
             if session.full_seq != seq or params == session.full_params or session.closed or stale:
@@ -447,16 +467,10 @@ class RenderEvents:
             span, size=session.size,
         )  # fmt: skip
         clicked = f" | focused on the click at ({xs:.0f}, {ys:.0f}) in {ms_focus:.0f} ms"
-        looked = first_look and wants_first_look(session.size)
-        if looked:
-            outputs = self._render_first_look(session, params, view, session.scene)
-            yield (focus, span, *outputs[:3], outputs[3] + clicked)
+        steps = self._render_shown(session, params, view, session.scene, clicked, first_look)
+        for outputs in steps:
+            yield (focus, span, *outputs)
             focus, span = gr.skip(), gr.skip()  # set by the first picture
-        outputs = self._render_full(session, params, view, newest=not looked)
-        if outputs is SKIP4:
-            yield (focus, span, *SKIP4)
-            return
-        yield (focus, span, *outputs[:3], outputs[3] + clicked)
 
     @reported
     def show_view(self, session: Session | None, view: str) -> tuple:
