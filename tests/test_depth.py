@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import random
 from pathlib import Path
 
@@ -397,6 +398,32 @@ def test_ssi_align_and_gradient_loss():
     assert parts["l1"] > 0.05  # absolute targets: they are not
 
 
+def test_keep_loss_holds_relative_depth_only_where_weighted():
+    """The keep term is scale- and shift-free inside its weight, blind outside it, and
+    zero for a sample with no weight."""
+    torch.manual_seed(0)
+    ref = torch.rand(2, 1, 16, 16)
+    weight = torch.zeros(2, 1, 16, 16)
+    weight[:, :, :, :8] = 1.0  # the left half is held
+    pred = 3.0 * ref - 0.7
+    pred[:, :, :, 8:] = torch.rand(2, 1, 16, 8)  # the right half is free
+    assert float(depth_losses.keep_loss(pred, ref, weight)) < 1e-5
+    flipped = pred.clone()
+    flipped[:, :, :, :8] = -pred[:, :, :, :8]  # near and far swapped where it is held
+    assert float(depth_losses.keep_loss(flipped, ref, weight)) > 0.15
+    # the second sample carries no weight: the loss is the first sample's alone
+    only = weight.clone()
+    only[1] = 0
+    wrong = pred.clone()
+    wrong[1] = torch.rand(1, 16, 16)
+    assert float(depth_losses.keep_loss(wrong, ref, only)) < 1e-5
+    assert float(depth_losses.keep_loss(wrong, ref, torch.zeros_like(weight))) == 0.0
+    # and it trains: its gradient reaches pred
+    pred = flipped.clone().requires_grad_(True)
+    depth_losses.keep_loss(pred, ref, weight).backward()
+    assert pred.grad[:, :, :, :8].abs().sum() > 0 and pred.grad[:, :, :, 8:].abs().sum() == 0
+
+
 def _tiny_datasets(root: Path, labels: Path, n: int = 6) -> None:
     """A datasets folder like ../shared/datasets: ECSSD-style photos with binary masks,
     plain photos, and teacher labels written by hand."""
@@ -459,30 +486,47 @@ def test_samples_and_short_training_roundtrip(tmp_path, tiny_checkpoint, one_thr
     for _ in range(4):
         s = data.sample(rng)
         assert s.image.shape == (48, 64, 3) and s.target.shape == (48, 64) and s.relative
+        assert s.keep.shape == (48, 64) and 0 <= s.keep.min() and s.keep.max() <= 1
+    # the keep term is off on a photo's own subject (grown) and on a pasted one
+    photo = data.masked[0]
+    _, alpha, _, taught = data._photo(photo, rng, (48, 64))
+    assert alpha is not None and (alpha >= 0.5).any() and taught[alpha >= 0.5].all()
+    rgb, a = np.ones((20, 20, 3), np.float32), np.zeros((20, 20), np.float32)
+    a[5:15, 5:15] = 1.0
+    img, target = np.zeros((48, 64, 3), np.float32), np.tile(np.linspace(0, 1, 48)[:, None], 64)
+    for _ in range(10):
+        img2, target2, keep = data._paste(img, target, rgb, a, rng, np.ones((48, 64), np.float32))
+        pasted = img2[..., 0] == 1.0
+        assert pasted.any() and (keep[pasted] == 0).all() and (keep[~pasted] == 1).all()
+        assert target2[pasted].min() >= target[pasted].max() - 1e-6  # in front of what it hides
         assert 0 <= s.image.min() and s.image.max() <= 1
         assert s.target.min() == pytest.approx(0) and s.target.max() == pytest.approx(1)
     synth = depth_train.RealDepthData(root, labels, size=(48, 64), synth=1.0).sample(rng)
-    assert not synth.relative and synth.target.shape == (48, 64)
+    assert not synth.relative and synth.target.shape == (48, 64) and synth.keep is None
     # multi-scale batches: one shape per batch, about the same pixels per batch
     shapes = depth_train.batch_shapes([64, 96])
     assert shapes == [(64, 64), (64, 64), (64, 64), (96, 96), (64, 96), (96, 64)]
     batches = iter(depth_train._Batches(data, 4, 0, shapes))
     for _ in range(6):
-        images, targets, _ = next(batches)
+        images, targets, _, keep = next(batches)
         n, _, h, w = images.shape
-        assert (h, w) in shapes and targets.shape == (n, 1, h, w)
+        assert (h, w) in shapes and targets.shape == keep.shape == (n, 1, h, w)
         assert n == max(2, round(4 * 48 * 64 / (h * w)))
 
     args = depth_train.build_parser().parse_args(
         ["--data", str(root), "--labels", str(labels), "--out", str(tmp_path / "run"),
          "--steps", "3", "--batch-size", "2", "--crop", "64", "--save-every", "2",
          "--keep-every", "2", "--workers", "0", "--threads", "1", "--log-every", "1",
-         "--variant", "lite-ctx", "--sides", "64,96", "--init", str(tiny_checkpoint)]
+         "--variant", "lite-ctx", "--sides", "64,96", "--init", str(tiny_checkpoint),
+         "--keep", str(tiny_checkpoint)]
     )  # fmt: skip
     assert isinstance(args, argparse.Namespace)
     last = depth_train.train_depth(args)
     state = torch.load(last, map_location="cpu", weights_only=True)
     assert state["step"] == 3 and (tmp_path / "run" / "depth_000002.pt").is_file()
+    log = [json.loads(line) for line in (tmp_path / "run" / "depth_log.jsonl").open()]
+    assert all(math.isfinite(rec["keep"]) and rec["keep"] >= 0 for rec in log)
+    assert "keep" not in {k for k in state}  # the keeper is not saved: it is --keep's file
     # resuming at the last step trains nothing more
     assert torch.load(depth_train.train_depth(args), weights_only=True)["step"] == 3
     out = depth_train.export_checkpoint(
@@ -509,7 +553,7 @@ def test_training_with_feature_distillation(tmp_path, tiny_checkpoint, one_threa
     _tiny_onnx_teacher(tmp_path / "t.onnx", channels=4)
     data = depth_train.RealDepthData(root, labels, size=(64, 96), synth=0.0)
     batch = next(iter(depth_train._Batches(data, 2, 0, teacher=tmp_path / "t.onnx")))
-    images, _, _, feats = batch
+    images, _, _, _, feats = batch
     assert feats.shape == (2, 4, 4, 6) and feats.dtype == torch.float16
     direct = teachers.FeatureTeacher(tmp_path / "t.onnx")(images.permute(0, 2, 3, 1).numpy())
     pooled = torch.nn.functional.adaptive_avg_pool2d(torch.from_numpy(direct), (4, 6))

@@ -94,6 +94,26 @@ def test_a_post_across_the_frame_comes_in_front():
     assert not scene_targets.occluder_alpha(short).any()
 
 
+def test_taught_mask_is_the_grown_subjects_and_the_sky():
+    h, w = 50, 100
+    alpha = np.zeros((h, w), np.float32)
+    alpha[20:30, 45:55] = 1.0
+    ade = np.full((h, w), ROAD, np.uint8)
+    ade[:10] = SKY
+    taught = scene_targets.taught_mask(alpha, ade, margin=0.02)  # 2 px at 100 px
+    assert taught[:10].all() and taught[20:30, 45:55].all()
+    assert taught[20:30, 43].all() and not taught[20:30, 42].any()  # grown by 2 px
+    assert not taught[40:].any() and taught.mean() < 0.35
+    assert not scene_targets.taught_mask(np.zeros((h, w), np.float32), ade)[10:].any()
+    assert not scene_targets.taught_mask(alpha * 0.4).any()  # a faint alpha is no subject
+    # scene_target stands exactly scene_subjects in front
+    subjects = scene_targets.scene_subjects(ade, mask=alpha)
+    assert np.array_equal(subjects, alpha)
+    layout = scene_targets.ramp(h, w)
+    assert np.array_equal(scene_targets.scene_target(ade, layout, 0.4, mask=alpha),
+                          scene_targets.scene_target(ade, layout, 0.4, mask=subjects))  # fmt: skip
+
+
 def test_upside_down_target_scores_badly():
     """Against a generated scene's exact disparity, the target built from its class map
     ranks well, and the same target upside down ranks the other way."""
@@ -165,8 +185,9 @@ def test_training_samples_with_scene_labels(tmp_path):
                                      scene=True)  # fmt: skip
     rng = random.Random(0)
     photo = next(p for p in data.photos if p.key in scene_keys)
-    _, alpha, target = data._photo(photo, rng, (48, 64))
+    _, alpha, target, taught = data._photo(photo, rng, (48, 64))
     assert alpha is None  # the subject (none here) is already in the target
+    assert taught[:8].all()  # the keep term leaves the sky to the target
     # the sky beside the (VOC teacher's) subject is farthest, the road's last row nearest
     assert target[:8, :8].max() < 0.05 and target[-1].min() > 0.8
     standing = depth_train.RealDepthData(root, labels, size=(48, 64), synth=1.0, standing=1.0)

@@ -1,12 +1,13 @@
 """Stage 0's losses: a scale- and shift-invariant L1 (relative targets of real photos), a
-plain L1 (absolute targets of generated scenes) and multi-scale gradient matching (MiDaS)."""
+plain L1 (absolute targets of generated scenes) and multi-scale gradient matching (MiDaS);
+and the keep term, a weighted scale- and shift-invariant L1 to an earlier network's output."""
 
 from __future__ import annotations
 
 import torch.nn.functional as F
 from torch import Tensor
 
-__all__ = ["depth_loss", "gradient_matching_loss", "ssi_align"]
+__all__ = ["depth_loss", "gradient_matching_loss", "keep_loss", "ssi_align"]
 
 
 def ssi_align(pred: Tensor, target: Tensor) -> Tensor:
@@ -51,3 +52,33 @@ def depth_loss(
     grad = gradient_matching_loss(fit, target)
     loss = l1 + absolute_weight * absolute + grad_weight * grad
     return loss, {"l1": l1.item(), "abs": absolute.item(), "grad": grad.item()}
+
+
+def keep_loss(pred: Tensor, reference: Tensor, weight: Tensor) -> Tensor:
+    """Weighted scale- and shift-invariant L1 of ``pred`` to ``reference``.
+
+    Per sample, over the pixels that ``weight`` (in [0, 1]) covers, both maps are centred
+    on their weighted mean and scaled by their weighted mean absolute deviation (always
+    positive, so a near-far swap is not fitted away; MiDaS normalises the same way with
+    medians); the loss is the weighted mean absolute difference, in the reference's units.
+    Samples with no weight count nothing. Only the relative depth inside the weighted
+    region is held, not how it sits against the rest.
+
+    Shape: three (B, 1, H, W) tensors -> a scalar.
+    """
+    w = weight.flatten(1)
+    total = w.sum(1, keepdim=True)
+    used = total.squeeze(1) > 0
+    if not bool(used.any()):
+        return pred.new_zeros(())
+    w, total = w[used], total[used]
+
+    def normed(x: Tensor) -> tuple[Tensor, Tensor]:
+        x = x.flatten(1)[used]
+        centred = x - (w * x).sum(1, keepdim=True) / total
+        dev = (w * centred.abs()).sum(1, keepdim=True) / total
+        return centred / dev.clamp_min(1e-6), dev
+
+    p, _ = normed(pred)
+    r, r_dev = normed(reference)
+    return ((w * (p - r).abs()).sum(1, keepdim=True) / total * r_dev).mean()

@@ -15,6 +15,12 @@
 - **Generated layered scenes** (:mod:`d2f_core.train.synth`) with their exact disparity, so the
   network stays calibrated on the scenes the bokeh stages and the held-out set use.
 
+- **The keep term** (``--keep``): where a photo's target knows nothing new (outside its
+  subjects, a margin around them and the sky; :func:`~d2f_core.train.scene_targets.taught_mask`),
+  the network is also held to an earlier network's relative depth
+  (:func:`~d2f_core.train.depth_losses.keep_loss`), so that what it learnt of whole scenes is
+  not traded for the scene targets' coarser layout while those teach it subjects in front.
+
 Real targets are relative (0 = farthest, 1 = nearest in each photo), so their loss is a
 scale- and shift-invariant L1 plus multi-scale gradient matching (MiDaS), plus a plain L1 with
 weight ``absolute_weight`` that keeps outputs in [0, 1]; generated scenes have absolute
@@ -45,14 +51,16 @@ from torch import Tensor
 
 from ..io import load_image
 from ..networks import build_defocus_net, count_parameters
-from .depth_losses import depth_loss, gradient_matching_loss, ssi_align
+from .depth_losses import depth_loss, gradient_matching_loss, keep_loss, ssi_align
 from .distill import Distiller, teacher_grid
 from .heldout import is_heldout
 from .scene_targets import (
     normalise,
     read_scene_label,
+    scene_subjects,
     scene_target,
     subject_target,
+    taught_mask,
     teacher_layout,
     teacher_subject,
     teacher_weight,
@@ -86,6 +94,9 @@ class DepthSample:
     image: np.ndarray  # H x W x 3 float32 [0, 1]
     target: np.ndarray  # H x W float32 [0, 1]
     relative: bool  # True: scale/shift-free target (real photos)
+    #: H x W float32 in [0, 1]: where the keep term holds the network to an earlier one's
+    #: relative depth (the photo's pixels that its target knows nothing new about)
+    keep: np.ndarray | None = None
 
 
 def resize_array(x: np.ndarray, size: tuple[int, int], nearest: bool = False) -> np.ndarray:
@@ -167,8 +178,10 @@ class RealDepthData:
     # -- pieces
     def _photo(
         self, photo: Photo, rng: random.Random, size: tuple[int, int]
-    ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
-        """Image, subject alpha (or None) and layout, at ``size`` after a random crop."""
+    ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray]:
+        """Image, subject alpha (or None), layout and the target's taught pixels
+        (:func:`~d2f_core.train.scene_targets.taught_mask`), at ``size`` after a random
+        crop."""
         img = load_image(photo.path)
         h0, w0 = img.shape[:2]
         th, tw = size
@@ -187,13 +200,17 @@ class RealDepthData:
         scene = read_scene_label(label, (rh, rw)) if self.scene else None
         if scene is not None:  # the scene model's target, subjects and occluders stood on it
             voc = None if mask is not None else alpha
-            layout = scene_target(scene["ade"], layout, wt, alpha if mask is not None else None,
-                                  scene["sal"], voc)  # fmt: skip
+            subjects = scene_subjects(scene["ade"], alpha if mask is not None else None,
+                                      scene["sal"], voc)  # fmt: skip
+            layout = scene_target(scene["ade"], layout, wt, subjects)
+            taught = taught_mask(subjects, scene["ade"])
             alpha = None
+        else:
+            taught = taught_mask(alpha) if alpha is not None else np.zeros((rh, rw), bool)
         y = rng.randint(0, rh - th)
         x = rng.randint(0, rw - tw)
         sl = (slice(y, y + th), slice(x, x + tw))
-        return img[sl], (None if alpha is None else alpha[sl]), layout[sl]
+        return img[sl], (None if alpha is None else alpha[sl]), layout[sl], taught[sl]
 
     def _cutout(
         self, rng: random.Random, size: tuple[int, int]
@@ -219,29 +236,34 @@ class RealDepthData:
         rgb: np.ndarray,
         a: np.ndarray,
         rng: random.Random,
-    ) -> tuple[np.ndarray, np.ndarray]:
+        keep: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         """Composite a cut-out over ``img`` at a random place (up to a quarter of it may
         leave the frame), nearer than everything it covers and at least at the target's
-        disparity where its lowest row stands; returns the new image and target."""
+        disparity where its lowest row stands; returns the new image, target and keep map
+        (zero under the cut-out)."""
         th, tw = target.shape
         ch, cw = a.shape
         y = rng.randint(-ch // 4, th - 3 * ch // 4)
         x = rng.randint(-cw // 4, tw - 3 * cw // 4)
         ya, yb, xa, xb = max(0, y), min(th, y + ch), max(0, x), min(tw, x + cw)
         if yb <= ya or xb <= xa:
-            return img, target
+            return img, target, keep
         a_c = a[ya - y : yb - y, xa - x : xb - x]
         rgb_c = rgb[ya - y : yb - y, xa - x : xb - x]
         inside = a_c >= 0.5
         if not inside.any():
-            return img, target
+            return img, target, keep
         rows = np.nonzero(inside.any(axis=1))[0]
         contact = float(np.median(target[ya + rows[-1], xa:xb][inside[rows[-1]]]))
         value = min(1.0, max(contact, float(target[ya:yb, xa:xb][inside].max()) + 0.05))
         img, target = img.copy(), target.copy()
         img[ya:yb, xa:xb] = a_c[..., None] * rgb_c + (1 - a_c[..., None]) * img[ya:yb, xa:xb]
         target[ya:yb, xa:xb] = a_c * value + (1 - a_c) * target[ya:yb, xa:xb]
-        return img, normalise(target)
+        if keep is not None:
+            keep = keep.copy()
+            keep[ya:yb, xa:xb] *= 1 - a_c
+        return img, normalise(target), keep
 
     def _synth(self, rng: random.Random, size: tuple[int, int]) -> DepthSample:
         from .synth import linear_to_srgb, make_scene, render_pinhole
@@ -270,31 +292,41 @@ class RealDepthData:
             photo = rng.choice(self.photos)
         else:
             photo = rng.choices(self.photos, cum_weights=self._cum_weights)[0]
-        img, alpha, layout = self._photo(photo, rng, size)
+        img, alpha, layout, taught = self._photo(photo, rng, size)
         target = subject_target(layout, alpha) if alpha is not None else layout
         target = normalise(target)
+        keep = (~taught).astype(np.float32)
         if rng.random() < self.paste:
             cut = self._cutout(rng, size)
             if cut is not None:
-                img, target = self._paste(img, target, *cut, rng)
+                img, target, keep = self._paste(img, target, *cut, rng, keep)
         if rng.random() < 0.5:
-            img, target = img[:, ::-1], target[:, ::-1]
+            img, target, keep = img[:, ::-1], target[:, ::-1], keep[:, ::-1]
         # mild photometric jitter
         gain = rng.uniform(0.8, 1.2)
         gamma = rng.uniform(0.8, 1.25)
         img = np.clip(img * gain, 0, 1) ** gamma
-        return DepthSample(img.astype(np.float32), target.astype(np.float32), relative=True)
+        return DepthSample(
+            img.astype(np.float32), target.astype(np.float32), relative=True,
+            keep=np.ascontiguousarray(keep, dtype=np.float32),
+        )  # fmt: skip
 
     def batch(
         self, rng: random.Random, n: int, size: tuple[int, int] | None = None
-    ) -> tuple[Tensor, Tensor, Tensor]:
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """``(images, targets, relative, keep)``: B x 3 x H x W, B x 1 x H x W, B and
+        B x 1 x H x W (zero for generated scenes)."""
         samples = [self.sample(rng, size) for _ in range(n)]
         images = torch.stack(
             [torch.from_numpy(np.ascontiguousarray(s.image)).permute(2, 0, 1) for s in samples]
         )
         targets = torch.stack([torch.from_numpy(np.ascontiguousarray(s.target)) for s in samples])
         relative = torch.tensor([s.relative for s in samples])
-        return images, targets[:, None], relative
+        keep = torch.stack(
+            [torch.zeros(s.target.shape) if s.keep is None else torch.from_numpy(s.keep)
+             for s in samples]
+        )  # fmt: skip
+        return images, targets[:, None], relative, keep[:, None]
 
 
 def batch_shapes(sides: Sequence[int]) -> list[tuple[int, int]]:
@@ -380,6 +412,14 @@ def train_depth(args: argparse.Namespace) -> Path:
         groups.append({"params": list(distiller.parameters()), "lr_scale": 10.0})
         encoder_feats: list[Tensor] = []
         net.encoder.register_forward_hook(lambda _m, _i, out: encoder_feats.append(out))
+    keeper = None
+    if args.keep is not None:
+        from ..pipeline import D2F
+
+        keeper = build_defocus_net(args.variant)
+        keeper.load_lite(D2F.from_checkpoint(args.keep).defocus_net.state_dict())
+        keeper.eval().requires_grad_(False)
+        logger.info("keep term: weight %g towards %s", args.keep_weight, args.keep)
     opt = torch.optim.AdamW(groups, lr=args.lr, weight_decay=1e-4)
     step = 0
     last = out / "depth_last.pt"
@@ -425,9 +465,15 @@ def train_depth(args: argparse.Namespace) -> Path:
         warm = min(1.0, (step + 1) / 200)
         for g in opt.param_groups:
             g["lr"] = lr * warm * g.get("lr_scale", 1.0)
-        images, targets, relative, *teacher = next(loader)
+        images, targets, relative, keep, *teacher = next(loader)
         pred = net(images)
         loss, parts = depth_loss(pred, targets, relative, args.absolute_weight)
+        if keeper is not None:
+            with torch.no_grad():
+                reference = keeper(images)
+            kept = keep_loss(pred, reference, keep)
+            loss = loss + args.keep_weight * kept
+            parts["keep"] = kept.item()
         if distiller is not None:
             if not bool(distiller.ready):
                 distiller.fix_statistics(teacher[0])
@@ -558,6 +604,15 @@ def build_parser() -> argparse.ArgumentParser:
         help="feature distillation from this teacher (the VOC teacher's ASPP features)",
     )
     p.add_argument("--distill-weight", type=float, default=0.2)
+    p.add_argument(
+        "--keep",
+        type=Path,
+        default=None,
+        metavar="D2F_CHECKPOINT",
+        help="hold the network to this checkpoint's relative depth where a photo's target "
+        "knows nothing new (outside its subjects, their margins and the sky)",
+    )
+    p.add_argument("--keep-weight", type=float, default=1.0)
     p.add_argument("--distill-channels", type=int, default=256)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=2)

@@ -42,8 +42,10 @@ __all__ = [
     "horizon_row",
     "occluder_alpha",
     "scene_layout",
+    "scene_subjects",
     "scene_target",
     "silhouette_alpha",
+    "taught_mask",
     "subject_target",
 ]
 
@@ -309,6 +311,20 @@ def scene_target(
         voc: the VOC teacher's subject alpha (:func:`teacher_subject`).
     """
     layout, _ = scene_layout(ade, old_layout, teacher_weight)
+    alpha = scene_subjects(ade, mask, sal, voc)
+    target = subject_target(layout, alpha) if alpha.max() >= 0.5 else layout
+    return normalise(target)
+
+
+def scene_subjects(
+    ade: np.ndarray,
+    mask: np.ndarray | None = None,
+    sal: np.ndarray | None = None,
+    voc: np.ndarray | None = None,
+) -> np.ndarray:
+    """The alpha, ``H x W`` float32 in [0, 1], of everything :func:`scene_target` stands in
+    front: the human mask when there is one, else the clear silhouette and the VOC
+    subject; and the near occluders in either case."""
     if mask is not None:
         alpha = mask.astype(np.float32)
     else:
@@ -319,9 +335,30 @@ def scene_target(
                 alpha = np.maximum(alpha, s)
         if voc is not None:
             alpha = np.maximum(alpha, voc)
-    alpha = np.maximum(alpha, occluder_alpha(ade))
-    target = subject_target(layout, alpha) if alpha.max() >= 0.5 else layout
-    return normalise(target)
+    return np.maximum(alpha, occluder_alpha(ade)).astype(np.float32)
+
+
+def taught_mask(
+    alpha: np.ndarray | None, ade: np.ndarray | None = None, margin: float = 0.02
+) -> np.ndarray:
+    """Where a photo's target says something the scene model knows, ``H x W`` bool: its
+    subjects (``alpha >= 0.5``) grown by ``margin`` of the frame's long side (their edges and
+    what stands just behind them), and its sky.
+
+    Stage 0's keep term (``d2f-train depth --keep``) leaves these pixels to the target and
+    holds the rest to an earlier network's relative depth.
+    """
+    from scipy.ndimage import binary_dilation
+
+    shape = alpha.shape if alpha is not None else ade.shape
+    out = np.zeros(shape, bool)
+    if alpha is not None and (alpha >= 0.5).any():
+        r = max(1, round(margin * max(shape)))
+        yy, xx = np.mgrid[-r : r + 1, -r : r + 1]
+        out = binary_dilation(alpha >= 0.5, yy * yy + xx * xx <= r * r)
+    if ade is not None:
+        out |= _isin(ade, SKY)
+    return out
 
 
 def read_scene_label(path, size: tuple[int, int]) -> dict | None:
