@@ -518,7 +518,7 @@ def test_samples_and_short_training_roundtrip(tmp_path, tiny_checkpoint, one_thr
          "--steps", "3", "--batch-size", "2", "--crop", "64", "--save-every", "2",
          "--keep-every", "2", "--workers", "0", "--threads", "1", "--log-every", "1",
          "--variant", "lite-ctx", "--sides", "64,96", "--init", str(tiny_checkpoint),
-         "--keep", str(tiny_checkpoint)]
+         "--keep", str(tiny_checkpoint), "--ema", "0.5"]
     )  # fmt: skip
     assert isinstance(args, argparse.Namespace)
     last = depth_train.train_depth(args)
@@ -527,6 +527,20 @@ def test_samples_and_short_training_roundtrip(tmp_path, tiny_checkpoint, one_thr
     log = [json.loads(line) for line in (tmp_path / "run" / "depth_log.jsonl").open()]
     assert all(math.isfinite(rec["keep"]) and rec["keep"] >= 0 for rec in log)
     assert "keep" not in {k for k in state}  # the keeper is not saved: it is --keep's file
+    # the moving average is kept beside the checkpoint and in depth_last.pt, for resuming
+    raw = torch.load(tmp_path / "run" / "depth_000002.pt", weights_only=True)["state_dict"]
+    avg = torch.load(tmp_path / "run" / "depth_000002_ema.pt", weights_only=True)["state_dict"]
+    init = D2F.from_checkpoint(tiny_checkpoint).defocus_net.state_dict()
+    moved = [k for k, v in raw.items() if v.is_floating_point() and k in init
+             and not torch.equal(v, init[k])]  # fmt: skip
+    assert moved and set(avg) == set(raw) and set(state["ema"]) == set(raw)
+    for k in moved:  # after two steps at 0.5 the average still holds a quarter of the start
+        assert not torch.equal(avg[k], raw[k])
+    bad = depth_train.build_parser().parse_args(
+        ["--data", str(root), "--labels", str(labels), "--out", str(tmp_path / "x"), "--ema", "1.5"]
+    )  # fmt: skip
+    with pytest.raises(ValueError, match="--ema"):
+        depth_train.train_depth(bad)
     # resuming at the last step trains nothing more
     assert torch.load(depth_train.train_depth(args), weights_only=True)["step"] == 3
     out = depth_train.export_checkpoint(

@@ -423,10 +423,17 @@ def train_depth(args: argparse.Namespace) -> Path:
     opt = torch.optim.AdamW(groups, lr=args.lr, weight_decay=1e-4)
     step = 0
     last = out / "depth_last.pt"
+    ema = None
+    if args.ema:
+        if not 0.0 < args.ema < 1.0:
+            raise ValueError(f"--ema must lie in (0, 1), got {args.ema}")
+        ema = {k: v.detach().clone() for k, v in net.state_dict().items()}
     if last.is_file() and not args.restart:
         state = torch.load(last, map_location="cpu", weights_only=True)
         net.load_state_dict(state["state_dict"])
         opt.load_state_dict(state["optimizer"])
+        if ema is not None:
+            ema = state.get("ema") or {k: v.detach().clone() for k, v in net.state_dict().items()}
         if distiller is not None:
             if "distiller" not in state:
                 raise ValueError(f"{last} was trained without --distill; use --restart")
@@ -486,6 +493,13 @@ def train_depth(args: argparse.Namespace) -> Path:
         torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)
         opt.step()
         step += 1
+        if ema is not None:
+            with torch.no_grad():
+                for k, v in net.state_dict().items():
+                    if v.is_floating_point():
+                        ema[k].lerp_(v, 1.0 - args.ema)
+                    else:
+                        ema[k].copy_(v)
         if step % args.log_every == 0:
             rec = {
                 "step": step,
@@ -506,6 +520,8 @@ def train_depth(args: argparse.Namespace) -> Path:
             }
             if distiller is not None:
                 state["distiller"] = distiller.state_dict()
+            if ema is not None:
+                state["ema"] = ema
             tmp = last.with_suffix(".tmp")
             torch.save(state, tmp)
             tmp.replace(last)
@@ -514,6 +530,11 @@ def train_depth(args: argparse.Namespace) -> Path:
                     {"state_dict": net.state_dict(), "step": step, "variant": args.variant},
                     out / f"depth_{step:06d}.pt",
                 )
+                if ema is not None:
+                    torch.save(
+                        {"state_dict": ema, "step": step, "variant": args.variant, "ema": args.ema},
+                        out / f"depth_{step:06d}_ema.pt",
+                    )
     log.close()
     return last
 
@@ -613,6 +634,14 @@ def build_parser() -> argparse.ArgumentParser:
         "knows nothing new (outside its subjects, their margins and the sky)",
     )
     p.add_argument("--keep-weight", type=float, default=1.0)
+    p.add_argument(
+        "--ema",
+        type=float,
+        default=0.0,
+        metavar="DECAY",
+        help="also keep an exponential moving average of the weights (e.g. 0.99), saved "
+        "beside every kept checkpoint as depth_<step>_ema.pt",
+    )
     p.add_argument("--distill-channels", type=int, default=256)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=2)
