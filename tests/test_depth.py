@@ -489,8 +489,13 @@ def test_samples_and_short_training_roundtrip(tmp_path, tiny_checkpoint, one_thr
         assert s.keep.shape == (48, 64) and 0 <= s.keep.min() and s.keep.max() <= 1
     # the keep term is off on a photo's own subject (grown) and on a pasted one
     photo = data.masked[0]
-    _, alpha, _, taught = data._photo(photo, rng, (48, 64))
-    assert alpha is not None and (alpha >= 0.5).any() and taught[alpha >= 0.5].all()
+    _, alpha, _, keep = data._photo(photo, rng, (48, 64))
+    assert alpha is not None and (alpha >= 0.5).any() and (keep[alpha >= 0.5] == 0).all()
+    assert keep.max() == 1.0  # and on around it
+    plain = depth_train.RealDepthData(root, labels, size=(48, 64), keep_on="plain")
+    assert not plain._photo(photo, rng, (48, 64))[3].any()  # a photo with a subject: off
+    with pytest.raises(ValueError, match="keep_on"):
+        depth_train.RealDepthData(root, labels, keep_on="everywhere")
     rgb, a = np.ones((20, 20, 3), np.float32), np.zeros((20, 20), np.float32)
     a[5:15, 5:15] = 1.0
     img, target = np.zeros((48, 64, 3), np.float32), np.tile(np.linspace(0, 1, 48)[:, None], 64)

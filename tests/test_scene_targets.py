@@ -185,11 +185,25 @@ def test_training_samples_with_scene_labels(tmp_path):
                                      scene=True)  # fmt: skip
     rng = random.Random(0)
     photo = next(p for p in data.photos if p.key in scene_keys)
-    _, alpha, target, taught = data._photo(photo, rng, (48, 64))
+    _, alpha, target, keep = data._photo(photo, rng, (48, 64))
     assert alpha is None  # the subject (none here) is already in the target
-    assert taught[:8].all()  # the keep term leaves the sky to the target
+    assert not keep[:8].any()  # the keep term leaves the sky to the target
     # the sky beside the (VOC teacher's) subject is farthest, the road's last row nearest
     assert target[:8, :8].max() < 0.05 and target[-1].min() > 0.8
+    # "plain": the keep term is on only where a photo shows no subject and no scene; half
+    # this frame is sky and half road, a whole scene: off everywhere
+    plain = depth_train.RealDepthData(root, labels, size=(48, 64), paste=0.0, synth=0.0,
+                                      scene=True, keep_on="plain")  # fmt: skip
+    assert not plain._photo(photo, rng, (48, 64))[3].any()
+    # a close-up with no subject (no sky, no ground, nothing salient): on everywhere
+    path = labels / f"{photo.key}.npz"
+    with np.load(path) as z:
+        maps = dict(z)
+    maps.update(fg=np.zeros_like(maps["fg"]), ade=np.zeros((48, 64), np.uint8))
+    np.savez(path, **maps)
+    assert (plain._photo(photo, rng, (48, 64))[3] == 1.0).all()
+    assert scene_targets.scene_strength(np.full((48, 64), SKY, np.uint8)) == 1.0
+    assert scene_targets.scene_strength(np.full((48, 64), WALL, np.uint8)) == 0.0
     standing = depth_train.RealDepthData(root, labels, size=(48, 64), synth=1.0, standing=1.0)
     s = standing.sample(rng)
     assert not s.relative and s.target.max() >= 0.75  # a standing scene's near subject

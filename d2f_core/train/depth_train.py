@@ -57,6 +57,7 @@ from .heldout import is_heldout
 from .scene_targets import (
     normalise,
     read_scene_label,
+    scene_strength,
     scene_subjects,
     scene_target,
     subject_target,
@@ -129,6 +130,10 @@ class RealDepthData:
             :func:`d2f_core.train.scene_targets.scene_target`.
         rescan_every: look for label files written since every this many samples (0: never).
         standing: share of the generated scenes drawn from :mod:`d2f_core.train.synth.standing`.
+        keep_on: where a sample's keep map (:attr:`DepthSample.keep`) is on: ``"background"``,
+            every photo outside its taught pixels; ``"plain"``, only photos with no subject
+            (no mask, silhouette, VOC subject or occluder), outside their sky and weighted by
+            how little of a scene they show (1 - :func:`scene_strength`): close-ups and rooms.
     """
 
     def __init__(
@@ -145,7 +150,11 @@ class RealDepthData:
         scene: bool = False,
         rescan_every: int = 0,
         standing: float = 0.0,
+        keep_on: str = "background",
     ) -> None:
+        if keep_on not in ("background", "plain"):
+            raise ValueError(f"keep_on must be 'background' or 'plain', got {keep_on!r}")
+        self.keep_on = keep_on
         self.labels = Path(labels)
         self._all = [p for p in iter_photos(root) if not is_heldout(p)]
         self.scene = scene
@@ -179,9 +188,9 @@ class RealDepthData:
     def _photo(
         self, photo: Photo, rng: random.Random, size: tuple[int, int]
     ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray]:
-        """Image, subject alpha (or None), layout and the target's taught pixels
-        (:func:`~d2f_core.train.scene_targets.taught_mask`), at ``size`` after a random
-        crop."""
+        """Image, subject alpha (or None), layout and keep map (see ``keep_on``; zero on the
+        target's taught pixels, :func:`~d2f_core.train.scene_targets.taught_mask`), at
+        ``size`` after a random crop."""
         img = load_image(photo.path)
         h0, w0 = img.shape[:2]
         th, tw = size
@@ -204,13 +213,20 @@ class RealDepthData:
                                       scene["sal"], voc)  # fmt: skip
             layout = scene_target(scene["ade"], layout, wt, subjects)
             taught = taught_mask(subjects, scene["ade"])
+            plain = not (subjects >= 0.5).any()
+            strength = scene_strength(scene["ade"], wt)
             alpha = None
         else:
             taught = taught_mask(alpha) if alpha is not None else np.zeros((rh, rw), bool)
+            plain, strength = alpha is None or not (alpha >= 0.5).any(), 0.0
+        if self.keep_on == "background":
+            keep = (~taught).astype(np.float32)
+        else:
+            keep = (~taught).astype(np.float32) * (1.0 - strength) * float(plain)
         y = rng.randint(0, rh - th)
         x = rng.randint(0, rw - tw)
         sl = (slice(y, y + th), slice(x, x + tw))
-        return img[sl], (None if alpha is None else alpha[sl]), layout[sl], taught[sl]
+        return img[sl], (None if alpha is None else alpha[sl]), layout[sl], keep[sl]
 
     def _cutout(
         self, rng: random.Random, size: tuple[int, int]
@@ -292,10 +308,9 @@ class RealDepthData:
             photo = rng.choice(self.photos)
         else:
             photo = rng.choices(self.photos, cum_weights=self._cum_weights)[0]
-        img, alpha, layout, taught = self._photo(photo, rng, size)
+        img, alpha, layout, keep = self._photo(photo, rng, size)
         target = subject_target(layout, alpha) if alpha is not None else layout
         target = normalise(target)
-        keep = (~taught).astype(np.float32)
         if rng.random() < self.paste:
             cut = self._cutout(rng, size)
             if cut is not None:
@@ -396,6 +411,7 @@ def train_depth(args: argparse.Namespace) -> Path:
         scene=args.scene_targets,
         rescan_every=args.rescan_every,
         standing=args.standing,
+        keep_on=args.keep_on,
     )
     net = build_defocus_net(args.variant)
     if args.init is not None:
@@ -634,6 +650,13 @@ def build_parser() -> argparse.ArgumentParser:
         "knows nothing new (outside its subjects, their margins and the sky)",
     )
     p.add_argument("--keep-weight", type=float, default=1.0)
+    p.add_argument(
+        "--keep-on",
+        choices=("background", "plain"),
+        default="background",
+        help="background: every photo outside its subjects, their margins and the sky; "
+        "plain: only photos with no subject, weighted by how little sky and ground they show",
+    )
     p.add_argument(
         "--ema",
         type=float,

@@ -42,6 +42,7 @@ __all__ = [
     "horizon_row",
     "occluder_alpha",
     "scene_layout",
+    "scene_strength",
     "scene_subjects",
     "scene_target",
     "silhouette_alpha",
@@ -153,6 +154,18 @@ def _standing(ade: np.ndarray, plane: np.ndarray) -> np.ndarray:
     return out
 
 
+def scene_strength(ade: np.ndarray, teacher_weight: float = 0.0) -> float:
+    """How much of a scene the photo shows, in [0, 1]: 1 when sky and ground cover a quarter
+    of the frame or more, 0 on a close-up; indoors (walls, floor, ceiling over 40 % of the
+    frame) reduced by the indoor teacher's weight ``teacher_weight``
+    (:func:`scene_layout` blends its model in by this much)."""
+    scene = float(_isin(ade, SKY).mean() + _isin(ade, GROUND).mean())
+    strength = float(np.clip((scene - 0.05) / 0.2, 0.0, 1.0))
+    if _isin(ade, ROOM).mean() >= 0.4:
+        strength *= 1.0 - float(teacher_weight)
+    return strength
+
+
 def scene_layout(
     ade: np.ndarray, old_layout: np.ndarray, teacher_weight: float = 0.0
 ) -> tuple[np.ndarray, float]:
@@ -167,10 +180,7 @@ def scene_layout(
     h, w = ade.shape
     sky = _isin(ade, SKY)
     ground = _isin(ade, GROUND)
-    scene = float(sky.mean() + ground.mean())
-    strength = float(np.clip((scene - 0.05) / 0.2, 0.0, 1.0))
-    if _isin(ade, ROOM).mean() >= 0.4:
-        strength *= 1.0 - float(teacher_weight)
+    strength = scene_strength(ade, teacher_weight)
     if strength <= 0.0:
         return old_layout.astype(np.float32), 0.0
     plane = ground_plane(h, w, horizon_row(ade))
