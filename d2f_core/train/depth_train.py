@@ -20,6 +20,8 @@
   the network is also held to an earlier network's relative depth
   (:func:`~d2f_core.train.depth_losses.keep_loss`), so that what it learnt of whole scenes is
   not traded for the scene targets' coarser layout while those teach it subjects in front.
+  Measured (``TRAINING.md``): it keeps the measured photos' scores and, with them, holds back
+  the subjects' gain; the shipped weights were trained without it.
 
 Real targets are relative (0 = farthest, 1 = nearest in each photo), so their loss is a
 scale- and shift-invariant L1 plus multi-scale gradient matching (MiDaS), plus a plain L1 with
