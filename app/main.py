@@ -456,32 +456,11 @@ def build_demo(
         ).success(logic.download, [session, fmt], [download], **chained)
         gr.on([blur.change, blur_on.change], trigger_mode="always_last", **note_io)
 
-        # Gradio finds the event data by the annotation of a named positional parameter
-        def on_select(
-            state,
-            blur_v,
-            blades_v,
-            rotation_v,
-            hdr_v,
-            fusion_v,
-            view_v,
-            quality_v,
-            blur_on_v,
-            evt: gr.SelectData,
-        ):
+        # Gradio finds the event data by the annotation of a named positional parameter and
+        # puts it at that parameter's place; the inputs follow it in order
+        def on_select(evt: gr.SelectData, state, *values):
             # a large photo refocused at the render pass's size first, then in full
-            for outputs in logic.click_steps(
-                state,
-                evt.index,
-                blur_v,
-                blades_v,
-                rotation_v,
-                hdr_v,
-                fusion_v,
-                view_v,
-                quality_v,
-                blur_on_v,
-            ):  # fmt: skip
+            for outputs in logic.click_steps(state, evt.index, *values):
                 yield holding_download(outputs)
 
         clicked = photo.select(
