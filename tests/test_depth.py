@@ -481,7 +481,8 @@ def test_heldout_split_is_fixed_and_about_a_tenth():
 def test_samples_and_short_training_roundtrip(tmp_path, tiny_checkpoint, one_thread):
     root, labels = tmp_path / "datasets", tmp_path / "labels"
     _tiny_datasets(root, labels)
-    data = depth_train.RealDepthData(root, labels, size=(48, 64), paste=1.0, synth=0.0)
+    data = depth_train.RealDepthData(root, labels, size=(48, 64), paste=1.0, synth=0.0,
+                                     keep_on="background")  # fmt: skip
     rng = random.Random(0)
     for _ in range(4):
         s = data.sample(rng)
@@ -508,6 +509,10 @@ def test_samples_and_short_training_roundtrip(tmp_path, tiny_checkpoint, one_thr
         assert s.target.min() == pytest.approx(0) and s.target.max() == pytest.approx(1)
     synth = depth_train.RealDepthData(root, labels, size=(48, 64), synth=1.0).sample(rng)
     assert not synth.relative and synth.target.shape == (48, 64) and synth.keep is None
+    # without the keep term no keep maps are made; batches carry zeros
+    bare = depth_train.RealDepthData(root, labels, size=(48, 64), paste=1.0, synth=0.0)
+    assert bare.sample(rng).keep is None
+    assert not next(iter(depth_train._Batches(bare, 2, 0)))[3].any()
     # multi-scale batches: one shape per batch, about the same pixels per batch
     shapes = depth_train.batch_shapes([64, 96])
     assert shapes == [(64, 64), (64, 64), (64, 64), (96, 96), (64, 96), (96, 64)]

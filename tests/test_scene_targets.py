@@ -182,7 +182,7 @@ def test_training_samples_with_scene_labels(tmp_path):
         np.savez(path, **maps, ade=ade, sal=np.zeros((48, 64), np.uint8))
         scene_keys.append(path.stem)
     data = depth_train.RealDepthData(root, labels, size=(48, 64), paste=0.0, synth=0.0,
-                                     scene=True)  # fmt: skip
+                                     scene=True, keep_on="background")  # fmt: skip
     rng = random.Random(0)
     photo = next(p for p in data.photos if p.key in scene_keys)
     _, alpha, target, keep = data._photo(photo, rng, (48, 64))

@@ -135,7 +135,8 @@ class RealDepthData:
         keep_on: where a sample's keep map (:attr:`DepthSample.keep`) is on: ``"background"``,
             every photo outside its taught pixels; ``"plain"``, only photos with no subject
             (no mask, silhouette, VOC subject or occluder), outside their sky and weighted by
-            how little of a scene they show (1 - :func:`scene_strength`): close-ups and rooms.
+            how little of a scene they show (1 - :func:`scene_strength`): close-ups and rooms;
+            ``None`` (training without the keep term): no keep maps are made.
     """
 
     def __init__(
@@ -152,10 +153,10 @@ class RealDepthData:
         scene: bool = False,
         rescan_every: int = 0,
         standing: float = 0.0,
-        keep_on: str = "background",
+        keep_on: str | None = None,
     ) -> None:
-        if keep_on not in ("background", "plain"):
-            raise ValueError(f"keep_on must be 'background' or 'plain', got {keep_on!r}")
+        if keep_on not in (None, "background", "plain"):
+            raise ValueError(f"keep_on must be 'background', 'plain' or None, got {keep_on!r}")
         self.keep_on = keep_on
         self.labels = Path(labels)
         self._all = [p for p in iter_photos(root) if not is_heldout(p)]
@@ -189,9 +190,8 @@ class RealDepthData:
     # -- pieces
     def _photo(
         self, photo: Photo, rng: random.Random, size: tuple[int, int]
-    ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray]:
-        """Image, subject alpha (or None), layout and keep map (see ``keep_on``; zero on the
-        target's taught pixels, :func:`~d2f_core.train.scene_targets.taught_mask`), at
+    ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray | None]:
+        """Image, subject alpha (or None), layout and keep map (:meth:`_keep_map`), at
         ``size`` after a random crop."""
         img = load_image(photo.path)
         h0, w0 = img.shape[:2]
@@ -209,26 +209,41 @@ class RealDepthData:
         wt = teacher_weight(teacher) if self.layout_teacher < 0 else self.layout_teacher
         layout = teacher_layout(teacher, wt)
         scene = read_scene_label(label, (rh, rw)) if self.scene else None
+        subjects, ade = alpha, None
         if scene is not None:  # the scene model's target, subjects and occluders stood on it
+            ade = scene["ade"]
             voc = None if mask is not None else alpha
-            subjects = scene_subjects(scene["ade"], alpha if mask is not None else None,
-                                      scene["sal"], voc)  # fmt: skip
-            layout = scene_target(scene["ade"], layout, wt, subjects)
-            taught = taught_mask(subjects, scene["ade"])
-            plain = not (subjects >= 0.5).any()
-            strength = scene_strength(scene["ade"], wt)
+            subjects = scene_subjects(ade, alpha if mask is not None else None, scene["sal"], voc)
+            layout = scene_target(ade, layout, wt, subjects)
             alpha = None
-        else:
-            taught = taught_mask(alpha) if alpha is not None else np.zeros((rh, rw), bool)
-            plain, strength = alpha is None or not (alpha >= 0.5).any(), 0.0
-        if self.keep_on == "background":
-            keep = (~taught).astype(np.float32)
-        else:
-            keep = (~taught).astype(np.float32) * (1.0 - strength) * float(plain)
+        keep = self._keep_map(subjects, ade, wt, (rh, rw))
         y = rng.randint(0, rh - th)
         x = rng.randint(0, rw - tw)
         sl = (slice(y, y + th), slice(x, x + tw))
-        return img[sl], (None if alpha is None else alpha[sl]), layout[sl], keep[sl]
+        return (img[sl], None if alpha is None else alpha[sl], layout[sl],
+                None if keep is None else keep[sl])  # fmt: skip
+
+    def _keep_map(
+        self,
+        subjects: np.ndarray | None,
+        ade: np.ndarray | None,
+        teacher_weight: float,
+        shape: tuple[int, int],
+    ) -> np.ndarray | None:
+        """A photo's keep map (see ``keep_on``), ``H x W`` float32, zero on the target's
+        taught pixels (:func:`~d2f_core.train.scene_targets.taught_mask`); ``None`` when
+        ``keep_on`` is ``None``."""
+        if self.keep_on is None:
+            return None
+        if subjects is None and ade is None:
+            keep = np.ones(shape, np.float32)
+        else:
+            keep = (~taught_mask(subjects, ade)).astype(np.float32)
+        if self.keep_on == "plain":
+            plain = subjects is None or not (subjects >= 0.5).any()
+            strength = 0.0 if ade is None else scene_strength(ade, teacher_weight)
+            keep *= (1.0 - strength) * float(plain)
+        return keep
 
     def _cutout(
         self, rng: random.Random, size: tuple[int, int]
@@ -318,14 +333,15 @@ class RealDepthData:
             if cut is not None:
                 img, target, keep = self._paste(img, target, *cut, rng, keep)
         if rng.random() < 0.5:
-            img, target, keep = img[:, ::-1], target[:, ::-1], keep[:, ::-1]
+            img, target = img[:, ::-1], target[:, ::-1]
+            keep = None if keep is None else keep[:, ::-1]
         # mild photometric jitter
         gain = rng.uniform(0.8, 1.2)
         gamma = rng.uniform(0.8, 1.25)
         img = np.clip(img * gain, 0, 1) ** gamma
         return DepthSample(
             img.astype(np.float32), target.astype(np.float32), relative=True,
-            keep=np.ascontiguousarray(keep, dtype=np.float32),
+            keep=None if keep is None else np.ascontiguousarray(keep, dtype=np.float32),
         )  # fmt: skip
 
     def batch(
@@ -413,7 +429,7 @@ def train_depth(args: argparse.Namespace) -> Path:
         scene=args.scene_targets,
         rescan_every=args.rescan_every,
         standing=args.standing,
-        keep_on=args.keep_on,
+        keep_on=args.keep_on if args.keep is not None else None,
     )
     net = build_defocus_net(args.variant)
     if args.init is not None:
