@@ -413,6 +413,15 @@ class _Batches(torch.utils.data.IterableDataset):
 # ------------------------------------------------------------------------------ training
 
 
+def _load_defocus(net: torch.nn.Module, checkpoint: str | Path) -> torch.nn.Module:
+    """``net`` with the defocus network of the D2F ``checkpoint`` loaded into it (a smaller
+    lite variant grows into it, :meth:`~d2f_core.networks.DefocusNet.load_lite`)."""
+    from ..pipeline import D2F
+
+    net.load_lite(D2F.from_checkpoint(checkpoint).defocus_net.state_dict())
+    return net
+
+
 def train_depth(args: argparse.Namespace) -> Path:
     """Run (or resume) stage 0; returns the path of the last checkpoint."""
     torch.set_num_threads(args.threads)
@@ -433,9 +442,7 @@ def train_depth(args: argparse.Namespace) -> Path:
     )
     net = build_defocus_net(args.variant)
     if args.init is not None:
-        from ..pipeline import D2F
-
-        net.load_lite(D2F.from_checkpoint(args.init).defocus_net.state_dict())
+        _load_defocus(net, args.init)
         logger.info("defocus network initialised from %s", args.init)
     distiller = None
     groups = [{"params": list(net.parameters()), "lr_scale": 1.0}]
@@ -448,32 +455,30 @@ def train_depth(args: argparse.Namespace) -> Path:
         net.encoder.register_forward_hook(lambda _m, _i, out: encoder_feats.append(out))
     keeper = None
     if args.keep is not None:
-        from ..pipeline import D2F
-
-        keeper = build_defocus_net(args.variant)
-        keeper.load_lite(D2F.from_checkpoint(args.keep).defocus_net.state_dict())
+        keeper = _load_defocus(build_defocus_net(args.variant), args.keep)
         keeper.eval().requires_grad_(False)
         logger.info("keep term: weight %g towards %s", args.keep_weight, args.keep)
     opt = torch.optim.AdamW(groups, lr=args.lr, weight_decay=1e-4)
     step = 0
     last = out / "depth_last.pt"
+    if args.ema and not 0.0 < args.ema < 1.0:
+        raise ValueError(f"--ema must lie in (0, 1), got {args.ema}")
     ema = None
-    if args.ema:
-        if not 0.0 < args.ema < 1.0:
-            raise ValueError(f"--ema must lie in (0, 1), got {args.ema}")
-        ema = {k: v.detach().clone() for k, v in net.state_dict().items()}
     if last.is_file() and not args.restart:
         state = torch.load(last, map_location="cpu", weights_only=True)
         net.load_state_dict(state["state_dict"])
         opt.load_state_dict(state["optimizer"])
-        if ema is not None:
-            ema = state.get("ema") or {k: v.detach().clone() for k, v in net.state_dict().items()}
+        ema = state.get("ema")
         if distiller is not None:
             if "distiller" not in state:
                 raise ValueError(f"{last} was trained without --distill; use --restart")
             distiller.load_state_dict(state["distiller"])
         step = int(state["step"])
         logger.info("resumed from %s at step %d", last, step)
+    if not args.ema:
+        ema = None
+    elif ema is None:  # the average starts at the weights training starts from
+        ema = {k: v.detach().clone() for k, v in net.state_dict().items()}
     torch.manual_seed(args.seed + step)
     logger.info(
         "stage 0: %s, %d params, %d photos (%d masked), crop %d, batch %d",
