@@ -112,6 +112,8 @@ def test_taught_mask_is_the_grown_subjects_and_the_sky():
     layout = scene_targets.ramp(h, w)
     assert np.array_equal(scene_targets.scene_target(ade, layout, 0.4, mask=alpha),
                           scene_targets.scene_target(ade, layout, 0.4, mask=subjects))  # fmt: skip
+    assert np.array_equal(scene_targets.scene_target(ade, layout, 0.4, mask=alpha),
+                          scene_targets.stand_on_scene(ade, layout, 0.4, subjects))  # fmt: skip
 
 
 def test_upside_down_target_scores_badly():

@@ -61,7 +61,7 @@ from .scene_targets import (
     read_scene_label,
     scene_strength,
     scene_subjects,
-    scene_target,
+    stand_on_scene,
     subject_target,
     taught_mask,
     teacher_layout,
@@ -214,7 +214,7 @@ class RealDepthData:
             ade = scene["ade"]
             voc = None if mask is not None else alpha
             subjects = scene_subjects(ade, alpha if mask is not None else None, scene["sal"], voc)
-            layout = scene_target(ade, layout, wt, subjects)
+            layout = stand_on_scene(ade, layout, wt, subjects)
             alpha = None
         keep = self._keep_map(subjects, ade, wt, (rh, rw))
         y = rng.randint(0, rh - th)

@@ -320,9 +320,16 @@ def scene_target(
         sal: U^2-Net-p's silhouette in [0, 1] (:func:`silhouette_alpha` decides).
         voc: the VOC teacher's subject alpha (:func:`teacher_subject`).
     """
+    return stand_on_scene(ade, old_layout, teacher_weight, scene_subjects(ade, mask, sal, voc))
+
+
+def stand_on_scene(
+    ade: np.ndarray, old_layout: np.ndarray, teacher_weight: float, subjects: np.ndarray
+) -> np.ndarray:
+    """:func:`scene_target` of a photo whose subjects' alpha (:func:`scene_subjects`) is
+    already known: they stand on :func:`scene_layout`'s layout."""
     layout, _ = scene_layout(ade, old_layout, teacher_weight)
-    alpha = scene_subjects(ade, mask, sal, voc)
-    target = subject_target(layout, alpha) if alpha.max() >= 0.5 else layout
+    target = subject_target(layout, subjects) if subjects.max() >= 0.5 else layout
     return normalise(target)
 
 
