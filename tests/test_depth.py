@@ -876,3 +876,43 @@ def test_local_max_equals_max_pooling(radius):
         ref = F.max_pool2d(padded, (k, 1), 1)
         ref = F.max_pool2d(F.pad(ref, (radius, radius, 0, 0), mode="replicate"), (1, k), 1)
         assert torch.equal(_local_max(x, radius), ref)
+
+
+def test_target_fit_scores_against_stage_0_targets(tmp_path):
+    """``d2f-bench depth --fit``: a predictor that returns each photo's own stage-0 target
+    scores 1, the same map upside down scores -1, and the targets are those training draws
+    its crops from (``photo_target`` is ``_photo`` before the crop)."""
+    from d2f_core.bench.depth_bench import target_fit
+
+    root, labels = tmp_path / "datasets", tmp_path / "labels"
+    _tiny_datasets(root, labels)
+    for i, path in enumerate(sorted((root / "photos/bsds500").glob("*.jpg"))):
+        # photos of their own (these repeat the masked ones), so a map tells them apart
+        grey = np.full((60, 80, 3), 40 + 20 * i, np.uint8)
+        Image.fromarray(grey).save(path)
+    data = depth_train.RealDepthData(root, labels, scene=True, layout_teacher=0.4)
+    targets = {}
+    size = (288, 384)  # the photos are 60 x 80; --fit compares at a long side of 384
+    for photo in data.photos:
+        image, target, keep = data.photo_target(photo, size)
+        assert image.shape == (*size, 3) and 0 <= image.min() and image.max() <= 1
+        assert target.shape == size and keep is None
+        assert target.min() == 0.0 and target.max() == 1.0
+        targets[round(float(image.mean()), 5)] = target
+    assert len(targets) == len(data.photos)
+    # a masked photo's subject comes out in front of the ramp behind it
+    masked = next(p for p in data.photos if p.mask is not None)
+    _, target, _ = data.photo_target(masked, (60, 80))
+    assert target[35, 40] > target[5, 5] + 0.3
+
+    def own(image):
+        return targets[round(float(image.mean()), 5)]
+
+    fit = target_fit(
+        {"own": own, "upside down": lambda im: own(im)[::-1]}, root, labels, photos=5,
+        layout_teacher=0.4,
+    )  # fmt: skip
+    assert fit["own"] == pytest.approx(1.0)
+    assert fit["upside down"] < -0.5
+    with pytest.raises(ValueError, match="photos"):
+        target_fit({"own": own}, root, labels, photos=0)

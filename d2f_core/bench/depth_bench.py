@@ -49,6 +49,7 @@ __all__ = [
     "spearman",
     "ssi_rmse",
     "subject_auc",
+    "target_fit",
 ]
 
 logger = logging.getLogger(__name__)
@@ -429,6 +430,47 @@ def evaluate(
     return result
 
 
+def target_fit(
+    predictors: dict[str, Predictor],
+    datasets: str | Path,
+    labels: str | Path,
+    photos: int = 60,
+    layout_teacher: float = 0.4,
+    seed: int = 0,
+) -> dict[str, float]:
+    """Mean Spearman of each predictor's map with stage 0's targets on ``photos`` training
+    photos drawn with ``seed`` (whole, at :data:`EVAL_SIDE`; scene targets where the labels
+    hold the scene teachers' maps, the layout weighted by ``layout_teacher`` as in
+    ``d2f-train depth --layout-teacher``): how much of its targets a network has learnt on
+    photos it was trained on. Near the score on the measured photos: the network is too small
+    or too briefly trained for its targets; far above it: it does not carry them to new
+    photos.
+
+    Raises:
+        ValueError: no labelled training photo, or ``photos`` < 1.
+    """
+    import random
+
+    from PIL import Image
+
+    from ..train.depth_train import RealDepthData
+
+    if photos < 1:
+        raise ValueError(f"photos must be at least 1, got {photos}")
+    data = RealDepthData(datasets, labels, scene=True, layout_teacher=layout_teacher)
+    chosen = sorted(data.photos, key=lambda ph: ph.key)
+    chosen = random.Random(seed).sample(chosen, min(photos, len(chosen)))
+    scores: dict[str, list[float]] = {name: [] for name in predictors}
+    for photo in chosen:
+        with Image.open(photo.path) as im:
+            w, h = im.size
+        image, target, _ = data.photo_target(photo, _eval_size(h, w))
+        for name, fn in predictors.items():
+            pred = resize_array(fn(image), target.shape)
+            scores[name].append(spearman(pred, target))
+    return {name: float(np.mean(v)) for name, v in scores.items()}
+
+
 def summary(result: dict, predictors: Sequence[str], baseline: str = "ramp") -> dict:
     """Means over photos, wins against ``baseline`` and the mean held-out AUC per predictor."""
     out = {}
@@ -557,6 +599,21 @@ def main(argv: Sequence[str] | None = None) -> int:
         help="also score the labelling teachers found here, the stage-0 targets built "
         "from them, and the first network's map rank-averaged with each (needs .[teach])",
     )
+    p.add_argument(
+        "--fit",
+        type=Path,
+        default=None,
+        metavar="LABELS",
+        help="also score each network against stage 0's targets on training photos, with "
+        "the labels in LABELS (d2f-train label / label-scene)",
+    )
+    p.add_argument("--fit-photos", type=int, default=60, help="training photos for --fit")
+    p.add_argument(
+        "--fit-layout",
+        type=float,
+        default=0.4,
+        help="--layout-teacher of the targets --fit compares with",
+    )
     args = p.parse_args(argv)
     torch.set_num_threads(args.threads)
     logging.basicConfig(level=logging.WARNING)
@@ -584,6 +641,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     names = list(predictors)
     result = evaluate(predictors, photos, masks)
     print(format_table(result, names))
+    if args.fit is not None:
+        fitted = {"ramp": ramp_predictor, **networks}
+        try:
+            result["fit"] = target_fit(
+                fitted, args.datasets, args.fit, args.fit_photos, args.fit_layout
+            )
+        except ValueError as exc:
+            print(f"d2f-bench depth: error: --fit: {exc}", file=sys.stderr)
+            return 1
+        print(
+            f"\nagreement with stage 0's targets on {args.fit_photos} training photos "
+            f"(mean Spearman): "
+            + ", ".join(f"{name} {v:+.3f}" for name, v in result["fit"].items())
+        )
     if args.sheet is not None:
         print(f"contact sheet: {contact_sheet(result, photos, names, args.sheet)}")
     if args.json is not None:
@@ -593,6 +664,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             "masks": result["masks"],
             "summary": summary(result, names),
         }
+        if "fit" in result:
+            payload["fit"] = result["fit"]
         args.json.write_text(json.dumps(payload, indent=1))
     return 0
 

@@ -198,6 +198,31 @@ class RealDepthData:
         th, tw = size
         scale = max(th / h0, tw / w0) * rng.uniform(1.0, 1.3)
         rh, rw = max(th, round(h0 * scale)), max(tw, round(w0 * scale))
+        img, alpha, layout, keep = self._whole(photo, img, (rh, rw))
+        y = rng.randint(0, rh - th)
+        x = rng.randint(0, rw - tw)
+        sl = (slice(y, y + th), slice(x, x + tw))
+        return (img[sl], None if alpha is None else alpha[sl], layout[sl],
+                None if keep is None else keep[sl])  # fmt: skip
+
+    def photo_target(
+        self, photo: Photo, size: tuple[int, int]
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """A training photo whole at ``size`` (``(H, W)``) and what stage 0 teaches there:
+        ``(image H x W x 3, target H x W in [0, 1], keep map or None)``, before any crop,
+        pasted cut-out, mirror or jitter. How close a network comes to these targets on the
+        photos it was trained on (``d2f-bench depth --fit``) tells a network too small for
+        its targets from one that does not carry them over to new photos."""
+        img, alpha, layout, keep = self._whole(photo, load_image(photo.path), size)
+        target = subject_target(layout, alpha) if alpha is not None else layout
+        return np.clip(img, 0.0, 1.0), normalise(target), keep
+
+    def _whole(
+        self, photo: Photo, img: np.ndarray, size: tuple[int, int]
+    ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray | None]:
+        """:meth:`_photo` before its crop: the photo ``img`` resized to ``size``."""
+        h0, w0 = img.shape[:2]
+        rh, rw = size
         img = resize_array(img, (rh, rw))
         mask = read_mask(photo, (h0, w0))
         label = self.labels / f"{photo.key}.npz"
@@ -216,12 +241,7 @@ class RealDepthData:
             subjects = scene_subjects(ade, alpha if mask is not None else None, scene["sal"], voc)
             layout = stand_on_scene(ade, layout, wt, subjects)
             alpha = None
-        keep = self._keep_map(subjects, ade, wt, (rh, rw))
-        y = rng.randint(0, rh - th)
-        x = rng.randint(0, rw - tw)
-        sl = (slice(y, y + th), slice(x, x + tw))
-        return (img[sl], None if alpha is None else alpha[sl], layout[sl],
-                None if keep is None else keep[sl])  # fmt: skip
+        return img, alpha, layout, self._keep_map(subjects, ade, wt, (rh, rw))
 
     def _keep_map(
         self,
