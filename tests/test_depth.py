@@ -916,3 +916,5 @@ def test_target_fit_scores_against_stage_0_targets(tmp_path):
     assert fit["upside down"] < -0.5
     with pytest.raises(ValueError, match="photos"):
         target_fit({"own": own}, root, labels, photos=0)
+    with pytest.raises(ValueError, match="no labelled training photos"):
+        target_fit({"own": own}, tmp_path / "nowhere", labels)

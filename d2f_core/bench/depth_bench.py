@@ -442,12 +442,13 @@ def target_fit(
     photos drawn with ``seed`` (whole, at :data:`EVAL_SIDE`; scene targets where the labels
     hold the scene teachers' maps, the layout weighted by ``layout_teacher`` as in
     ``d2f-train depth --layout-teacher``): how much of its targets a network has learnt on
-    photos it was trained on. Near the score on the measured photos: the network is too small
-    or too briefly trained for its targets; far above it: it does not carry them to new
-    photos.
+    photos it was trained on. Little above the ramp's agreement: the network has not learnt
+    its targets (too small, too briefly trained, or targets it cannot tell from a photo);
+    high here and low on the measured photos: it does not carry them over to new photos.
 
     Raises:
-        ValueError: no labelled training photo, or ``photos`` < 1.
+        ValueError: no labelled training photo (``datasets`` or ``labels`` missing or
+            empty), or ``photos`` < 1.
     """
     import random
 
