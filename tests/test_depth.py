@@ -894,7 +894,7 @@ def test_target_fit_scores_against_stage_0_targets(tmp_path):
     targets = {}
     size = (288, 384)  # the photos are 60 x 80; --fit compares at a long side of 384
     for photo in data.photos:
-        image, target, keep = data.photo_target(photo, size)
+        image, target, keep = data.photo_target(photo, 384)
         assert image.shape == (*size, 3) and 0 <= image.min() and image.max() <= 1
         assert target.shape == size and keep is None
         assert target.min() == 0.0 and target.max() == 1.0
@@ -902,7 +902,7 @@ def test_target_fit_scores_against_stage_0_targets(tmp_path):
     assert len(targets) == len(data.photos)
     # a masked photo's subject comes out in front of the ramp behind it
     masked = next(p for p in data.photos if p.mask is not None)
-    _, target, _ = data.photo_target(masked, (60, 80))
+    _, target, _ = data.photo_target(masked, 80)
     assert target[35, 40] > target[5, 5] + 0.3
 
     def own(image):

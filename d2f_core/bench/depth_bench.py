@@ -452,8 +452,6 @@ def target_fit(
     """
     import random
 
-    from PIL import Image
-
     from ..train.depth_train import RealDepthData
 
     if photos < 1:
@@ -463,9 +461,7 @@ def target_fit(
     chosen = random.Random(seed).sample(chosen, min(photos, len(chosen)))
     scores: dict[str, list[float]] = {name: [] for name in predictors}
     for photo in chosen:
-        with Image.open(photo.path) as im:
-            w, h = im.size
-        image, target, _ = data.photo_target(photo, _eval_size(h, w))
+        image, target, _ = data.photo_target(photo, EVAL_SIDE)
         for name, fn in predictors.items():
             pred = resize_array(fn(image), target.shape)
             scores[name].append(spearman(pred, target))

@@ -53,6 +53,7 @@ from torch import Tensor
 
 from ..io import load_image
 from ..networks import build_defocus_net, count_parameters
+from ..sizing import scaled_size
 from .depth_losses import depth_loss, gradient_matching_loss, keep_loss, ssi_align
 from .distill import Distiller, teacher_grid
 from .heldout import is_heldout
@@ -113,6 +114,12 @@ def resize_array(x: np.ndarray, size: tuple[int, int], nearest: bool = False) ->
     kw = {} if nearest else {"align_corners": False, "antialias": shrink}
     out = F.interpolate(t, size=(h, w), mode=mode, **kw)[0]
     return out.permute(1, 2, 0).numpy() if x.ndim == 3 else out[0].numpy()
+
+
+def _target(layout: np.ndarray, alpha: np.ndarray | None) -> np.ndarray:
+    """A photo's stage-0 target: its layout with the subject ``alpha`` (if any) stood on it,
+    normalised to [0, 1]."""
+    return normalise(subject_target(layout, alpha) if alpha is not None else layout)
 
 
 class RealDepthData:
@@ -206,16 +213,17 @@ class RealDepthData:
                 None if keep is None else keep[sl])  # fmt: skip
 
     def photo_target(
-        self, photo: Photo, size: tuple[int, int]
+        self, photo: Photo, long_side: int
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-        """A training photo whole at ``size`` (``(H, W)``) and what stage 0 teaches there:
-        ``(image H x W x 3, target H x W in [0, 1], keep map or None)``, before any crop,
-        pasted cut-out, mirror or jitter. How close a network comes to these targets on the
-        photos it was trained on (``d2f-bench depth --fit``) tells a network too small for
-        its targets from one that does not carry them over to new photos."""
-        img, alpha, layout, keep = self._whole(photo, load_image(photo.path), size)
-        target = subject_target(layout, alpha) if alpha is not None else layout
-        return np.clip(img, 0.0, 1.0), normalise(target), keep
+        """A training photo whole, scaled to a long side of ``long_side`` px, and what stage 0
+        teaches there: ``(image H x W x 3, target H x W in [0, 1], keep map or None)``, before
+        any crop, pasted cut-out, mirror or jitter. How close a network comes to these targets
+        on the photos it was trained on (``d2f-bench depth --fit``) tells a network too small
+        for its targets from one that does not carry them over to new photos."""
+        img = load_image(photo.path)
+        size = scaled_size(img.shape[:2], long_side / max(img.shape[:2]), None)
+        img, alpha, layout, keep = self._whole(photo, img, size)
+        return np.clip(img, 0.0, 1.0), _target(layout, alpha), keep
 
     def _whole(
         self, photo: Photo, img: np.ndarray, size: tuple[int, int]
@@ -346,8 +354,7 @@ class RealDepthData:
         else:
             photo = rng.choices(self.photos, cum_weights=self._cum_weights)[0]
         img, alpha, layout, keep = self._photo(photo, rng, size)
-        target = subject_target(layout, alpha) if alpha is not None else layout
-        target = normalise(target)
+        target = _target(layout, alpha)
         if rng.random() < self.paste:
             cut = self._cutout(rng, size)
             if cut is not None:
