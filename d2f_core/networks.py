@@ -31,6 +31,7 @@ __all__ = [
     "IMAGENET_MEAN",
     "IMAGENET_STD",
     "RADIANCE_NETS",
+    "SCENE_MAPS",
     "DefocusNet",
     "FusionNet",
     "RadianceNet",
@@ -333,6 +334,9 @@ class DefocusNet(nn.Module):
             deepest stages and twice the context's hidden channels; about 2.2 M parameters,
             1.15x the time). A smaller lite network's state dict loads into a larger one
             with :meth:`load_lite`, which then computes the same map.
+        scene_maps: channels of a second head on the decoder's features, the logits of
+            :data:`SCENE_MAPS` (:meth:`forward_scene`; ``"lite-ctx-scene"`` has it), which a
+            smaller lite network's state dict leaves at its initialisation.
 
     The input is an RGB image in [0, 1]; ImageNet normalisation happens inside. Any input
     size works: the image is padded to a multiple of 32 and the output cropped back.
@@ -340,9 +344,11 @@ class DefocusNet(nn.Module):
     Shape: (B, 3, H, W) in [0, 1] -> (B, 1, H, W) in [0, 1], 1 = nearest.
     """
 
-    def __init__(self, variant: str = "lite") -> None:
+    def __init__(self, variant: str = "lite", scene_maps: int = 0) -> None:
         super().__init__()
         context_hidden = None
+        if scene_maps and variant == "resnext50":
+            raise ValueError("scene maps are a head of the lite variants")
         if variant == "resnext50":
             self.encoder: nn.Module = ResNeXt50Encoder()
             features, separable = 256, False
@@ -381,8 +387,36 @@ class DefocusNet(nn.Module):
                 nn.Conv2d(32, 1, 1),
                 nn.Upsample(scale_factor=2.0, mode="bilinear", align_corners=True),
             )
+        # the scene maps' logits (:data:`SCENE_MAPS`), from the same decoder features
+        self.scene_head = None
+        if scene_maps:
+            self.scene_head = nn.Sequential(
+                _conv3x3(features, 32, separable=True),
+                nn.ReLU(inplace=True),
+                nn.Conv2d(32, scene_maps, 1),
+                nn.Upsample(scale_factor=2.0, mode="bilinear", align_corners=True),
+            )
 
     def forward(self, image: Tensor) -> Tensor:
+        y, (h, w) = self._decode(image)
+        return torch.sigmoid(self.head(y)[..., :h, :w])
+
+    def forward_scene(self, image: Tensor) -> tuple[Tensor, Tensor]:
+        """The disparity and the scene maps' logits (one channel per :data:`SCENE_MAPS`).
+
+        Shape: (B, 3, H, W) -> (B, 1, H, W) in [0, 1] and (B, len(SCENE_MAPS), H, W).
+
+        Raises:
+            ValueError: the network has no scene head (a variant without ``-scene``).
+        """
+        if self.scene_head is None:
+            raise ValueError(f"the {self.variant!r} defocus network has no scene maps")
+        y, (h, w) = self._decode(image)
+        return torch.sigmoid(self.head(y)[..., :h, :w]), self.scene_head(y)[..., :h, :w]
+
+    def _decode(self, image: Tensor) -> tuple[Tensor, tuple[int, int]]:
+        """The last refine block's features (stride 2, padded to a multiple of 32) and the
+        input's ``(H, W)``."""
         _check_image(image)
         h, w = image.shape[-2:]
         ph, pw = (-h) % 32, (-w) % 32
@@ -397,8 +431,7 @@ class DefocusNet(nn.Module):
         y = self.refine[2](y, f3)  # [B,F,H/8,W/8]
         y = self.refine[1](y, f2)  # [B,F,H/4,W/4]
         y = self.refine[0](y, f1)  # [B,F,H/2,W/2]
-        logits = self.head(y)[..., :h, :w]  # [B,1,H,W]
-        return torch.sigmoid(logits)
+        return y, (h, w)
 
     def load_lite(self, state: Mapping[str, Tensor]) -> None:
         """Load a smaller lite network's state dict: ``"lite"`` into ``"lite-ctx"``, or
@@ -409,7 +442,9 @@ class DefocusNet(nn.Module):
         the network's own variant loads as it is."""
         own = self.state_dict()
         unexpected = sorted(set(state) - set(own))
-        missing = sorted(k for k in set(own) - set(state) if not k.startswith("context."))
+        missing = sorted(
+            k for k in set(own) - set(state) if not k.startswith(("context.", "scene_head."))
+        )
         if unexpected or missing:
             raise ValueError(
                 f"not a 'lite' defocus state dict: missing {missing[:3]}, "
@@ -595,10 +630,16 @@ class FusionNet(nn.Module):
         return torch.sigmoid(self.net(torch.cat([focus, gray], dim=1)))
 
 
+#: what the scene head of a ``"-scene"`` defocus variant predicts, one logit map each: the
+#: subjects (every salient thing and near occluder that stands in front of the scene) and the
+#: sky; :func:`d2f_core.depth.scene.stand_subjects` composes them with the disparity
+SCENE_MAPS = ("subject", "sky")
+
 DEFOCUS_NETS: dict[str, Callable[[], nn.Module]] = {
     "lite": lambda: DefocusNet("lite"),
     "lite-ctx": lambda: DefocusNet("lite-ctx"),
     "lite-wide": lambda: DefocusNet("lite-wide"),
+    "lite-ctx-scene": lambda: DefocusNet("lite-ctx", scene_maps=len(SCENE_MAPS)),
     "resnext50": lambda: DefocusNet("resnext50"),
 }
 RADIANCE_NETS: dict[str, Callable[[], nn.Module]] = {"paper": RadianceNet}

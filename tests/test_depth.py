@@ -490,7 +490,8 @@ def test_samples_and_short_training_roundtrip(tmp_path, tiny_checkpoint, one_thr
         assert s.keep.shape == (48, 64) and 0 <= s.keep.min() and s.keep.max() <= 1
     # the keep term is off on a photo's own subject (grown) and on a pasted one
     photo = data.masked[0]
-    _, alpha, _, keep = data._photo(photo, rng, (48, 64))
+    _, alpha, _, keep, maps = data._photo(photo, rng, (48, 64))
+    assert maps is None  # made only for a network with a scene head
     assert alpha is not None and (alpha >= 0.5).any() and (keep[alpha >= 0.5] == 0).all()
     assert keep.max() == 1.0  # and on around it
     plain = depth_train.RealDepthData(root, labels, size=(48, 64), keep_on="plain")
@@ -501,7 +502,9 @@ def test_samples_and_short_training_roundtrip(tmp_path, tiny_checkpoint, one_thr
     a[5:15, 5:15] = 1.0
     img, target = np.zeros((48, 64, 3), np.float32), np.tile(np.linspace(0, 1, 48)[:, None], 64)
     for _ in range(10):
-        img2, target2, keep = data._paste(img, target, rgb, a, rng, np.ones((48, 64), np.float32))
+        img2, target2, keep, _ = data._paste(
+            img, target, rgb, a, rng, np.ones((48, 64), np.float32)
+        )
         pasted = img2[..., 0] == 1.0
         assert pasted.any() and (keep[pasted] == 0).all() and (keep[~pasted] == 1).all()
         assert target2[pasted].min() >= target[pasted].max() - 1e-6  # in front of what it hides
@@ -518,9 +521,10 @@ def test_samples_and_short_training_roundtrip(tmp_path, tiny_checkpoint, one_thr
     assert shapes == [(64, 64), (64, 64), (64, 64), (96, 96), (64, 96), (96, 64)]
     batches = iter(depth_train._Batches(data, 4, 0, shapes))
     for _ in range(6):
-        images, targets, _, keep = next(batches)
+        images, targets, _, keep, maps = next(batches)
         n, _, h, w = images.shape
         assert (h, w) in shapes and targets.shape == keep.shape == (n, 1, h, w)
+        assert maps.shape == (n, 2, h, w) and (maps == -1).all()  # no scene head: unknown
         assert n == max(2, round(4 * 48 * 64 / (h * w)))
 
     args = depth_train.build_parser().parse_args(
@@ -577,7 +581,7 @@ def test_training_with_feature_distillation(tmp_path, tiny_checkpoint, one_threa
     _tiny_onnx_teacher(tmp_path / "t.onnx", channels=4)
     data = depth_train.RealDepthData(root, labels, size=(64, 96), synth=0.0)
     batch = next(iter(depth_train._Batches(data, 2, 0, teacher=tmp_path / "t.onnx")))
-    images, _, _, _, feats = batch
+    images, _, _, _, _, feats = batch
     assert feats.shape == (2, 4, 4, 6) and feats.dtype == torch.float16
     direct = teachers.FeatureTeacher(tmp_path / "t.onnx")(images.permute(0, 2, 3, 1).numpy())
     pooled = torch.nn.functional.adaptive_avg_pool2d(torch.from_numpy(direct), (4, 6))

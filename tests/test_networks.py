@@ -245,7 +245,7 @@ class TestFusionNet:
 
 
 def test_registries_and_builders():
-    assert set(DEFOCUS_NETS) == {"lite", "lite-ctx", "lite-wide", "resnext50"}
+    assert set(DEFOCUS_NETS) == {"lite", "lite-ctx", "lite-wide", "lite-ctx-scene", "resnext50"}
     assert set(FUSION_NETS) == {"paper", "lite"}
     assert set(RADIANCE_NETS) == {"paper"}
     assert isinstance(build_defocus_net("lite"), DefocusNet)

@@ -10,6 +10,7 @@ from d2f_core import rendering
 from d2f_core.metrics import psnr
 from d2f_core.pipeline import D2F, D2FConfig, Result, Scene
 from d2f_core.rendering.adaptive import BUDGETS
+from d2f_core.sizing import resize
 from d2f_core.train.synth import linear_to_srgb, make_scene, render_pinhole
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -44,6 +45,26 @@ class TestPrepareRender:
         assert scene.disparity_source == "d2f"
         assert 0 <= float(scene.disparity_lr.min()) <= float(scene.disparity_lr.max()) <= 1
         assert scene.disparity_full().shape == (48, 64)
+
+    def test_network_reads_the_photo_not_the_smaller_pass(self):
+        """A small photo's rendering pass is half its size; the network reads the photo
+        itself, at up to ``network_size``, and its map is brought to the pass."""
+        torch.manual_seed(0)
+        model = D2F.from_config({"network_size": 48})
+        seen = []
+        hook = model.defocus_net.register_forward_hook(lambda m, i, o: seen.append(i[0].shape))
+        try:
+            scene = model.prepare(_image(40, 60), refine=False)
+        finally:
+            hook.remove()
+        assert seen == [(1, 3, 32, 48)]  # the photo at network_size, not the 20 x 30 pass
+        assert scene.disparity_lr.shape == (1, 1, 20, 30)
+        x = torch.from_numpy(_image(40, 60)).permute(2, 0, 1)[None]
+        with torch.no_grad():
+            want = model.predict_disparity(torch.zeros(1, 3, 20, 30), False, photo=x)
+            direct = resize(model.defocus_net(resize(x, (32, 48))), (20, 30))
+        torch.testing.assert_close(scene.disparity_lr, want)
+        torch.testing.assert_close(want, direct.clamp(0, 1))
 
     def test_uint8_equals_float(self, model):
         img8 = (_image() * 255).round().astype(np.uint8)

@@ -187,7 +187,7 @@ def test_training_samples_with_scene_labels(tmp_path):
                                      scene=True, keep_on="background")  # fmt: skip
     rng = random.Random(0)
     photo = next(p for p in data.photos if p.key in scene_keys)
-    _, alpha, target, keep = data._photo(photo, rng, (48, 64))
+    _, alpha, target, keep, _ = data._photo(photo, rng, (48, 64))
     assert alpha is None  # the subject (none here) is already in the target
     assert not keep[:8].any()  # the keep term leaves the sky to the target
     # the sky beside the (VOC teacher's) subject is farthest, the road's last row nearest

@@ -319,7 +319,7 @@ def _d2f_map(model: Any, image: np.ndarray) -> np.ndarray:
     with torch.no_grad():
         x = torch.from_numpy(image).permute(2, 0, 1)[None].to(model.device)
         lr = model.pass_size(size)
-        d = model.predict_disparity(resize(x, lr).clamp_(0, 1))  # [1,1,h,w]
+        d = model.predict_disparity(resize(x, lr).clamp_(0, 1), photo=x)  # [1,1,h,w]
         return resize(d, size)[0, 0].clamp_(0, 1).cpu().numpy()
 
 

@@ -67,6 +67,10 @@ class D2FConfig:
             background. 0 keeps the map as it is.
         edge_radius: that window's radius as a fraction of the render pass's long side (at
             least 3 px).
+        subject_lift: with a ``"-scene"`` defocus network, every subject its scene head
+            finds is moved at least this much nearer than what surrounds it, and its sky
+            to the back (:func:`d2f_core.depth.scene.stand_subjects`), before the map's
+            edges are snapped. 0 keeps the network's disparity as it is.
     """
 
     defocus: str = "lite"
@@ -89,6 +93,7 @@ class D2FConfig:
     flip_average: bool = False
     edge_step: float = 0.1
     edge_radius: float = 0.004
+    subject_lift: float = 0.05
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -115,6 +120,8 @@ class D2FConfig:
             raise ValueError("config.refine_radius must be in [0, 0.25] and refine_eps > 0")
         if not (0 <= self.edge_step <= 1 and 0 <= self.edge_radius <= 0.05):
             raise ValueError("config.edge_step must be in [0, 1] and edge_radius in [0, 0.05]")
+        if not 0 <= self.subject_lift <= 0.5:
+            raise ValueError(f"config.subject_lift must be in [0, 0.5], got {self.subject_lift}")
         if not 0 < self.render_scale <= 1:
             raise ValueError(f"config.render_scale must be in (0, 1], got {self.render_scale}")
         if self.full_pass_side < 0:

@@ -147,27 +147,62 @@ class D2F(FusionStage, FocusStage, nn.Module):
 
     # ---------------------------------------------------------------- networks
 
-    def predict_disparity(self, image: Tensor, refine: bool = True) -> Tensor:
+    def predict_disparity(
+        self, image: Tensor, refine: bool = True, photo: Tensor | None = None
+    ) -> Tensor:
         """Defocus network at ``config.network_size`` (averaged with its mirror image with
         ``config.flip_average``), resized back to the input size; with ``refine`` and
         ``config.refine="snap"`` its edges are then moved onto the photo's
         (:func:`refine.snap_edges`).
 
+        Args:
+            image: the photo at the size the map is wanted at (the rendering pass's).
+            refine: snap the map's edges onto ``image``'s.
+            photo: the same photo at a larger size (its own), which the network then reads,
+                at up to ``network_size``: a photo of 400 px has a rendering pass of 200 px,
+                and the network sees it at 400 (it was trained at 256-384).
+
         Shape: (B, 3, h, w) in [0, 1] -> (B, 1, h, w) in [0, 1].
         """
         size = tuple(image.shape[-2:])
-        net_size = scaled_size(size, 1.0, self.config.network_size)
-        small = resize(image, net_size)
+        source = image if photo is None else photo
+        net_size = scaled_size(tuple(source.shape[-2:]), 1.0, self.config.network_size)
+        small = resize(source, net_size)
+        net = self.defocus_net
+        scene = net.scene_head is not None and self.config.subject_lift > 0
+        forward = net.forward_scene if scene else lambda x: (net(x), None)
         if self.config.flip_average:
-            both = self.defocus_net(torch.cat([small, small.flip(-1)]))  # [2B,1,hn,wn]
             b = small.shape[0]
+            both, maps = forward(torch.cat([small, small.flip(-1)]))  # [2B,1,hn,wn]
             d = 0.5 * (both[:b] + both[b:].flip(-1))
+            if maps is not None:
+                maps = 0.5 * (maps[:b] + maps[b:].flip(-1))
         else:
-            d = self.defocus_net(small)
+            d, maps = forward(small)
+        if maps is not None:
+            d = self._stand(d, torch.sigmoid(maps))
         d = resize(d, size)  # [B,1,h,w]
         if refine:
             d = self._snap(image, d)
         return d.clamp(0, 1)
+
+    def _stand(self, disparity: Tensor, maps: Tensor) -> Tensor:
+        """:func:`~d2f_core.depth.scene.stand_subjects` on each map of a batch, with the
+        scene head's probabilities ``maps`` (subject, sky)."""
+        from ..depth.scene import stand_subjects
+
+        out = [
+            torch.from_numpy(
+                stand_subjects(
+                    d[0].float().cpu().numpy(),
+                    m[0].float().cpu().numpy(),
+                    m[1].float().cpu().numpy(),
+                    lift=self.config.subject_lift,
+                )
+            )
+            for d, m in zip(disparity, maps, strict=True)
+        ]
+        return torch.stack(out)[:, None].to(disparity)
 
     def _snap(self, image: Tensor, disparity: Tensor) -> Tensor:
         if self.config.refine != "snap":
@@ -255,7 +290,7 @@ class D2F(FusionStage, FocusStage, nn.Module):
         lr_size = self.pass_size(size, given=given is not None)
         image_lr = resize(image_t, lr_size).clamp_(0, 1)  # [1,3,h,w]
         if given is None:
-            disparity_lr = self.predict_disparity(image_lr, refine=refine)  # [1,1,h,w]
+            disparity_lr = self.predict_disparity(image_lr, refine, image_t)  # [1,1,h,w]
         else:
             disparity_lr = resize(given, lr_size).clamp_(0, 1)
         if refine:

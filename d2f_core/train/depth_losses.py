@@ -1,13 +1,14 @@
 """Stage 0's losses: a scale- and shift-invariant L1 (relative targets of real photos), a
 plain L1 (absolute targets of generated scenes) and multi-scale gradient matching (MiDaS);
-and the keep term, a weighted scale- and shift-invariant L1 to an earlier network's output."""
+the keep term, a weighted scale- and shift-invariant L1 to an earlier network's output; and
+the scene head's binary cross-entropy."""
 
 from __future__ import annotations
 
 import torch.nn.functional as F
 from torch import Tensor
 
-__all__ = ["depth_loss", "gradient_matching_loss", "keep_loss", "ssi_align"]
+__all__ = ["depth_loss", "gradient_matching_loss", "keep_loss", "scene_map_loss", "ssi_align"]
 
 
 def ssi_align(pred: Tensor, target: Tensor) -> Tensor:
@@ -82,3 +83,20 @@ def keep_loss(pred: Tensor, reference: Tensor, weight: Tensor) -> Tensor:
     p, _ = normed(pred)
     r, r_dev = normed(reference)
     return ((w * (p - r).abs()).sum(1, keepdim=True) / total * r_dev).mean()
+
+
+def scene_map_loss(logits: Tensor, maps: Tensor) -> Tensor:
+    """Binary cross-entropy of the scene head's logits to its soft targets ``maps`` (in
+    [0, 1]; negative where a photo's labels do not say), averaged over the known pixels of
+    each map and then over the maps that have any; 0 when none has.
+
+    Shape: (B, C, H, W) and (B, C, H, W) -> a scalar.
+    """
+    known = maps >= 0
+    bce = F.binary_cross_entropy_with_logits(logits, maps.clamp(0, 1), reduction="none")
+    per_map = (bce * known).flatten(2).sum(2)  # [B, C]
+    count = known.flatten(2).sum(2)
+    used = count > 0
+    if not bool(used.any()):
+        return logits.new_zeros(())
+    return (per_map[used] / count[used]).mean()

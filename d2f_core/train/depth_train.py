@@ -52,12 +52,19 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from ..io import load_image
-from ..networks import build_defocus_net, count_parameters
+from ..networks import SCENE_MAPS, build_defocus_net, count_parameters
 from ..sizing import scaled_size
-from .depth_losses import depth_loss, gradient_matching_loss, keep_loss, ssi_align
+from .depth_losses import (
+    depth_loss,
+    gradient_matching_loss,
+    keep_loss,
+    scene_map_loss,
+    ssi_align,
+)
 from .distill import Distiller, teacher_grid
 from .heldout import is_heldout
 from .scene_targets import (
+    SKY,
     normalise,
     read_scene_label,
     scene_strength,
@@ -101,6 +108,9 @@ class DepthSample:
     #: H x W float32 in [0, 1]: where the keep term holds the network to an earlier one's
     #: relative depth (the photo's pixels that its target knows nothing new about)
     keep: np.ndarray | None = None
+    #: 2 x H x W float32: what the scene head learns (:data:`~d2f_core.networks.SCENE_MAPS`:
+    #: the subjects' alpha and the sky), -1 where the photo's labels do not say
+    maps: np.ndarray | None = None
 
 
 def resize_array(x: np.ndarray, size: tuple[int, int], nearest: bool = False) -> np.ndarray:
@@ -144,6 +154,10 @@ class RealDepthData:
             (no mask, silhouette, VOC subject or occluder), outside their sky and weighted by
             how little of a scene they show (1 - :func:`scene_strength`): close-ups and rooms;
             ``None`` (training without the keep term): no keep maps are made.
+        scene_maps: also make each sample's :attr:`DepthSample.maps`, the scene head's
+            targets: the subjects its depth target stands in front (human masks, clear
+            silhouettes, the VOC subject, near occluders and pasted cut-outs) and the scene
+            teacher's sky.
     """
 
     def __init__(
@@ -161,10 +175,12 @@ class RealDepthData:
         rescan_every: int = 0,
         standing: float = 0.0,
         keep_on: str | None = None,
+        scene_maps: bool = False,
     ) -> None:
         if keep_on not in (None, "background", "plain"):
             raise ValueError(f"keep_on must be 'background', 'plain' or None, got {keep_on!r}")
         self.keep_on = keep_on
+        self.scene_maps = scene_maps
         self.labels = Path(labels)
         self._all = [p for p in iter_photos(root) if not is_heldout(p)]
         self.scene = scene
@@ -197,20 +213,21 @@ class RealDepthData:
     # -- pieces
     def _photo(
         self, photo: Photo, rng: random.Random, size: tuple[int, int]
-    ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray | None]:
-        """Image, subject alpha (or None), layout and keep map (:meth:`_keep_map`), at
-        ``size`` after a random crop."""
+    ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray | None, np.ndarray | None]:
+        """Image, subject alpha (or None), layout, keep map (:meth:`_keep_map`) and scene
+        maps (:attr:`DepthSample.maps`, or None), at ``size`` after a random crop."""
         img = load_image(photo.path)
         h0, w0 = img.shape[:2]
         th, tw = size
         scale = max(th / h0, tw / w0) * rng.uniform(1.0, 1.3)
         rh, rw = max(th, round(h0 * scale)), max(tw, round(w0 * scale))
-        img, alpha, layout, keep = self._whole(photo, img, (rh, rw))
+        img, alpha, layout, keep, maps = self._whole(photo, img, (rh, rw))
         y = rng.randint(0, rh - th)
         x = rng.randint(0, rw - tw)
         sl = (slice(y, y + th), slice(x, x + tw))
         return (img[sl], None if alpha is None else alpha[sl], layout[sl],
-                None if keep is None else keep[sl])  # fmt: skip
+                None if keep is None else keep[sl],
+                None if maps is None else maps[(slice(None), *sl)])  # fmt: skip
 
     def photo_target(
         self, photo: Photo, long_side: int
@@ -222,12 +239,12 @@ class RealDepthData:
         for its targets from one that does not carry them over to new photos."""
         img = load_image(photo.path)
         size = scaled_size(img.shape[:2], long_side / max(img.shape[:2]), None)
-        img, alpha, layout, keep = self._whole(photo, img, size)
+        img, alpha, layout, keep, _ = self._whole(photo, img, size)
         return np.clip(img, 0.0, 1.0), _target(layout, alpha), keep
 
     def _whole(
         self, photo: Photo, img: np.ndarray, size: tuple[int, int]
-    ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray | None]:
+    ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray | None, np.ndarray | None]:
         """:meth:`_photo` before its crop: the photo ``img`` resized to ``size``."""
         h0, w0 = img.shape[:2]
         rh, rw = size
@@ -249,7 +266,16 @@ class RealDepthData:
             subjects = scene_subjects(ade, alpha if mask is not None else None, scene["sal"], voc)
             layout = stand_on_scene(ade, layout, wt, subjects)
             alpha = None
-        return img, alpha, layout, self._keep_map(subjects, ade, wt, (rh, rw))
+        maps = None
+        if self.scene_maps:
+            maps = np.full((len(SCENE_MAPS), rh, rw), -1.0, np.float32)
+            if subjects is not None:
+                maps[0] = subjects
+            elif scene is not None or mask is not None:
+                maps[0] = 0.0  # the labels say there is no subject
+            if ade is not None:
+                maps[1] = np.isin(ade, SKY)
+        return img, alpha, layout, self._keep_map(subjects, ade, wt, (rh, rw)), maps
 
     def _keep_map(
         self,
@@ -298,23 +324,25 @@ class RealDepthData:
         a: np.ndarray,
         rng: random.Random,
         keep: np.ndarray | None = None,
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        maps: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
         """Composite a cut-out over ``img`` at a random place (up to a quarter of it may
         leave the frame), nearer than everything it covers and at least at the target's
         disparity where its lowest row stands; returns the new image, target and keep map
-        (zero under the cut-out)."""
+        (zero under the cut-out) and scene maps (the cut-out is a subject and hides the
+        sky)."""
         th, tw = target.shape
         ch, cw = a.shape
         y = rng.randint(-ch // 4, th - 3 * ch // 4)
         x = rng.randint(-cw // 4, tw - 3 * cw // 4)
         ya, yb, xa, xb = max(0, y), min(th, y + ch), max(0, x), min(tw, x + cw)
         if yb <= ya or xb <= xa:
-            return img, target, keep
+            return img, target, keep, maps
         a_c = a[ya - y : yb - y, xa - x : xb - x]
         rgb_c = rgb[ya - y : yb - y, xa - x : xb - x]
         inside = a_c >= 0.5
         if not inside.any():
-            return img, target, keep
+            return img, target, keep, maps
         rows = np.nonzero(inside.any(axis=1))[0]
         contact = float(np.median(target[ya + rows[-1], xa:xb][inside[rows[-1]]]))
         value = min(1.0, max(contact, float(target[ya:yb, xa:xb][inside].max()) + 0.05))
@@ -324,7 +352,13 @@ class RealDepthData:
         if keep is not None:
             keep = keep.copy()
             keep[ya:yb, xa:xb] *= 1 - a_c
-        return img, normalise(target), keep
+        if maps is not None:
+            maps = maps.copy()
+            region = maps[:, ya:yb, xa:xb]
+            known = region >= 0
+            region[0] = np.where(known[0], a_c + (1 - a_c) * region[0], region[0])
+            region[1] = np.where(known[1], (1 - a_c) * region[1], region[1])
+        return img, normalise(target), keep, maps
 
     def _synth(self, rng: random.Random, size: tuple[int, int]) -> DepthSample:
         from .synth import linear_to_srgb, make_scene, render_pinhole
@@ -353,15 +387,16 @@ class RealDepthData:
             photo = rng.choice(self.photos)
         else:
             photo = rng.choices(self.photos, cum_weights=self._cum_weights)[0]
-        img, alpha, layout, keep = self._photo(photo, rng, size)
+        img, alpha, layout, keep, maps = self._photo(photo, rng, size)
         target = _target(layout, alpha)
         if rng.random() < self.paste:
             cut = self._cutout(rng, size)
             if cut is not None:
-                img, target, keep = self._paste(img, target, *cut, rng, keep)
+                img, target, keep, maps = self._paste(img, target, *cut, rng, keep, maps)
         if rng.random() < 0.5:
             img, target = img[:, ::-1], target[:, ::-1]
             keep = None if keep is None else keep[:, ::-1]
+            maps = None if maps is None else maps[:, :, ::-1]
         # mild photometric jitter
         gain = rng.uniform(0.8, 1.2)
         gamma = rng.uniform(0.8, 1.25)
@@ -369,13 +404,15 @@ class RealDepthData:
         return DepthSample(
             img.astype(np.float32), target.astype(np.float32), relative=True,
             keep=None if keep is None else np.ascontiguousarray(keep, dtype=np.float32),
+            maps=None if maps is None else np.ascontiguousarray(maps, dtype=np.float32),
         )  # fmt: skip
 
     def batch(
         self, rng: random.Random, n: int, size: tuple[int, int] | None = None
-    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """``(images, targets, relative, keep)``: B x 3 x H x W, B x 1 x H x W, B and
-        B x 1 x H x W (zero for generated scenes)."""
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+        """``(images, targets, relative, keep, maps)``: B x 3 x H x W, B x 1 x H x W, B,
+        B x 1 x H x W (zero for generated scenes) and B x 2 x H x W (the scene maps, -1
+        where unknown: everywhere in generated scenes and without ``scene_maps``)."""
         samples = [self.sample(rng, size) for _ in range(n)]
         images = torch.stack(
             [torch.from_numpy(np.ascontiguousarray(s.image)).permute(2, 0, 1) for s in samples]
@@ -386,7 +423,11 @@ class RealDepthData:
             [torch.zeros(s.target.shape) if s.keep is None else torch.from_numpy(s.keep)
              for s in samples]
         )  # fmt: skip
-        return images, targets[:, None], relative, keep[:, None]
+        maps = torch.stack(
+            [torch.full((len(SCENE_MAPS), *s.target.shape), -1.0) if s.maps is None
+             else torch.from_numpy(s.maps) for s in samples]
+        )  # fmt: skip
+        return images, targets[:, None], relative, keep[:, None], maps
 
 
 def batch_shapes(sides: Sequence[int]) -> list[tuple[int, int]]:
@@ -466,13 +507,19 @@ def train_depth(args: argparse.Namespace) -> Path:
         rescan_every=args.rescan_every,
         standing=args.standing,
         keep_on=args.keep_on if args.keep is not None else None,
+        scene_maps=build_defocus_net(args.variant).scene_head is not None,
     )
     net = build_defocus_net(args.variant)
     if args.init is not None:
         _load_defocus(net, args.init)
         logger.info("defocus network initialised from %s", args.init)
     distiller = None
-    groups = [{"params": list(net.parameters()), "lr_scale": 1.0}]
+    head = [] if net.scene_head is None else list(net.scene_head.parameters())
+    ids = {id(q) for q in head}
+    groups = [{"params": [q for q in net.parameters() if id(q) not in ids], "lr_scale": 1.0}]
+    if head:
+        # the scene head starts untrained on a trained decoder: it learns ten times faster
+        groups.append({"params": head, "lr_scale": 10.0})
     if args.distill is not None:
         distiller = Distiller(net.encoder.channels, args.distill_channels)
         # the projection starts at zero and must catch up with a trained encoder before
@@ -538,9 +585,16 @@ def train_depth(args: argparse.Namespace) -> Path:
         warm = min(1.0, (step + 1) / 200)
         for g in opt.param_groups:
             g["lr"] = lr * warm * g.get("lr_scale", 1.0)
-        images, targets, relative, keep, *teacher = next(loader)
-        pred = net(images)
+        images, targets, relative, keep, maps, *teacher = next(loader)
+        if net.scene_head is None:
+            pred = net(images)
+        else:
+            pred, logits = net.forward_scene(images)
         loss, parts = depth_loss(pred, targets, relative, args.absolute_weight)
+        if net.scene_head is not None:
+            scene = scene_map_loss(logits, maps)
+            loss = loss + args.scene_map_weight * scene
+            parts["maps"] = scene.item()
         if keeper is not None:
             with torch.no_grad():
                 reference = keeper(images)
@@ -700,6 +754,12 @@ def build_parser() -> argparse.ArgumentParser:
         "knows nothing new (outside its subjects, their margins and the sky)",
     )
     p.add_argument("--keep-weight", type=float, default=1.0)
+    p.add_argument(
+        "--scene-map-weight",
+        type=float,
+        default=0.5,
+        help="weight of the scene head's cross-entropy (a '-scene' --variant: subjects, sky)",
+    )
     p.add_argument(
         "--keep-on",
         choices=("background", "plain"),

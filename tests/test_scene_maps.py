@@ -1,0 +1,215 @@
+"""The defocus network's scene head (subjects, sky) and what inference does with it:
+:func:`d2f_core.depth.scene.stand_subjects`, the head's loss and targets, a short training
+run and the pipeline's use of the maps."""
+
+from __future__ import annotations
+
+import random
+
+import numpy as np
+import pytest
+import torch
+
+from d2f_core.bench.depth_bench import subject_auc
+from d2f_core.depth.scene import stand_subjects
+from d2f_core.networks import SCENE_MAPS, DefocusNet, build_defocus_net, count_parameters
+from d2f_core.pipeline import D2F
+from d2f_core.train import depth_train
+from d2f_core.train.depth_losses import scene_map_loss
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+def _ramp(h: int = 96, w: int = 128) -> np.ndarray:
+    """'The bottom is near': 0.1 at the top row to 0.9 at the bottom."""
+    return np.tile(np.linspace(0.1, 0.9, h, dtype=np.float32)[:, None], (1, w))
+
+
+def _box(h: int = 96, w: int = 128, y0=20, y1=60, x0=50, x1=80) -> np.ndarray:
+    m = np.zeros((h, w), np.float32)
+    m[y0:y1, x0:x1] = 1.0
+    return m
+
+
+class TestStandSubjects:
+    def test_a_subject_level_with_its_scene_comes_in_front(self):
+        d, subject = _ramp(), _box()
+        above = subject[:60] > 0.5  # the frame down to its feet
+        assert subject_auc(d[:60], above) < 0.8  # the map alone: level with the scene
+        out = stand_subjects(d, subject, lift=0.1)
+        part = out[subject > 0.5]
+        # three quarters of it are nearer than all that stands beside and above it (the
+        # ring's 90th percentile lifted by 0.1 is above the ring's nearest row)
+        assert np.percentile(part, 25) > d[:60].max()
+        assert subject_auc(out[:60], above) > 0.99
+        # the part is shifted as a whole: its own relief is kept
+        np.testing.assert_allclose(np.diff(out[20:60, 60]), np.diff(d[20:60, 60]), atol=1e-6)
+        # the ground below it and the rest of the frame are untouched
+        outside = _box(y0=0, y1=96, x0=0, x1=128) - _box(y0=17, y1=63, x0=47, x1=83)
+        np.testing.assert_array_equal(out[outside > 0.5], d[outside > 0.5])
+
+    def test_the_ground_in_front_does_not_push_it(self):
+        """A subject standing low in the frame is lifted above what is beside and behind
+        it, not above the nearer ground below its feet."""
+        d, subject = _ramp(), _box(y0=40, y1=70)
+        out = stand_subjects(d, subject, lift=0.1)
+        low = np.percentile(out[subject > 0.5], 25)
+        assert low > d[:70].max()  # in front of its surroundings
+        assert low < d[85, 60]  # not of the ground in front of its feet (0.85 if it counted)
+
+    def test_a_subject_already_in_front_and_small_parts_are_left_alone(self):
+        d, subject = _ramp(), _box()
+        d[subject > 0.5] = 1.0
+        np.testing.assert_array_equal(stand_subjects(d, subject), d)
+        speck = _box(y0=20, y1=22, x0=50, x1=52)  # 4 px of 12,288: under min_area
+        np.testing.assert_array_equal(stand_subjects(_ramp(), speck), _ramp())
+        np.testing.assert_array_equal(stand_subjects(_ramp(), subject, lift=0.0), _ramp())
+
+    def test_sky_goes_farthest_and_the_order_is_kept(self):
+        d = _ramp()
+        d[:30] = 0.6  # a bright sky the network put mid-way
+        sky = np.zeros_like(d)
+        sky[:30] = 1.0
+        out = stand_subjects(d, np.zeros_like(d), sky)
+        assert out[:30].max() <= out[30:].min() + 1e-6
+        np.testing.assert_array_equal(out[30:], d[30:])
+        # a lift past 1 rescales the whole map rather than clipping the subject flat
+        high = stand_subjects(_ramp(), _box(), lift=0.3)
+        assert high.max() == pytest.approx(1.0) and (np.diff(high[20:60, 60]) > 0).all()
+        assert (np.diff(high[:, 10]) > 0).all()  # the scene's own order too
+
+    @pytest.mark.parametrize(
+        ("args", "match"),
+        [
+            ((np.full((8, 8), np.nan), np.zeros((8, 8))), "NaN"),
+            ((np.zeros((8, 8)), np.zeros((8, 9))), "subject must be"),
+            ((np.zeros((8, 8)), np.zeros((8, 8)), np.zeros(8)), "sky must be"),
+            ((np.zeros(8), np.zeros(8)), "disparity must be"),
+        ],
+    )
+    def test_bad_maps_are_named(self, args, match):
+        with pytest.raises(ValueError, match=match):
+            stand_subjects(*args)
+
+
+def test_scene_map_loss_counts_known_pixels_only():
+    maps = torch.full((2, 2, 4, 4), -1.0)
+    assert float(scene_map_loss(torch.zeros(2, 2, 4, 4), maps)) == 0.0  # nothing known
+    maps[0, 0] = 1.0
+    maps[0, 0, 0, 0] = -1.0
+    logits = torch.full((2, 2, 4, 4), 20.0)
+    logits[0, 0, 0, 0] = -20.0  # wrong, but unknown there
+    assert float(scene_map_loss(logits, maps)) < 1e-6
+    logits[0, 0, 1, 1] = -20.0  # wrong on one of the 15 known pixels
+    assert float(scene_map_loss(logits, maps)) == pytest.approx(20.0 / 15, rel=1e-4)
+    # soft targets: 0.5 is best met by a logit of 0
+    soft = torch.full((1, 2, 4, 4), 0.5)
+    assert float(scene_map_loss(torch.zeros(1, 2, 4, 4), soft)) == pytest.approx(np.log(2))
+
+
+def test_scene_head_grows_from_the_plain_network():
+    torch.manual_seed(0)
+    plain = DefocusNet("lite-ctx").eval()
+    torch.nn.init.normal_(plain.context.out.weight, std=0.05)
+    net = build_defocus_net("lite-ctx-scene").eval()
+    net.load_lite(plain.state_dict())
+    x = torch.rand(2, 3, 50, 70)
+    with torch.no_grad():
+        d, logits = net.forward_scene(x)
+        assert torch.equal(d, plain(x)) and torch.equal(net(x), d)
+    assert logits.shape == (2, len(SCENE_MAPS), 50, 70)
+    assert 0 < count_parameters(net) - count_parameters(plain) < 5_000
+    with pytest.raises(ValueError, match="no scene maps"):
+        plain.forward_scene(x)
+    with pytest.raises(ValueError, match="lite variants"):
+        DefocusNet("resnext50", scene_maps=2)
+
+
+def _scene_labelled(tmp_path):
+    """The tiny datasets with scene labels: the top half sky, the rest road."""
+    from test_depth import _tiny_datasets
+    from test_scene_targets import ROAD, SKY
+
+    root, labels = tmp_path / "datasets", tmp_path / "labels"
+    _tiny_datasets(root, labels)
+    for path in sorted(labels.glob("*.npz")):
+        with np.load(path) as z:
+            maps = dict(z)
+        ade = np.full((48, 64), ROAD, np.uint8)
+        ade[:24] = SKY
+        np.savez(path, **maps, ade=ade, sal=np.zeros((48, 64), np.uint8))
+    return root, labels
+
+
+def test_scene_map_targets_follow_the_depth_targets(tmp_path):
+    root, labels = _scene_labelled(tmp_path)
+    data = depth_train.RealDepthData(root, labels, size=(48, 64), paste=0.0, synth=0.0,
+                                     scene=True, scene_maps=True)  # fmt: skip
+    rng = random.Random(0)
+    photo = data.masked[0]
+    whole = depth_train.load_image(photo.path)
+    img, alpha, layout, _, maps = data._whole(photo, whole, (48, 64))
+    assert maps.shape == (2, 48, 64)
+    mask = depth_train.read_mask(photo, (48, 64))  # the human mask the target stands
+    assert np.corrcoef(maps[0].ravel(), mask.ravel())[0, 1] > 0.9
+    outside = maps[0][mask < 0.01]  # nothing but the 1-px feathered rim
+    assert outside.max() < 0.5 and outside.mean() < 0.02
+    assert (maps[1][:24] == 1).all() and (maps[1][24:] == 0).all()  # sky above, road below
+    # a pasted cut-out is a subject and hides the sky; a flipped sample flips its maps
+    cut_rgb, cut_a = np.ones((20, 20, 3), np.float32), np.ones((20, 20), np.float32)
+    target = np.zeros((48, 64), np.float32)
+    for _ in range(5):
+        img2, _, _, maps2 = data._paste(img, target, cut_rgb, cut_a, rng, None, maps)
+        pasted = (img2 == 1.0).all(-1) & (img != 1.0).any(-1)
+        assert pasted.any() and (maps2[0][pasted] == 1).all() and (maps2[1][pasted] == 0).all()
+    # generated scenes carry no scene maps: unknown everywhere in a batch
+    synth = depth_train.RealDepthData(root, labels, size=(48, 64), synth=1.0, scene_maps=True)
+    assert synth.sample(rng).maps is None
+    assert (synth.batch(rng, 2)[4] == -1).all()
+    # without scene labels a masked photo's subject is known, its sky is not
+    bare = tmp_path / "bare"
+    _, bare_labels = bare / "datasets", bare / "labels"
+    from test_depth import _tiny_datasets
+
+    _tiny_datasets(bare / "datasets", bare_labels)
+    plain = depth_train.RealDepthData(bare / "datasets", bare_labels, size=(48, 64),
+                                      paste=0.0, synth=0.0, scene_maps=True)  # fmt: skip
+    maps3 = plain._photo(plain.masked[0], rng, (48, 64))[4]
+    assert maps3[0].max() > 0.9 and (maps3[1] == -1).all()
+
+
+def test_scene_variant_trains_exports_and_stands_its_subjects(tmp_path, tiny_checkpoint):
+    root, labels = _scene_labelled(tmp_path)
+    args = depth_train.build_parser().parse_args(
+        ["--data", str(root), "--labels", str(labels), "--out", str(tmp_path / "run"),
+         "--steps", "2", "--batch-size", "2", "--crop", "64", "--save-every", "2",
+         "--keep-every", "2", "--workers", "0", "--threads", "1", "--log-every", "1",
+         "--variant", "lite-ctx-scene", "--scene-targets", "--synth", "0",
+         "--init", str(tiny_checkpoint)]
+    )  # fmt: skip
+    last = depth_train.train_depth(args)
+    log = (tmp_path / "run" / "depth_log.jsonl").read_text().splitlines()
+    assert all('"maps"' in line for line in log)
+    state = torch.load(last, weights_only=True)["state_dict"]
+    init = D2F.from_checkpoint(tiny_checkpoint).defocus_net.state_dict()
+    assert {k for k in state if k.startswith("scene_head.")} and set(init) < set(state)
+    out = depth_train.export_checkpoint(last, tiny_checkpoint, tmp_path / "d2f.pt")
+    model = D2F.from_checkpoint(out)
+    assert model.config.defocus == "lite-ctx-scene" and model.config.subject_lift == 0.05
+    # the pipeline's map is the network's, with its subjects stood by its own scene maps
+    rng = np.random.default_rng(0)
+    image = torch.from_numpy(rng.random((1, 3, 64, 96), dtype=np.float32))
+    model.config.network_size = 96  # the network runs at the image's own size
+    with torch.no_grad():
+        # the briefly trained head's subject: the top third of its logits
+        first = model.defocus_net.forward_scene(image)[1]
+        model.defocus_net.scene_head[2].bias[0] -= float(first[0, 0].quantile(0.67))
+        d, logits = model.defocus_net.forward_scene(image)
+        got = model.predict_disparity(image, refine=False)
+    probs = torch.sigmoid(logits)[0].numpy()
+    want = stand_subjects(d[0, 0].numpy(), probs[0], probs[1], lift=0.05)
+    assert np.abs(want - d[0, 0].numpy()).max() > 0.01  # it stood some of them
+    np.testing.assert_allclose(got[0, 0].numpy(), want, atol=1e-6)
+    model.config.subject_lift = 0.0
+    with torch.no_grad():
+        np.testing.assert_array_equal(model.predict_disparity(image, refine=False), d.numpy())
