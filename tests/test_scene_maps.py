@@ -210,6 +210,21 @@ def test_scene_variant_trains_exports_and_stands_its_subjects(tmp_path, tiny_che
     want = stand_subjects(d[0, 0].numpy(), probs[0], probs[1], lift=0.05)
     assert np.abs(want - d[0, 0].numpy()).max() > 0.01  # it stood some of them
     np.testing.assert_allclose(got[0, 0].numpy(), want, atol=1e-6)
+    # --head-only: the scene head learns, the disparity network stays as it started
+    head = depth_train.build_parser().parse_args(
+        ["--data", str(root), "--labels", str(labels), "--out", str(tmp_path / "head"),
+         "--steps", "2", "--batch-size", "2", "--crop", "64", "--save-every", "2",
+         "--keep-every", "2", "--workers", "0", "--threads", "1", "--log-every", "1",
+         "--variant", "lite-ctx-scene", "--scene-targets", "--synth", "0", "--head-only",
+         "--init", str(out)]
+    )  # fmt: skip
+    trained = torch.load(depth_train.train_depth(head), weights_only=True)["state_dict"]
+    start = model.defocus_net.state_dict()
+    assert all(torch.equal(trained[k], v) for k, v in start.items() if "scene_head" not in k)
+    assert not torch.equal(trained["scene_head.2.weight"], start["scene_head.2.weight"])
+    head.variant, head.out, head.init = "lite-ctx", str(tmp_path / "plain"), str(tiny_checkpoint)
+    with pytest.raises(ValueError, match="--head-only"):
+        depth_train.train_depth(head)
     model.config.subject_lift = 0.0
     with torch.no_grad():
         np.testing.assert_array_equal(model.predict_disparity(image, refine=False), d.numpy())

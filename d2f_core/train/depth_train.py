@@ -515,8 +515,14 @@ def train_depth(args: argparse.Namespace) -> Path:
         logger.info("defocus network initialised from %s", args.init)
     distiller = None
     head = [] if net.scene_head is None else list(net.scene_head.parameters())
+    if args.head_only and not head:
+        raise ValueError(f"--head-only needs a '-scene' --variant, got {args.variant!r}")
     ids = {id(q) for q in head}
-    groups = [{"params": [q for q in net.parameters() if id(q) not in ids], "lr_scale": 1.0}]
+    trunk = [q for q in net.parameters() if id(q) not in ids]
+    groups = [] if args.head_only else [{"params": trunk, "lr_scale": 1.0}]
+    if args.head_only:  # the disparity stays exactly the initial network's
+        for q in trunk:
+            q.requires_grad_(False)
     if head:
         # the scene head starts untrained on a trained decoder: it learns ten times faster
         groups.append({"params": head, "lr_scale": 10.0})
@@ -564,6 +570,8 @@ def train_depth(args: argparse.Namespace) -> Path:
         args.batch_size,
     )
     net.train()
+    if args.head_only:
+        net.eval()  # the trunk's batch norms keep their statistics
     loader = iter(
         torch.utils.data.DataLoader(
             _Batches(
@@ -754,6 +762,12 @@ def build_parser() -> argparse.ArgumentParser:
         "knows nothing new (outside its subjects, their margins and the sky)",
     )
     p.add_argument("--keep-weight", type=float, default=1.0)
+    p.add_argument(
+        "--head-only",
+        action="store_true",
+        help="train the scene head alone; the rest of the network, and its disparity, stay "
+        "as --init has them",
+    )
     p.add_argument(
         "--scene-map-weight",
         type=float,
