@@ -65,6 +65,13 @@ class TestStandSubjects:
         np.testing.assert_array_equal(stand_subjects(_ramp(), speck), _ramp())
         np.testing.assert_array_equal(stand_subjects(_ramp(), subject, lift=0.0), _ramp())
 
+    def test_a_hesitant_subject_map_stands_nothing(self):
+        hesitant = np.where(_box() > 0.5, 0.6, 0.4).astype(np.float32)  # clarity 0.2
+        np.testing.assert_array_equal(stand_subjects(_ramp(), hesitant, min_clarity=0.5), _ramp())
+        assert not np.array_equal(stand_subjects(_ramp(), hesitant, min_clarity=0.1), _ramp())
+        clear = _box()  # clarity 1
+        assert not np.array_equal(stand_subjects(_ramp(), clear, min_clarity=0.9), _ramp())
+
     def test_sky_goes_farthest_and_the_order_is_kept(self):
         d = _ramp()
         d[:30] = 0.6  # a bright sky the network put mid-way

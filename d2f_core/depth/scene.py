@@ -29,6 +29,7 @@ def stand_subjects(
     min_area: float = 0.002,
     ring: float = 0.1,
     max_parts: int = 8,
+    min_clarity: float = 0.0,
 ) -> np.ndarray:
     """``disparity`` with its subjects in front of their surroundings and its sky farthest.
 
@@ -42,6 +43,11 @@ def stand_subjects(
       left as it is, and the shift keeps the part's own relief. Its soft rim (``subject``
       between 0.3 and 0.7) takes part of the shift.
 
+    Subjects are stood only when the subject map is clear (of its pixels above 0.1, the mean
+    distance from 0.5, doubled, is at least ``min_clarity``): a hesitant map is a scene with
+    no one subject (a room, a shelf, a flower bed), where lifting its parts breaks the
+    scene's own order. Stage 0's targets judge U^2-Net-p's silhouettes the same way.
+
     The result is divided by its maximum when a shift takes it above 1, so the order of
     every pixel is kept.
 
@@ -52,6 +58,7 @@ def stand_subjects(
         min_area: smaller parts are left alone (a fraction of the frame).
         ring: the width of the ring around a part, as a fraction of the long side.
         max_parts: at most this many parts (the largest) are stood.
+        min_clarity: below this clarity of ``subject``, no part is stood.
 
     Returns:
         ``H x W`` float32 in [0, 1].
@@ -83,7 +90,9 @@ def stand_subjects(
             far = float(np.percentile(rest, 1))
             out = np.where(a > 0, (1 - a) * out + a * np.minimum(out, far), out)
     hard = s >= 0.5
-    if lift <= 0 or not hard.any():
+    soft = s[s > 0.1]
+    clarity = float(np.mean(np.abs(soft - 0.5)) * 2) if soft.size else 0.0
+    if lift <= 0 or not hard.any() or clarity < min_clarity:
         return np.clip(out, 0.0, 1.0).astype(np.float32)
     parts, n = ndimage.label(hard, structure=np.ones((3, 3), bool))
     sizes = np.bincount(parts.ravel(), minlength=n + 1)[1:]

@@ -71,6 +71,8 @@ class D2FConfig:
             finds is moved at least this much nearer than what surrounds it, and its sky
             to the back (:func:`d2f_core.depth.scene.stand_subjects`), before the map's
             edges are snapped. 0 keeps the network's disparity as it is.
+        subject_clarity: the subjects are stood only where the scene head's subject map is
+            at least this clear (``min_clarity`` of :func:`~d2f_core.depth.scene.stand_subjects`).
     """
 
     defocus: str = "lite"
@@ -94,6 +96,7 @@ class D2FConfig:
     edge_step: float = 0.1
     edge_radius: float = 0.004
     subject_lift: float = 0.05
+    subject_clarity: float = 0.0
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -120,6 +123,10 @@ class D2FConfig:
             raise ValueError("config.refine_radius must be in [0, 0.25] and refine_eps > 0")
         if not (0 <= self.edge_step <= 1 and 0 <= self.edge_radius <= 0.05):
             raise ValueError("config.edge_step must be in [0, 1] and edge_radius in [0, 0.05]")
+        if not 0 <= self.subject_clarity <= 1:
+            raise ValueError(
+                f"config.subject_clarity must be in [0, 1], got {self.subject_clarity}"
+            )
         if not 0 <= self.subject_lift <= 0.5:
             raise ValueError(f"config.subject_lift must be in [0, 0.5], got {self.subject_lift}")
         if not 0 < self.render_scale <= 1:

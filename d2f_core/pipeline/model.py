@@ -198,6 +198,7 @@ class D2F(FusionStage, FocusStage, nn.Module):
                     m[0].float().cpu().numpy(),
                     m[1].float().cpu().numpy(),
                     lift=self.config.subject_lift,
+                    min_clarity=self.config.subject_clarity,
                 )
             )
             for d, m in zip(disparity, maps, strict=True)
