@@ -65,6 +65,13 @@ class TestPrepareRender:
             direct = resize(model.defocus_net(resize(x, (32, 48))), (20, 30))
         torch.testing.assert_close(scene.disparity_lr, want)
         torch.testing.assert_close(want, direct.clamp(0, 1))
+        # a pass as large as network_size or larger is read as before: the same map
+        big = torch.from_numpy(_image(200, 300)).permute(2, 0, 1)[None]
+        lr = resize(big, (100, 150))
+        with torch.no_grad():
+            torch.testing.assert_close(
+                model.predict_disparity(lr, False, photo=big), model.predict_disparity(lr, False)
+            )
 
     def test_uint8_equals_float(self, model):
         img8 = (_image() * 255).round().astype(np.uint8)

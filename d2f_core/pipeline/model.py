@@ -159,13 +159,17 @@ class D2F(FusionStage, FocusStage, nn.Module):
             image: the photo at the size the map is wanted at (the rendering pass's).
             refine: snap the map's edges onto ``image``'s.
             photo: the same photo at a larger size (its own), which the network then reads,
-                at up to ``network_size``: a photo of 400 px has a rendering pass of 200 px,
-                and the network sees it at 400 (it was trained at 256-384).
+                at up to ``network_size``, when ``image`` is smaller than that: a photo of
+                400 px has a rendering pass of 200 px, and the network sees it at 400 (it
+                was trained at 256-384). A pass of ``network_size`` or more is read as it is.
 
         Shape: (B, 3, h, w) in [0, 1] -> (B, 1, h, w) in [0, 1].
         """
         size = tuple(image.shape[-2:])
-        source = image if photo is None else photo
+        # the photo only when the pass is smaller than the network reads (one resize of a
+        # large photo would cost more than the network)
+        small_pass = max(size) < self.config.network_size
+        source = photo if photo is not None and small_pass else image
         net_size = scaled_size(tuple(source.shape[-2:]), 1.0, self.config.network_size)
         small = resize(source, net_size)
         net = self.defocus_net
