@@ -135,16 +135,11 @@ def test_scene_head_grows_from_the_plain_network():
 def _scene_labelled(tmp_path):
     """The tiny datasets with scene labels: the top half sky, the rest road."""
     from test_depth import _tiny_datasets
-    from test_scene_targets import ROAD, SKY
+    from test_scene_targets import add_scene_labels
 
     root, labels = tmp_path / "datasets", tmp_path / "labels"
     _tiny_datasets(root, labels)
-    for path in sorted(labels.glob("*.npz")):
-        with np.load(path) as z:
-            maps = dict(z)
-        ade = np.full((48, 64), ROAD, np.uint8)
-        ade[:24] = SKY
-        np.savez(path, **maps, ade=ade, sal=np.zeros((48, 64), np.uint8))
+    add_scene_labels(labels)
     return root, labels
 
 

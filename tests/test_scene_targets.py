@@ -168,6 +168,20 @@ def test_standing_scenes_put_the_subject_in_front(kind):
         make_standing_scene((32, 32), seed=0, kind="nope")
 
 
+def add_scene_labels(labels, pattern: str = "*.npz") -> list[str]:
+    """Add the scene teachers' maps to the label files matching ``pattern``: the top half of
+    the frame sky, the rest road, nothing salient. Returns the photos' keys."""
+    keys = []
+    for path in sorted(labels.glob(pattern)):
+        with np.load(path) as z:
+            maps = dict(z)
+        ade = np.full((48, 64), ROAD, np.uint8)
+        ade[:24] = SKY
+        np.savez(path, **maps, ade=ade, sal=np.zeros((48, 64), np.uint8))
+        keys.append(path.stem)
+    return keys
+
+
 def test_training_samples_with_scene_labels(tmp_path):
     """Labels holding the scene teachers' maps give scene targets; older labels keep the
     older targets; standing scenes come in among the generated ones."""
@@ -175,14 +189,7 @@ def test_training_samples_with_scene_labels(tmp_path):
 
     root, labels = tmp_path / "datasets", tmp_path / "labels"
     _tiny_datasets(root, labels)
-    scene_keys = []
-    for path in sorted(labels.glob("photos__*.npz")):
-        with np.load(path) as z:
-            maps = dict(z)
-        ade = np.full((48, 64), ROAD, np.uint8)
-        ade[:24] = SKY
-        np.savez(path, **maps, ade=ade, sal=np.zeros((48, 64), np.uint8))
-        scene_keys.append(path.stem)
+    scene_keys = add_scene_labels(labels, "photos__*.npz")
     data = depth_train.RealDepthData(root, labels, size=(48, 64), paste=0.0, synth=0.0,
                                      scene=True, keep_on="background")  # fmt: skip
     rng = random.Random(0)
