@@ -269,10 +269,8 @@ class RealDepthData:
         maps = None
         if self.scene_maps:
             maps = np.full((len(SCENE_MAPS), rh, rw), -1.0, np.float32)
-            if subjects is not None:
+            if subjects is not None:  # else no mask, no scene labels, no VOC subject: unknown
                 maps[0] = subjects
-            elif scene is not None or mask is not None:
-                maps[0] = 0.0  # the labels say there is no subject
             if ade is not None:
                 maps[1] = np.isin(ade, SKY)
         return img, alpha, layout, self._keep_map(subjects, ade, wt, (rh, rw)), maps
