@@ -73,6 +73,29 @@ class TestPrepareRender:
                 model.predict_disparity(lr, False, photo=big), model.predict_disparity(lr, False)
             )
 
+    @pytest.mark.parametrize(
+        ("photo", "match"),
+        [
+            (torch.rand(2, 3, 40, 60), "batch"),  # a batch of 2 for one image
+            (torch.rand(3, 40, 60), "batch"),
+            ((torch.rand(1, 3, 40, 60) * 255).to(torch.uint8), "float"),
+            (torch.rand(1, 3, 10, 15), "smaller"),
+            (torch.rand(1, 3, 90, 40), "same frame"),  # a portrait photo for a landscape pass
+            (torch.rand(1, 3, 40, 90), "same frame"),
+        ],
+    )
+    def test_a_photo_that_is_not_the_images_is_refused(self, photo, match):
+        model = D2F.from_config({"network_size": 48})
+        with torch.no_grad(), pytest.raises(ValueError, match=match):
+            model.predict_disparity(torch.rand(1, 3, 20, 30), False, photo=photo)
+
+    @pytest.mark.parametrize("size", [(1, 1), (1, 9), (3, 767), (767, 3), (5, 7), (33, 1000)])
+    def test_odd_sizes_read_the_photo(self, size):
+        """Every photo and its rendering pass (rounded on each side) pass the check."""
+        model = D2F.from_config({"network_size": 48})
+        scene = model.prepare(_image(*size), refine=False)
+        assert scene.disparity_lr.shape[-2:] == model.pass_size(size)
+
     def test_uint8_equals_float(self, model):
         img8 = (_image() * 255).round().astype(np.uint8)
         a = model.prepare(img8)

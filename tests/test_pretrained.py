@@ -61,6 +61,7 @@ def test_beats_identity_on_held_out_generated_pairs(model):
         gains.append(psnr(out, pair.bokeh) - psnr(pair.image, pair.bokeh))
     assert sum(g > 0 for g in gains) >= 10
     assert np.mean(gains) > 1.5
+    assert min(gains) > -2.0, gains  # the worst, seed 7002: -1.27 dB (+4.27 reading the pass)
 
 
 # ------------------------------------------------------------------ depth on real photos

@@ -225,8 +225,19 @@ def test_scene_variant_trains_exports_and_stands_its_subjects(tmp_path, tiny_che
     assert all(torch.equal(trained[k], v) for k, v in start.items() if "scene_head" not in k)
     assert not torch.equal(trained["scene_head.2.weight"], start["scene_head.2.weight"])
     head.variant, head.out, head.init = "lite-ctx", str(tmp_path / "plain"), str(tiny_checkpoint)
-    with pytest.raises(ValueError, match="--head-only"):
+    with pytest.raises(ValueError, match="--head-only needs a '-scene'"):
         depth_train.train_depth(head)
+    # nothing to keep as it is without --init; nothing for --keep or --distill to train
+    head.variant, head.out, head.init = "lite-ctx-scene", str(tmp_path / "bare"), None
+    with pytest.raises(ValueError, match="--head-only needs --init"):
+        depth_train.train_depth(head)
+    head.init, head.keep = str(out), str(out)
+    with pytest.raises(ValueError, match="--keep and --distill"):
+        depth_train.train_depth(head)
+    head.head_only, head.keep, head.scene_map_weight = False, None, -0.5
+    with pytest.raises(ValueError, match="--scene-map-weight must be >= 0"):
+        depth_train.train_depth(head)
+    assert not (tmp_path / "bare" / "depth_last.pt").exists()
     model.config.subject_lift = 0.0
     with torch.no_grad():
         np.testing.assert_array_equal(model.predict_disparity(image, refine=False), d.numpy())

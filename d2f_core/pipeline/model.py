@@ -35,6 +35,28 @@ from .fusion import FUSION_TILE, FusionStage, ms_since, per_sample, to_numpy_ima
 from .outputs import Result, Scene
 
 
+def _check_photo(photo: Tensor, image: Tensor) -> None:
+    """``photo`` (B, 3, H, W) must be ``image``'s photo: the same batch and channels, float,
+    at least as large, and the same frame within a pixel of rounding.
+
+    Raises:
+        ValueError: naming what differs.
+    """
+    if photo.dim() != 4 or photo.shape[:2] != image.shape[:2]:
+        raise ValueError(
+            f"photo must be the image's batch at its own size, (B, C, H, W) = "
+            f"{tuple(image.shape[:2])} + (H, W); got {tuple(photo.shape)}"
+        )
+    if not photo.is_floating_point():
+        raise ValueError(f"photo must be float in [0, 1], got {photo.dtype}")
+    (ph, pw), (h, w) = photo.shape[-2:], image.shape[-2:]
+    if ph < h or pw < w:
+        raise ValueError(f"photo ({ph}x{pw}) is smaller than the image ({h}x{w})")
+    scale = w / pw if pw >= ph else h / ph  # the long side's scale: the one rounded least
+    if abs(ph * scale - h) > 1 or abs(pw * scale - w) > 1:
+        raise ValueError(f"photo ({ph}x{pw}) and image ({h}x{w}) are not the same frame")
+
+
 class D2F(FusionStage, FocusStage, nn.Module):
     """Defocus-to-Focus: defocus, radiance and fusion networks plus the layered renderer.
 
@@ -166,6 +188,8 @@ class D2F(FusionStage, FocusStage, nn.Module):
         Shape: (B, 3, h, w) in [0, 1] -> (B, 1, h, w) in [0, 1].
         """
         size = tuple(image.shape[-2:])
+        if photo is not None:
+            _check_photo(photo, image)
         # the photo only when the pass is smaller than the network reads (one resize of a
         # large photo would cost more than the network)
         small_pass = max(size) < self.config.network_size

@@ -515,6 +515,14 @@ def train_depth(args: argparse.Namespace) -> Path:
     head = [] if net.scene_head is None else list(net.scene_head.parameters())
     if args.head_only and not head:
         raise ValueError(f"--head-only needs a '-scene' --variant, got {args.variant!r}")
+    resuming = (out / "depth_last.pt").is_file() and not args.restart
+    if args.head_only and args.init is None and not resuming:
+        raise ValueError("--head-only needs --init: the network whose disparity stays as it is")
+    if args.head_only and (args.keep is not None or args.distill is not None):
+        raise ValueError("--head-only trains the scene head alone: --keep and --distill train "
+                         "the rest of the network")  # fmt: skip
+    if args.scene_map_weight < 0:
+        raise ValueError(f"--scene-map-weight must be >= 0, got {args.scene_map_weight}")
     ids = {id(q) for q in head}
     trunk = [q for q in net.parameters() if id(q) not in ids]
     groups = [] if args.head_only else [{"params": trunk, "lr_scale": 1.0}]
