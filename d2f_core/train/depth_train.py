@@ -493,6 +493,18 @@ def train_depth(args: argparse.Namespace) -> Path:
     torch.set_num_threads(args.threads)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    last = out / "depth_last.pt"
+    resuming = last.is_file() and not args.restart
+    # the options alone, before the photos are scanned
+    if args.head_only and args.init is None and not resuming:
+        raise ValueError("--head-only needs --init: the network whose disparity stays as it is")
+    if args.head_only and (args.keep is not None or args.distill is not None):
+        raise ValueError("--head-only trains the scene head alone: --keep and --distill train "
+                         "the rest of the network")  # fmt: skip
+    if args.scene_map_weight < 0:
+        raise ValueError(f"--scene-map-weight must be >= 0, got {args.scene_map_weight}")
+    if args.ema and not 0.0 < args.ema < 1.0:
+        raise ValueError(f"--ema must lie in (0, 1), got {args.ema}")
     data = RealDepthData(
         args.data,
         args.labels,
@@ -515,14 +527,6 @@ def train_depth(args: argparse.Namespace) -> Path:
     head = [] if net.scene_head is None else list(net.scene_head.parameters())
     if args.head_only and not head:
         raise ValueError(f"--head-only needs a '-scene' --variant, got {args.variant!r}")
-    resuming = (out / "depth_last.pt").is_file() and not args.restart
-    if args.head_only and args.init is None and not resuming:
-        raise ValueError("--head-only needs --init: the network whose disparity stays as it is")
-    if args.head_only and (args.keep is not None or args.distill is not None):
-        raise ValueError("--head-only trains the scene head alone: --keep and --distill train "
-                         "the rest of the network")  # fmt: skip
-    if args.scene_map_weight < 0:
-        raise ValueError(f"--scene-map-weight must be >= 0, got {args.scene_map_weight}")
     ids = {id(q) for q in head}
     trunk = [q for q in net.parameters() if id(q) not in ids]
     groups = [] if args.head_only else [{"params": trunk, "lr_scale": 1.0}]
@@ -546,11 +550,8 @@ def train_depth(args: argparse.Namespace) -> Path:
         logger.info("keep term: weight %g towards %s", args.keep_weight, args.keep)
     opt = torch.optim.AdamW(groups, lr=args.lr, weight_decay=1e-4)
     step = 0
-    last = out / "depth_last.pt"
-    if args.ema and not 0.0 < args.ema < 1.0:
-        raise ValueError(f"--ema must lie in (0, 1), got {args.ema}")
     ema = None
-    if last.is_file() and not args.restart:
+    if resuming:
         state = torch.load(last, map_location="cpu", weights_only=True)
         net.load_state_dict(state["state_dict"])
         opt.load_state_dict(state["optimizer"])
