@@ -320,6 +320,7 @@ LITE_VARIANTS: dict[str, tuple[int | tuple[int, ...], int | None]] = {
     "lite": (4, None),
     "lite-ctx": (4, 64),
     "lite-wide": ((4, 4, 8, 8), 128),
+    "lite-xl": ((6, 8, 12, 16), 192),
 }
 
 
@@ -329,11 +330,13 @@ class DefocusNet(nn.Module):
     Args:
         variant: ``"resnext50"`` (paper: ResNeXt50 32x4d encoder, 256 decoder features),
             ``"lite"`` (MobileNetV2-like encoder, separable decoder; about 1.1 M parameters),
-            ``"lite-ctx"`` (``"lite"`` with :class:`GlobalContext` on its deepest map) or
+            ``"lite-ctx"`` (``"lite"`` with :class:`GlobalContext` on its deepest map),
             ``"lite-wide"`` (``"lite-ctx"`` with twice the expansion in the encoder's two
             deepest stages and twice the context's hidden channels; about 2.2 M parameters,
-            1.15x the time). A smaller lite network's state dict loads into a larger one
-            with :meth:`load_lite`, which then computes the same map.
+            1.15x the time) or ``"lite-xl"`` (expansions 6, 8, 12 and 16 from the shallowest
+            stage to the deepest and three times the context's hidden channels; about 4.0 M
+            parameters, 1.4x the time at 512x768). A smaller lite network's state dict loads
+            into a larger one with :meth:`load_lite`, which then computes the same map.
         scene_maps: channels of a second head on the decoder's features, the logits of
             :data:`SCENE_MAPS` (:meth:`forward_scene`; ``"lite-ctx-scene"`` has it), which a
             smaller lite network's state dict leaves at its initialisation.
@@ -358,7 +361,8 @@ class DefocusNet(nn.Module):
             features, separable = 64, True
         else:
             raise ValueError(
-                f"variant must be 'resnext50', 'lite', 'lite-ctx' or 'lite-wide', got {variant!r}"
+                f"variant must be 'resnext50', 'lite', 'lite-ctx', 'lite-wide' or 'lite-xl', "
+                f"got {variant!r}"
             )
         self.variant = variant
         channels = self.encoder.channels
@@ -435,11 +439,11 @@ class DefocusNet(nn.Module):
 
     def load_lite(self, state: Mapping[str, Tensor]) -> None:
         """Load a smaller lite network's state dict: ``"lite"`` into ``"lite-ctx"``, or
-        ``"lite"`` / ``"lite-ctx"`` into ``"lite-wide"``. The larger network computes what
-        the smaller one did: a missing context module keeps its zero output, and the extra
-        hidden channels of a wider block or context keep their random input weights but get
-        zero output weights (function-preserving widening, as in Net2Net). A state dict of
-        the network's own variant loads as it is."""
+        ``"lite"`` / ``"lite-ctx"`` into ``"lite-wide"`` or ``"lite-xl"``. The larger network
+        computes what the smaller one did: a missing context module keeps its zero output,
+        and the extra hidden channels of a wider block or context keep their random input
+        weights but get zero output weights (function-preserving widening, as in Net2Net). A
+        state dict of the network's own variant loads as it is."""
         own = self.state_dict()
         unexpected = sorted(set(state) - set(own))
         missing = sorted(
@@ -639,6 +643,7 @@ DEFOCUS_NETS: dict[str, Callable[[], nn.Module]] = {
     "lite": lambda: DefocusNet("lite"),
     "lite-ctx": lambda: DefocusNet("lite-ctx"),
     "lite-wide": lambda: DefocusNet("lite-wide"),
+    "lite-xl": lambda: DefocusNet("lite-xl"),
     "lite-ctx-scene": lambda: DefocusNet("lite-ctx", scene_maps=len(SCENE_MAPS)),
     "resnext50": lambda: DefocusNet("resnext50"),
 }

@@ -922,3 +922,109 @@ def test_target_fit_scores_against_stage_0_targets(tmp_path):
         target_fit({"own": own}, root, labels, photos=0)
     with pytest.raises(ValueError, match="no labelled training photos"):
         target_fit({"own": own}, tmp_path / "nowhere", labels)
+
+
+def test_pack_holds_the_photos_and_targets_training_draws(tmp_path, capsys):
+    """``d2f-train depth-pack``: every labelled training photo whole, its target and its mask,
+    written in shards and read back together; the packed target is the one stage 0 builds."""
+    from d2f_core.train import depth_pack
+
+    root, labels = tmp_path / "datasets", tmp_path / "labels"
+    _tiny_datasets(root, labels)
+    data = depth_train.RealDepthData(root, labels)
+    for i in range(2):
+        depth_pack.write_pack(data, tmp_path / "pack", side=64, target_side=64, shard=(i, 2))
+    photos = depth_pack.read_pack(tmp_path / "pack")
+    assert [p.key for p in photos] == sorted(p.key for p in data.photos)
+    masked = sum(p.mask is not None for p in photos)
+    assert masked == len(data.masked) and 0 < masked < len(photos)  # held-out photos left out
+    for packed in photos:
+        photo = next(p for p in data.photos if p.key == packed.key)
+        img, target, _ = data.photo_target(photo, 64)
+        assert packed.image.shape == img.shape == (48, 64, 3) and packed.target.shape == (48, 64)
+        assert packed.source == photo.source
+        # the target as stage 0 builds it, to 8 bits; the photo to WebP's loss
+        assert np.abs(packed.target / 255.0 - target).max() <= 0.5 / 255 + 1e-6
+        assert np.abs(packed.image / 255.0 - img).mean() < 0.08
+        if packed.mask is not None:
+            assert np.array_equal(packed.mask, teachers.read_mask(photo, (48, 64)) >= 0.5)
+    # a smaller target is stored smaller and read back at its own size
+    depth_pack.write_pack(data, tmp_path / "small", side=64, target_side=32)
+    assert depth_pack.read_pack(tmp_path / "small")[0].target.shape == (24, 32)
+
+    # samples as RealDepthData draws them: crops, pasted cut-outs, mirrors, generated scenes
+    packed = depth_pack.PackedDepthData(tmp_path / "pack", size=(40, 56), paste=1.0, synth=0.0)
+    rng = random.Random(0)
+    for _ in range(6):
+        s = packed.sample(rng)
+        assert s.image.shape == (40, 56, 3) and s.target.shape == (40, 56) and s.relative
+        assert 0 <= s.image.min() and s.image.max() <= 1 and s.keep is None
+        assert s.target.min() == pytest.approx(0) and s.target.max() == pytest.approx(1)
+    rgb, alpha = packed._cutout(rng, (40, 56))
+    # the masks are squares: a cut-out is the square, whole, at up to 0.8 of the crop
+    assert rgb.shape[:2] == alpha.shape and alpha.shape[0] == alpha.shape[1] <= 32
+    assert alpha.mean() > 0.9
+    generated = depth_pack.PackedDepthData(tmp_path / "pack", size=(40, 56), synth=1.0)
+    assert not generated.sample(rng).relative
+    images, targets, relative, keep, maps = next(iter(depth_train._Batches(packed, 3, 0)))
+    assert images.shape == (3, 3, 40, 56) and not keep.any() and (maps == -1).all()
+
+    # what it refuses, with the problem named
+    with pytest.raises(ValueError, match="pack_"):
+        depth_pack.read_pack(tmp_path / "nothing")
+    (tmp_path / "bad").mkdir()
+    (tmp_path / "bad" / "pack_0.npz").write_bytes(b"not a pack")
+    with pytest.raises(ValueError, match="not a stage-0 pack"):
+        depth_pack.read_pack(tmp_path / "bad")
+    with pytest.raises(ValueError, match="shard"):
+        depth_pack.write_pack(data, tmp_path / "x", shard=(2, 2))
+    with pytest.raises(ValueError, match="target_side"):
+        depth_pack.write_pack(data, tmp_path / "x", side=64, target_side=128)
+    assert depth_pack.main([str(tmp_path / "empty"), "--labels", str(labels),
+                            "--out", str(tmp_path / "x")]) == 2  # fmt: skip
+    assert "no labelled training photos" in capsys.readouterr().err
+
+
+def test_training_from_a_pack_on_a_time_budget(tmp_path, tiny_checkpoint, one_thread):
+    """``d2f-train depth --pack``: trains from the pack alone; ``--minutes`` ends training
+    when the time is spent, with the last weights and their average kept, and a resumed
+    run whose time is spent trains nothing more."""
+    from d2f_core.train import depth_pack
+
+    root, labels = tmp_path / "datasets", tmp_path / "labels"
+    _tiny_datasets(root, labels)
+    depth_pack.write_pack(
+        depth_train.RealDepthData(root, labels), tmp_path / "pack", side=64, target_side=32
+    )
+    run = tmp_path / "run"
+    argv = ["--pack", str(tmp_path / "pack"), "--out", str(run), "--steps", "1000",
+            "--minutes", "0.02", "--batch-size", "2", "--crop", "48", "--workers", "0",
+            "--threads", "1", "--log-every", "1", "--save-every", "1000", "--keep-every",
+            "1000", "--variant", "lite-ctx", "--init", str(tiny_checkpoint), "--ema", "0.9",
+            "--synth", "0.5"]  # fmt: skip
+    last = depth_train.train_depth(depth_train.build_parser().parse_args(argv))
+    state = torch.load(last, weights_only=True)
+    step = state["step"]
+    assert 1 <= step < 1000 and state["elapsed_s"] >= 0.02 * 60
+    assert (run / f"depth_{step:06d}.pt").is_file() and (run / f"depth_{step:06d}_ema.pt").is_file()
+    log = [json.loads(line) for line in (run / "depth_log.jsonl").open()]
+    assert len(log) == step and all(math.isfinite(r["loss"]) for r in log)
+    assert log[-1]["lr"] < log[0]["lr"]  # the schedule followed the time spent
+    again = depth_train.train_depth(depth_train.build_parser().parse_args(argv))
+    assert torch.load(again, weights_only=True)["step"] == step
+    # the pack or the photos, not both or neither; no CUDA device, a clear error
+    for extra, match in (
+        (["--data", str(root), "--labels", str(labels)], "no --data"),
+        (["--keep", str(tiny_checkpoint)], "need the photos"),
+        (["--minutes", "0"], "--minutes"),
+    ):
+        args = depth_train.build_parser().parse_args(argv + extra + ["--restart"])
+        with pytest.raises(ValueError, match=match):
+            depth_train.train_depth(args)
+    bare = ["--out", str(tmp_path / "y")]
+    with pytest.raises(ValueError, match="--pack"):
+        depth_train.train_depth(depth_train.build_parser().parse_args(bare))
+    if not torch.cuda.is_available():
+        cuda = depth_train.build_parser().parse_args(argv + ["--device", "cuda", "--restart"])
+        with pytest.raises(ValueError, match="no CUDA"):
+            depth_train.train_depth(cuda)

@@ -115,6 +115,26 @@ class TestDefocusNet:
                 DefocusNet("lite-wide").state_dict() | {"head.2.weight": torch.zeros(1, 64, 1, 1)}
             )
 
+    def test_xl_variant_grows_from_the_shipped_size_within_budget(self):
+        """``"lite-xl"`` starts from a trained ``"lite-ctx"`` computing the same map, and stays
+        inside the depth issue's budget of 5 M parameters."""
+        torch.manual_seed(1)
+        small = DefocusNet("lite-ctx")
+        torch.nn.init.normal_(small.context.out.weight, std=0.05)
+        small.train()
+        with torch.no_grad():
+            for _ in range(3):
+                small(torch.rand(4, 3, 64, 96))
+        small.eval()
+        xl = DefocusNet("lite-xl")
+        xl.load_lite(small.state_dict())
+        xl.eval()
+        x = torch.rand(2, 3, 70, 50)
+        with torch.no_grad():
+            assert float((xl(x) - small(x)).abs().max()) < 1e-5
+        assert 3_500_000 < count_parameters(xl) < 5_000_000
+        assert xl.context.branches[0][0].out_channels == 192
+
     def test_context_sees_the_whole_frame(self):
         """A change in one corner of the deepest map reaches the far corner, and the
         padding beyond the image neither enters the pooling nor changes the image part."""
@@ -245,7 +265,14 @@ class TestFusionNet:
 
 
 def test_registries_and_builders():
-    assert set(DEFOCUS_NETS) == {"lite", "lite-ctx", "lite-wide", "lite-ctx-scene", "resnext50"}
+    assert set(DEFOCUS_NETS) == {
+        "lite",
+        "lite-ctx",
+        "lite-wide",
+        "lite-xl",
+        "lite-ctx-scene",
+        "resnext50",
+    }
     assert set(FUSION_NETS) == {"paper", "lite"}
     assert set(RADIANCE_NETS) == {"paper"}
     assert isinstance(build_defocus_net("lite"), DefocusNet)

@@ -488,6 +488,29 @@ def _load_defocus(net: torch.nn.Module, checkpoint: str | Path) -> torch.nn.Modu
     return net
 
 
+def _on_cpu(state: dict[str, Tensor]) -> dict[str, Tensor]:
+    """A state dict with every tensor on the CPU (checkpoints load on any machine)."""
+    return {k: v.detach().cpu() for k, v in state.items()}
+
+
+def _real_data(args: argparse.Namespace) -> RealDepthData:
+    """The photos of ``--data`` with the labels of ``--labels``, as the options ask."""
+    return RealDepthData(
+        args.data,
+        args.labels,
+        size=(args.crop, args.crop),
+        paste=args.paste,
+        synth=args.synth,
+        layout_teacher=args.layout_teacher,
+        scene_weight=args.scene_weight,
+        scene=args.scene_targets,
+        rescan_every=args.rescan_every,
+        standing=args.standing,
+        keep_on=args.keep_on if args.keep is not None else None,
+        scene_maps=build_defocus_net(args.variant).scene_head is not None,
+    )
+
+
 def train_depth(args: argparse.Namespace) -> Path:
     """Run (or resume) stage 0; returns the path of the last checkpoint."""
     torch.set_num_threads(args.threads)
@@ -505,20 +528,30 @@ def train_depth(args: argparse.Namespace) -> Path:
         raise ValueError(f"--scene-map-weight must be >= 0, got {args.scene_map_weight}")
     if args.ema and not 0.0 < args.ema < 1.0:
         raise ValueError(f"--ema must lie in (0, 1), got {args.ema}")
-    data = RealDepthData(
-        args.data,
-        args.labels,
-        size=(args.crop, args.crop),
-        paste=args.paste,
-        synth=args.synth,
-        layout_teacher=args.layout_teacher,
-        scene_weight=args.scene_weight,
-        scene=args.scene_targets,
-        rescan_every=args.rescan_every,
-        standing=args.standing,
-        keep_on=args.keep_on if args.keep is not None else None,
-        scene_maps=build_defocus_net(args.variant).scene_head is not None,
-    )
+    if args.pack is None and (args.data is None or args.labels is None):
+        raise ValueError("give --data and --labels, or --pack")
+    if args.pack is not None and (args.data is not None or args.labels is not None):
+        raise ValueError("--pack holds the photos and their targets: no --data or --labels")
+    if args.pack is not None and (args.keep is not None or args.distill is not None):
+        raise ValueError("--keep and --distill need the photos' labels: --data and --labels")
+    if args.minutes is not None and args.minutes <= 0:
+        raise ValueError(f"--minutes must be positive, got {args.minutes}")
+    device = torch.device(args.device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError("--device cuda: no CUDA device here")
+    if device.type == "cuda":
+        torch.backends.cudnn.benchmark = True  # a few batch shapes, each seen many times
+    if args.pack is not None:
+        from .depth_pack import PackedDepthData
+
+        if "scene" in args.variant:
+            raise ValueError("a pack holds no scene maps: a '-scene' --variant needs --data")
+        data: RealDepthData = PackedDepthData(
+            args.pack, size=(args.crop, args.crop), paste=args.paste, synth=args.synth,
+            scene_weight=args.scene_weight, standing=args.standing,
+        )  # fmt: skip
+    else:
+        data = _real_data(args)
     net = build_defocus_net(args.variant)
     if args.init is not None:
         _load_defocus(net, args.init)
@@ -548,7 +581,13 @@ def train_depth(args: argparse.Namespace) -> Path:
         keeper = _load_defocus(build_defocus_net(args.variant), args.keep)
         keeper.eval().requires_grad_(False)
         logger.info("keep term: weight %g towards %s", args.keep_weight, args.keep)
+    net.to(device)
+    if keeper is not None:
+        keeper.to(device)
+    if distiller is not None:
+        distiller.to(device)
     opt = torch.optim.AdamW(groups, lr=args.lr, weight_decay=1e-4)
+    spent = 0.0  # seconds of training before this run (resumed), for --minutes
     step = 0
     ema = None
     if resuming:
@@ -556,11 +595,14 @@ def train_depth(args: argparse.Namespace) -> Path:
         net.load_state_dict(state["state_dict"])
         opt.load_state_dict(state["optimizer"])
         ema = state.get("ema")
+        if ema is not None:
+            ema = {k: v.to(device) for k, v in ema.items()}
         if distiller is not None:
             if "distiller" not in state:
                 raise ValueError(f"{last} was trained without --distill; use --restart")
             distiller.load_state_dict(state["distiller"])
         step = int(state["step"])
+        spent = float(state.get("elapsed_s", 0.0))
         logger.info("resumed from %s at step %d", last, step)
     if not args.ema:
         ema = None
@@ -590,17 +632,30 @@ def train_depth(args: argparse.Namespace) -> Path:
             ),
             batch_size=None,
             num_workers=args.workers,
+            pin_memory=device.type == "cuda",
             prefetch_factor=4 if args.workers else None,
         )
     )
     t0 = time.perf_counter()
     log = open(out / "depth_log.jsonl", "a")  # noqa: SIM115
-    while step < args.steps:
-        lr = args.lr * 0.5 * (1 + math.cos(math.pi * step / args.steps))
+    budget = None if args.minutes is None else 60.0 * args.minutes
+
+    def progress() -> float:
+        """How far along the schedule: steps done, or the time budget spent if sooner."""
+        done = step / args.steps
+        if budget is not None:
+            done = max(done, (spent + time.perf_counter() - t0) / budget)
+        return min(1.0, done)
+
+    done = progress() >= 1.0
+    while not done:
+        lr = args.lr * 0.5 * (1 + math.cos(math.pi * progress()))
         warm = min(1.0, (step + 1) / 200)
         for g in opt.param_groups:
             g["lr"] = lr * warm * g.get("lr_scale", 1.0)
-        images, targets, relative, keep, maps, *teacher = next(loader)
+        images, targets, relative, keep, maps, *teacher = (
+            t.to(device, non_blocking=True) for t in next(loader)
+        )
         if net.scene_head is None:
             pred = net(images)
         else:
@@ -646,9 +701,11 @@ def train_depth(args: argparse.Namespace) -> Path:
             log.write(json.dumps(rec) + "\n")
             log.flush()
             logger.info("step %d loss %.4f %s", step, loss.item(), parts)
-        if step % args.save_every == 0 or step == args.steps:
+        final = done = progress() >= 1.0
+        if step % args.save_every == 0 or final:
             state = {
-                "state_dict": net.state_dict(),
+                "state_dict": _on_cpu(net.state_dict()),
+                "elapsed_s": spent + time.perf_counter() - t0,
                 "optimizer": opt.state_dict(),
                 "step": step,
                 "variant": args.variant,
@@ -656,18 +713,27 @@ def train_depth(args: argparse.Namespace) -> Path:
             if distiller is not None:
                 state["distiller"] = distiller.state_dict()
             if ema is not None:
-                state["ema"] = ema
+                state["ema"] = _on_cpu(ema)
             tmp = last.with_suffix(".tmp")
             torch.save(state, tmp)
             tmp.replace(last)
-            if step % args.keep_every == 0:
+            if step % args.keep_every == 0 or final:
                 torch.save(
-                    {"state_dict": net.state_dict(), "step": step, "variant": args.variant},
+                    {
+                        "state_dict": _on_cpu(net.state_dict()),
+                        "step": step,
+                        "variant": args.variant,
+                    },  # fmt: skip
                     out / f"depth_{step:06d}.pt",
                 )
                 if ema is not None:
                     torch.save(
-                        {"state_dict": ema, "step": step, "variant": args.variant, "ema": args.ema},
+                        {
+                            "state_dict": _on_cpu(ema),
+                            "step": step,
+                            "variant": args.variant,
+                            "ema": args.ema,
+                        },  # fmt: skip
                         out / f"depth_{step:06d}_ema.pt",
                     )
     log.close()
@@ -700,8 +766,23 @@ def build_parser() -> argparse.ArgumentParser:
         prog="d2f-train depth",
         description="stage 0: train the defocus network on real photos with depth targets",
     )
-    p.add_argument("--data", type=Path, required=True, help="datasets folder")
-    p.add_argument("--labels", type=Path, required=True, help="teacher labels (d2f-train label)")
+    p.add_argument("--data", type=Path, default=None, help="datasets folder")
+    p.add_argument("--labels", type=Path, default=None, help="teacher labels (d2f-train label)")
+    p.add_argument(
+        "--pack",
+        type=Path,
+        default=None,
+        help="train on a pack of the photos and their targets (d2f-train depth-pack) instead "
+        "of --data and --labels",
+    )
+    p.add_argument("--device", default="cpu", help="cpu or cuda")
+    p.add_argument(
+        "--minutes",
+        type=float,
+        default=None,
+        help="a time budget: the learning-rate schedule follows the time spent or the steps "
+        "done, whichever is further along, and training ends at either",
+    )
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--variant", default="lite")
     p.add_argument("--steps", type=int, default=6000)

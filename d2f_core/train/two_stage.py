@@ -481,6 +481,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         from .teachers import run_label
 
         return run_label(argv[1:])
+    if argv[:1] == ["depth-pack"]:  # stage 0's photos and targets, packed small
+        from .depth_pack import main as pack_main
+
+        return pack_main(argv[1:])
     if argv[:1] == ["depth"]:  # stage 0: depth from real photos
         from .depth_train import main as depth_main
 

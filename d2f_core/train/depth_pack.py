@@ -1,0 +1,259 @@
+"""Stage 0's photos and targets packed small, for training on another machine.
+
+Building a photo's stage-0 target reads its teacher labels and runs the scene model
+(:meth:`~d2f_core.train.depth_train.RealDepthData.photo_target`, about 70 ms a photo on one
+core); the photos and labels together are several hundred megabytes. A pack holds what
+training draws from instead: every labelled training photo whole at a long side of ``side``
+px (WebP), its target at ``target_side`` px (8-bit PNG, relative: 0 farthest, 255 nearest)
+and, where the photo has a human-drawn mask, that mask (1-bit PNG) for the pasted cut-outs.
+About 20 kB a photo at the defaults, so the 2,801 training photos fit in about 60 MB.
+
+:class:`PackedDepthData` draws stage-0 samples from a pack exactly as
+:class:`~d2f_core.train.depth_train.RealDepthData` draws them from the photos (the same
+crops, pasted cut-outs, mirrors, jitter and generated scenes); ``d2f-train depth --pack``
+trains on it. The difference is where the target is built: once for the whole photo at
+``side`` px and then resized with the crop, rather than at the crop's scale.
+
+``d2f-train depth-pack ROOT --labels DIR --out DIR [--shard I/N]`` writes ``pack_I.npz``;
+shards written by several processes are read together.
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import logging
+import random
+import sys
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from .depth_train import SCENE_SOURCES, RealDepthData, resize_array
+from .scene_targets import normalise
+from .teachers import read_mask
+
+__all__ = ["PackedDepthData", "PackedPhoto", "read_pack", "write_pack"]
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class PackedPhoto:
+    """One photo of a pack, decoded: ``image`` H x W x 3 uint8, ``target`` h x w uint8
+    (255 nearest), ``mask`` H x W bool or ``None``."""
+
+    key: str
+    source: str
+    image: np.ndarray
+    target: np.ndarray
+    mask: np.ndarray | None
+
+
+def _encode(array: np.ndarray, fmt: str, **kw) -> bytes:
+    buf = io.BytesIO()
+    Image.fromarray(array).save(buf, fmt, **kw)
+    return buf.getvalue()
+
+
+def _decode(data: bytes) -> np.ndarray:
+    with Image.open(io.BytesIO(data)) as im:
+        return np.asarray(im)
+
+
+def write_pack(
+    data: RealDepthData,
+    out: str | Path,
+    side: int = 352,
+    target_side: int = 176,
+    quality: int = 80,
+    shard: tuple[int, int] = (0, 1),
+) -> Path:
+    """Pack the photos of ``data`` (every ``shard[1]``-th from ``shard[0]``) into
+    ``out/pack_<shard[0]>.npz``; returns its path."""
+    index, count = shard
+    if not 0 <= index < count:
+        raise ValueError(f"shard must be I/N with 0 <= I < N, got {index}/{count}")
+    if side < 32 or not 16 <= target_side <= side:
+        raise ValueError(
+            f"need side >= 32 and 16 <= target_side <= side, got {side} and {target_side}"
+        )
+    if not 1 <= quality <= 100:
+        raise ValueError(f"quality must lie in [1, 100], got {quality}")
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    keys, sources, spans, chunks = [], [], [], []
+    offset = 0
+    photos = data.photos[index::count]
+    for i, photo in enumerate(photos):
+        img, target, _ = data.photo_target(photo, side)
+        h, w = target.shape
+        f = target_side / max(h, w)
+        small = resize_array(target, (max(1, round(h * f)), max(1, round(w * f))))
+        parts = [
+            _encode((img * 255 + 0.5).astype(np.uint8), "WEBP", quality=quality, method=6),
+            _encode((np.clip(small, 0, 1) * 255 + 0.5).astype(np.uint8), "PNG", optimize=True),
+        ]
+        if photo.mask is not None:
+            mask = read_mask(photo, (h, w)) >= 0.5
+            parts.append(_encode(mask, "PNG", optimize=True) if mask.any() else b"")
+        else:
+            parts.append(b"")
+        row = []
+        for part in parts:
+            row.append((offset, len(part)))
+            offset += len(part)
+            chunks.append(part)
+        keys.append(photo.key)
+        sources.append(photo.source)
+        spans.append(row)
+        if (i + 1) % 200 == 0:
+            logger.info("packed %d of %d photos (%.1f MB)", i + 1, len(photos), offset / 1e6)
+    path = out / f"pack_{index}.npz"
+    tmp = out / f"pack_{index}.tmp.npz"
+    np.savez(
+        tmp,
+        keys=np.array(keys, dtype=str),
+        sources=np.array(sources, dtype=str),
+        spans=np.array(spans, dtype=np.int64).reshape(-1, 3, 2),
+        blob=np.frombuffer(b"".join(chunks), dtype=np.uint8),
+        side=np.int64(side),
+    )
+    tmp.replace(path)
+    return path
+
+
+def read_pack(folder: str | Path) -> list[PackedPhoto]:
+    """Every photo of the ``pack_*.npz`` shards in ``folder``, decoded, in key order."""
+    files = sorted(Path(folder).glob("pack_*.npz"))
+    files = [f for f in files if not f.name.endswith(".tmp.npz")]
+    if not files:
+        raise ValueError(f"no pack_*.npz in {folder} (d2f-train depth-pack writes them)")
+    photos = []
+    for file in files:
+        try:
+            with np.load(file) as z:
+                keys, sources, spans, blob = z["keys"], z["sources"], z["spans"], z["blob"]
+        except (OSError, KeyError, ValueError) as exc:
+            raise ValueError(f"{file} is not a stage-0 pack: {exc}") from exc
+        for key, source, row in zip(keys, sources, spans, strict=True):
+            image, target, mask = (
+                None if n == 0 else _decode(blob[a : a + n].tobytes()) for a, n in row
+            )
+            if image is None or target is None or image.ndim != 3:
+                raise ValueError(f"{file}: photo {key} has no image or target")
+            photos.append(
+                PackedPhoto(str(key), str(source), image, target,
+                            None if mask is None else mask.astype(bool))
+            )  # fmt: skip
+    photos.sort(key=lambda p: p.key)
+    return photos
+
+
+class PackedDepthData(RealDepthData):
+    """:class:`~d2f_core.train.depth_train.RealDepthData`'s samples, drawn from a pack
+    (:func:`write_pack`) instead of the photos and their labels.
+
+    Args:
+        pack: the folder of ``pack_*.npz`` shards.
+        size, paste, synth, scene_weight, standing: as for ``RealDepthData``.
+    """
+
+    def __init__(
+        self,
+        pack: str | Path,
+        size: tuple[int, int] = (256, 256),
+        paste: float = 0.4,
+        synth: float = 0.15,
+        scene_weight: float = 1.0,
+        standing: float = 0.0,
+    ) -> None:
+        self.photos = read_pack(pack)
+        self.masked = [p for p in self.photos if p.mask is not None]
+        self.size, self.paste, self.synth, self.standing = size, paste, synth, standing
+        self.keep_on, self.scene_maps = None, False
+        self.rescan_every, self._drawn = 0, 0
+        if scene_weight <= 0:
+            raise ValueError(f"scene_weight must be positive, got {scene_weight}")
+        self.scene_weight = scene_weight
+        self._weigh()
+        self.scene_share = sum(p.source in SCENE_SOURCES for p in self.photos) / len(self.photos)
+
+    def _photo(self, photo: PackedPhoto, rng: random.Random, size: tuple[int, int]):  # type: ignore[override]
+        h0, w0 = photo.image.shape[:2]
+        th, tw = size
+        scale = max(th / h0, tw / w0) * rng.uniform(1.0, 1.3)
+        rh, rw = max(th, round(h0 * scale)), max(tw, round(w0 * scale))
+        img = resize_array(photo.image.astype(np.float32) / 255.0, (rh, rw))
+        target = resize_array(photo.target.astype(np.float32) / 255.0, (rh, rw))
+        y = rng.randint(0, rh - th)
+        x = rng.randint(0, rw - tw)
+        sl = (slice(y, y + th), slice(x, x + tw))
+        return np.clip(img[sl], 0.0, 1.0), None, normalise(target[sl]), None, None
+
+    def _cutout(self, rng: random.Random, size: tuple[int, int]):  # type: ignore[override]
+        if not self.masked:
+            return None
+        photo = rng.choice(self.masked)
+        mask = photo.mask
+        if mask is None or mask.sum() < 64:
+            return None
+        ys, xs = np.nonzero(mask)
+        box = (slice(ys.min(), ys.max() + 1), slice(xs.min(), xs.max() + 1))
+        crop = photo.image[box].astype(np.float32) / 255.0
+        from .synth.photo import feather
+
+        th, tw = size
+        m = mask[box].astype(np.float32)
+        scale = rng.uniform(0.25, 0.8) * min(th, tw) / max(m.shape)
+        ch, cw = max(4, round(m.shape[0] * scale)), max(4, round(m.shape[1] * scale))
+        rgb = resize_array(crop, (ch, cw))
+        alpha = feather(resize_array(m, (ch, cw)) >= 0.5, 0.8)
+        if rng.random() < 0.5:
+            rgb, alpha = rgb[:, ::-1], alpha[:, ::-1]
+        return rgb, alpha
+
+
+def _shard(value: str) -> tuple[int, int]:
+    try:
+        i, n = (int(v) for v in value.split("/"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--shard must be I/N, got {value!r}") from None
+    return i, n
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``d2f-train depth-pack``: :func:`write_pack` over a datasets folder and its labels."""
+    p = argparse.ArgumentParser(
+        prog="d2f-train depth-pack",
+        description="pack stage 0's training photos and their targets (d2f-train depth --pack)",
+    )
+    p.add_argument("data", type=Path, help="datasets folder")
+    p.add_argument("--labels", type=Path, required=True, help="teacher labels (label-scene)")
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--layout-teacher", type=float, default=-1.0,
+                   help="as d2f-train depth (default -1: per photo)")  # fmt: skip
+    p.add_argument("--no-scene-targets", action="store_true",
+                   help="the older targets (ramp, depth teacher, VOC subject)")  # fmt: skip
+    p.add_argument("--side", type=int, default=352)
+    p.add_argument("--target-side", type=int, default=176)
+    p.add_argument("--quality", type=int, default=80, help="WebP quality of the photos")
+    p.add_argument("--shard", type=_shard, default=(0, 1), metavar="I/N")
+    p.add_argument("--threads", type=int, default=1)
+    a = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    import torch
+
+    torch.set_num_threads(a.threads)
+    try:
+        data = RealDepthData(a.data, a.labels, layout_teacher=a.layout_teacher,
+                             scene=not a.no_scene_targets)  # fmt: skip
+        path = write_pack(data, a.out, a.side, a.target_side, a.quality, a.shard)
+    except (ValueError, FileNotFoundError) as exc:
+        print(f"d2f-train depth-pack: error: {exc}", file=sys.stderr)
+        return 2
+    print(path)
+    return 0
