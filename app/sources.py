@@ -34,10 +34,9 @@ CHOICES = (
 #: What the app tells of the shipped network under the depth source choice.
 NETWORK_NOTE = (
     "Without phone depth the shipped network guesses the depth: right for one clear subject "
-    "(a person, a pet, an object) and for most tall subjects crossing the frame; often wrong "
-    "for a thin pale post or pole against the sky, and for rooms, shelves and flower beds; "
-    "about 1 in 9 subjects over water or a floor goes behind. If the blur lands on your "
-    "subject, click the subject."
+    "(a person, a pet, an object) and for tall subjects, posts and trunks crossing the frame; "
+    "often wrong for rooms, shelves and flower beds; about 1 in 10 subjects over water or a "
+    "floor goes behind. If the blur lands on your subject, click the subject."
 )
 HUB_PLACEHOLDER = "depth-anything/Depth-Anything-V2-Small-hf"
 #: Longest model id or folder name taken from a client (hub ids are at most 96 + 1 + 96).
