@@ -85,6 +85,37 @@ class TestMetrics:
         assert not band[20, 20] and not band[2, 20]  # deep inside and far outside
         assert not depth_bench.edge_band(np.zeros((5, 5), bool)).any()
 
+    def test_above_feet_sets_the_ground_in_front_aside(self):
+        """A subject standing on a ground plane that comes nearer towards the bottom: the map
+        is right everywhere, yet the ground in front of the feet, nearer than the subject,
+        costs the whole-frame AUC; set aside, the subject is ranked above everything else."""
+        h, w = 60, 40
+        truth = np.broadcast_to(np.linspace(0, 1, h)[:, None], (h, w)).copy()  # ground
+        mask = np.zeros((h, w), bool)
+        mask[10:40, 15:25] = True  # feet on row 39
+        truth[mask] = truth[39, 20] + 0.01  # stands where it touches, a little nearer
+        keep = depth_bench.above_feet(mask)
+        assert keep[:40].all() and not keep[40:].any()
+        assert depth_bench.subject_auc(truth, mask) < 0.8
+        assert depth_bench.subject_auc(truth[keep], mask[keep]) == 1.0
+        feet_on_edge = np.zeros((h, w), bool)
+        feet_on_edge[30:, 5:9] = True
+        assert depth_bench.above_feet(feet_on_edge).all()
+        with pytest.raises(ValueError, match="no subject"):
+            depth_bench.above_feet(np.zeros((h, w), bool))
+        photo = depth_bench.MeasuredPhoto(
+            "a", np.full((h, w, 3), 0.5, np.float32), truth, np.ones((h, w), bool)
+        )
+        preds = {"ramp": depth_bench.ramp_predictor, "truth": lambda im: truth}
+        result = depth_bench.evaluate(preds, [photo], [("m", photo.image, mask),
+                                                        ("e", photo.image, feet_on_edge)])
+        m, e = result["masks"]["m"], result["masks"]["e"]
+        assert m["truth"] < 0.8 and m["truth@above"] == 1.0
+        assert e["truth@above"] == e["truth"]  # feet on the frame's edge: nothing set aside
+        s = depth_bench.summary(result, list(preds))
+        assert s["truth"]["mean_above_feet_auc"] == pytest.approx((1.0 + e["truth"]) / 2)
+        assert "no lower than the subject's feet" in depth_bench.format_table(result, list(preds))
+
     def test_evaluate_summary_and_sheet(self, tmp_path):
         h, w = 40, 60
         near = np.broadcast_to(np.linspace(0, 1, h)[:, None], (h, w)).copy()

@@ -12,8 +12,11 @@ Two test sets, both read from outside the package and skipped with a reason when
 - **Held-out masks** (``../shared/datasets``): the masked photos that depth training never
   sees (:func:`d2f_core.train.depth_train.is_heldout`). Per photo the subject AUC: the chance that
   a random subject pixel is predicted nearer than a random background pixel (ties half),
-  over the whole frame and within 8 px of the silhouette (:func:`edge_band`), where a map
-  that ends in a soft blob scores about 0.5.
+  over the whole frame, within 8 px of the silhouette (:func:`edge_band`), where a map
+  that ends in a soft blob scores about 0.5, and against the background no lower in the frame
+  than the subject's lowest row (:func:`above_feet`): the ground in front of a standing
+  subject is nearer than the subject, and a map that draws it so loses whole-frame AUC for
+  it.
 
 Beside every network it scores a plain ramp ("the bottom of the image is near") in the same
 run, and ``--sheet`` draws a contact sheet: photo | measured | each predictor.
@@ -37,6 +40,7 @@ from ..train.depth_train import resize_array
 
 __all__ = [
     "MeasuredPhoto",
+    "above_feet",
     "edge_band",
     "evaluate",
     "heldout_masks",
@@ -138,6 +142,18 @@ def edge_band(mask: np.ndarray, width: int = 8) -> np.ndarray:
     m = np.asarray(mask, bool)
     fp = disk(width)
     return dilation(m, fp) & ~erosion(m, fp)
+
+
+def above_feet(mask: np.ndarray) -> np.ndarray:
+    """The subject and the background in rows no lower than the subject's lowest row: the
+    pixels left when the ground in front of a standing subject is set aside."""
+    m = np.asarray(mask, bool)
+    rows = np.nonzero(m.any(axis=1))[0]
+    if rows.size == 0:
+        raise ValueError("the mask holds no subject pixel")
+    keep = np.zeros_like(m)
+    keep[: rows[-1] + 1] = True
+    return keep | m
 
 
 # ------------------------------------------------------------------------------ data
@@ -421,11 +437,16 @@ def evaluate(
         result["photos"][ph.name] = row
     for key, image, mask in masks:
         band = edge_band(mask)
+        upper = above_feet(mask)
         row = {}
         for name, fn in predictors.items():
             pred = resize_array(fn(image), mask.shape)
             row[name] = subject_auc(pred, mask)
             row[name + "@edge"] = subject_auc(pred[band], mask[band])
+            # a subject whose lowest row is the frame's last has no ground in front: the same
+            row[name + "@above"] = (
+                subject_auc(pred[upper], mask[upper]) if (~mask[upper]).any() else row[name]
+            )
         result["masks"][key] = row
     return result
 
@@ -479,6 +500,7 @@ def summary(result: dict, predictors: Sequence[str], baseline: str = "ramp") -> 
         )
         aucs = [row[name] for row in result["masks"].values()]
         edge = [row[name + "@edge"] for row in result["masks"].values()]
+        above = [row[name + "@above"] for row in result["masks"].values() if name + "@above" in row]
         out[name] = {
             "mean_spearman": float(np.mean(rhos)) if rhos else float("nan"),
             "mean_ssi_rmse": float(np.mean(rmses)) if rmses else float("nan"),
@@ -486,6 +508,7 @@ def summary(result: dict, predictors: Sequence[str], baseline: str = "ramp") -> 
             "photos": len(rhos),
             "mean_subject_auc": float(np.mean(aucs)) if aucs else float("nan"),
             "mean_edge_auc": float(np.mean(edge)) if edge else float("nan"),
+            "mean_above_feet_auc": float(np.mean(above)) if above else float("nan"),
             "subject_auc_over_0.5": int(sum(a > 0.5 for a in aucs)),
             "masks": len(aucs),
         }
@@ -567,6 +590,11 @@ def format_table(result: dict, predictors: Sequence[str]) -> str:
         lines.append(
             "| held-out subject AUC within 8 px of the silhouette | "
             + " | ".join(f"{s[p]['mean_edge_auc']:.3f}" for p in predictors)
+            + " |"
+        )
+        lines.append(
+            "| held-out subject AUC, background no lower than the subject's feet | "
+            + " | ".join(f"{s[p]['mean_above_feet_auc']:.3f}" for p in predictors)
             + " |"
         )
     return "\n".join(lines)
