@@ -17,7 +17,7 @@ from PIL import Image
 from d2f_core.bench import depth_bench
 from d2f_core.depth.refine import box_mean, harden_edges, snap_edges
 from d2f_core.pipeline import D2F, find_subject
-from d2f_core.train import depth_losses, depth_train, distill, scene_targets, teachers
+from d2f_core.train import depth_data, depth_losses, depth_train, distill, scene_targets, teachers
 
 # ------------------------------------------------------------------------------ metrics
 
@@ -648,13 +648,13 @@ def test_scene_weight_draws_scenes_more_often(tmp_path):
 
     def scene_share(weight: float) -> float:
         data = depth_train.RealDepthData(root, labels, size=(32, 32), scene_weight=weight)
-        is_scene = [p.source in depth_train.SCENE_SOURCES for p in data.photos]
+        is_scene = [p.source in depth_data.SCENE_SOURCES for p in data.photos]
         expect = sum(is_scene) * weight / (sum(is_scene) * weight + len(is_scene) - sum(is_scene))
         picked = []
         original = depth_train.RealDepthData._photo
 
         def spy(self, photo, rng, size):
-            picked.append(photo.source in depth_train.SCENE_SOURCES)
+            picked.append(photo.source in depth_data.SCENE_SOURCES)
             return original(self, photo, rng, size)
 
         depth_train.RealDepthData._photo = spy

@@ -12,10 +12,12 @@ import torch
 
 from d2f_core.bench.depth_bench import subject_auc
 from d2f_core.depth.scene import stand_subjects
+from d2f_core.io import load_image
 from d2f_core.networks import SCENE_MAPS, DefocusNet, build_defocus_net, count_parameters
 from d2f_core.pipeline import D2F
 from d2f_core.train import depth_train
 from d2f_core.train.depth_losses import scene_map_loss
+from d2f_core.train.teachers import read_mask
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -149,10 +151,10 @@ def test_scene_map_targets_follow_the_depth_targets(tmp_path):
                                      scene=True, scene_maps=True)  # fmt: skip
     rng = random.Random(0)
     photo = data.masked[0]
-    whole = depth_train.load_image(photo.path)
+    whole = load_image(photo.path)
     img, alpha, layout, _, maps = data._whole(photo, whole, (48, 64))
     assert maps.shape == (2, 48, 64)
-    mask = depth_train.read_mask(photo, (48, 64))  # the human mask the target stands
+    mask = read_mask(photo, (48, 64))  # the human mask the target stands
     assert np.corrcoef(maps[0].ravel(), mask.ravel())[0, 1] > 0.9
     outside = maps[0][mask < 0.01]  # nothing but the 1-px feathered rim
     assert outside.max() < 0.5 and outside.mean() < 0.02

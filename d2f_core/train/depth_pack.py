@@ -1,7 +1,7 @@
 """Stage 0's photos and targets packed small, for training on another machine.
 
 Building a photo's stage-0 target reads its teacher labels and runs the scene model
-(:meth:`~d2f_core.train.depth_train.RealDepthData.photo_target`, about 70 ms a photo on one
+(:meth:`~d2f_core.train.depth_data.RealDepthData.photo_target`, about 70 ms a photo on one
 core); the photos and labels together are several hundred megabytes. A pack holds what
 training draws from instead: every labelled training photo whole at a long side of ``side``
 px (WebP), its target at ``target_side`` px (8-bit PNG, relative: 0 farthest, 255 nearest)
@@ -9,7 +9,7 @@ and, where the photo has a human-drawn mask, that mask (1-bit PNG) for the paste
 About 20 kB a photo at the defaults, so the 2,801 training photos fit in about 60 MB.
 
 :class:`PackedDepthData` draws stage-0 samples from a pack exactly as
-:class:`~d2f_core.train.depth_train.RealDepthData` draws them from the photos (the same
+:class:`~d2f_core.train.depth_data.RealDepthData` draws them from the photos (the same
 crops, pasted cut-outs, mirrors, jitter and generated scenes); ``d2f-train depth --pack``
 trains on it. The difference is where the target is built: once for the whole photo at
 ``side`` px and then resized with the crop, rather than at the crop's scale.
@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from .depth_train import SCENE_SOURCES, RealDepthData, resize_array
+from .depth_data import SCENE_SOURCES, RealDepthData, resize_array
 from .scene_targets import normalise
 from .teachers import read_mask
 
@@ -154,7 +154,7 @@ def read_pack(folder: str | Path) -> list[PackedPhoto]:
 
 
 class PackedDepthData(RealDepthData):
-    """:class:`~d2f_core.train.depth_train.RealDepthData`'s samples, drawn from a pack
+    """:class:`~d2f_core.train.depth_data.RealDepthData`'s samples, drawn from a pack
     (:func:`write_pack`) instead of the photos and their labels.
 
     Args:
