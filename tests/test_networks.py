@@ -32,6 +32,20 @@ def resnext() -> DefocusNet:
     return DefocusNet("resnext50").eval()
 
 
+def _trained_looking(variant: str, seed: int) -> DefocusNet:
+    """A lite network in eval mode with a non-zero context output (where it has a context)
+    and batch-norm statistics moved off their start, so that growing it checks they carry."""
+    torch.manual_seed(seed)
+    net = DefocusNet(variant)
+    if net.context is not None:
+        torch.nn.init.normal_(net.context.out.weight, std=0.05)
+    net.train()
+    with torch.no_grad():
+        for _ in range(3):
+            net(torch.rand(4, 3, 64, 96))
+    return net.eval()
+
+
 class TestDefocusNet:
     @pytest.mark.parametrize("size", [(64, 64), (50, 70), (33, 97)])
     def test_lite_shape_and_range(self, size):
@@ -81,16 +95,7 @@ class TestDefocusNet:
 
     @pytest.mark.parametrize("small_variant", ["lite", "lite-ctx"])
     def test_wide_variant_grows_from_smaller_lite(self, small_variant):
-        torch.manual_seed(0)
-        small = DefocusNet(small_variant)
-        if small.context is not None:  # a trained context, not the zero one
-            torch.nn.init.normal_(small.context.out.weight, std=0.05)
-        # trained-looking batch-norm statistics, so copying them is checked too
-        small.train()
-        with torch.no_grad():
-            for _ in range(3):
-                small(torch.rand(4, 3, 64, 96))
-        small.eval()
+        small = _trained_looking(small_variant, seed=0)
         wide = DefocusNet("lite-wide")
         wide.load_lite(small.state_dict())
         wide.eval()
@@ -118,14 +123,7 @@ class TestDefocusNet:
     def test_xl_variant_grows_from_the_shipped_size_within_budget(self):
         """``"lite-xl"`` starts from a trained ``"lite-ctx"`` computing the same map, and stays
         inside the depth issue's budget of 5 M parameters."""
-        torch.manual_seed(1)
-        small = DefocusNet("lite-ctx")
-        torch.nn.init.normal_(small.context.out.weight, std=0.05)
-        small.train()
-        with torch.no_grad():
-            for _ in range(3):
-                small(torch.rand(4, 3, 64, 96))
-        small.eval()
+        small = _trained_looking("lite-ctx", seed=1)
         xl = DefocusNet("lite-xl")
         xl.load_lite(small.state_dict())
         xl.eval()

@@ -241,14 +241,22 @@ class RealDepthData:
             keep *= (1.0 - strength) * float(plain)
         return keep
 
+    def _subject(self, rng: random.Random) -> tuple[np.ndarray, np.ndarray] | None:
+        """A random masked photo's subject cut to its bounding box: (rgb h x w x 3 in [0, 1],
+        mask h x w in {0, 1}), or None for an empty mask."""
+        cut = subject_cutout(rng.choice(self.masked))
+        return None if cut is None else (cut[0], cut[1])
+
     def _cutout(
         self, rng: random.Random, size: tuple[int, int]
     ) -> tuple[np.ndarray, np.ndarray] | None:
-        """A subject cut out of a random masked photo: (rgb h x w x 3, alpha h x w)."""
-        cut = subject_cutout(rng.choice(self.masked))
+        """A subject cut out of a random masked photo (:meth:`_subject`), scaled to a quarter
+        to four fifths of ``size``'s short side and mirrored half the time: (rgb h x w x 3,
+        feathered alpha h x w)."""
+        cut = self._subject(rng)
         if cut is None or cut[1].sum() < 64:
             return None
-        crop, mask, _ = cut
+        crop, mask = cut
         th, tw = size
         scale = rng.uniform(0.25, 0.8) * min(th, tw) / max(mask.shape)
         ch, cw = max(4, round(mask.shape[0] * scale)), max(4, round(mask.shape[1] * scale))

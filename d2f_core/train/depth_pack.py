@@ -194,27 +194,15 @@ class PackedDepthData(RealDepthData):
         sl = (slice(y, y + th), slice(x, x + tw))
         return np.clip(img[sl], 0.0, 1.0), None, normalise(target[sl]), None, None
 
-    def _cutout(self, rng: random.Random, size: tuple[int, int]):  # type: ignore[override]
+    def _subject(self, rng: random.Random) -> tuple[np.ndarray, np.ndarray] | None:
         if not self.masked:
             return None
         photo = rng.choice(self.masked)
-        mask = photo.mask
-        if mask is None or mask.sum() < 64:
+        if photo.mask is None or not photo.mask.any():
             return None
-        ys, xs = np.nonzero(mask)
+        ys, xs = np.nonzero(photo.mask)
         box = (slice(ys.min(), ys.max() + 1), slice(xs.min(), xs.max() + 1))
-        crop = photo.image[box].astype(np.float32) / 255.0
-        from .synth.photo import feather
-
-        th, tw = size
-        m = mask[box].astype(np.float32)
-        scale = rng.uniform(0.25, 0.8) * min(th, tw) / max(m.shape)
-        ch, cw = max(4, round(m.shape[0] * scale)), max(4, round(m.shape[1] * scale))
-        rgb = resize_array(crop, (ch, cw))
-        alpha = feather(resize_array(m, (ch, cw)) >= 0.5, 0.8)
-        if rng.random() < 0.5:
-            rgb, alpha = rgb[:, ::-1], alpha[:, ::-1]
-        return rgb, alpha
+        return photo.image[box].astype(np.float32) / 255.0, photo.mask[box].astype(np.float32)
 
 
 def _shard(value: str) -> tuple[int, int]:
