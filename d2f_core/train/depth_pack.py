@@ -8,11 +8,15 @@ px (WebP), its target at ``target_side`` px (8-bit PNG, relative: 0 farthest, 25
 and, where the photo has a human-drawn mask, that mask (1-bit PNG) for the pasted cut-outs.
 About 20 kB a photo at the defaults, so the 2,801 training photos fit in about 60 MB.
 
-:class:`PackedDepthData` draws stage-0 samples from a pack exactly as
+:class:`PackedDepthData` draws stage-0 samples from a pack as
 :class:`~d2f_core.train.depth_data.RealDepthData` draws them from the photos (the same
 crops, pasted cut-outs, mirrors, jitter and generated scenes); ``d2f-train depth --pack``
-trains on it. The difference is where the target is built: once for the whole photo at
-``side`` px and then resized with the crop, rather than at the crop's scale.
+trains on it. Two things differ: the target is built once for the whole photo at ``side`` px
+and resized with the crop, rather than built at the crop's scale; and a crop is cut from the
+photo as packed, so a batch side over ``side`` px is an upscaled (softer) photo, where the
+original photo (up to 640 px) may have held the detail. The targets' options
+(``--layout-teacher``, the scene targets) are fixed when the pack is written and recorded in
+it.
 
 ``d2f-train depth-pack ROOT --labels DIR --out DIR [--shard I/N]`` writes ``pack_I.npz``;
 shards written by several processes are read together.
@@ -25,6 +29,8 @@ import io
 import logging
 import random
 import sys
+import zipfile
+import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,11 +38,12 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from .depth_data import SCENE_SOURCES, RealDepthData, resize_array
+from .depth_data import RealDepthData, resize_array
+from .heldout import HELDOUT_MODULUS
 from .scene_targets import normalise
 from .teachers import read_mask
 
-__all__ = ["PackedDepthData", "PackedPhoto", "read_pack", "write_pack"]
+__all__ = ["Pack", "PackedDepthData", "PackedPhoto", "read_pack", "write_pack"]
 
 logger = logging.getLogger(__name__)
 
@@ -51,6 +58,18 @@ class PackedPhoto:
     image: np.ndarray
     target: np.ndarray
     mask: np.ndarray | None
+
+
+@dataclass
+class Pack:
+    """A pack read back: its photos in key order, the long side they were packed at, and how
+    their targets were built (``layout_teacher`` and ``scene`` as ``RealDepthData`` took
+    them; ``None`` where a shard does not record it)."""
+
+    photos: list[PackedPhoto]
+    side: int
+    layout_teacher: float | None
+    scene: bool | None
 
 
 def _encode(array: np.ndarray, fmt: str, **kw) -> bytes:
@@ -121,36 +140,62 @@ def write_pack(
         spans=np.array(spans, dtype=np.int64).reshape(-1, 3, 2),
         blob=np.frombuffer(b"".join(chunks), dtype=np.uint8),
         side=np.int64(side),
+        layout_teacher=np.float64(data.layout_teacher),
+        scene=np.bool_(data.scene),
     )
     tmp.replace(path)
     return path
 
 
-def read_pack(folder: str | Path) -> list[PackedPhoto]:
-    """Every photo of the ``pack_*.npz`` shards in ``folder``, decoded, in key order."""
+def read_pack(folder: str | Path) -> Pack:
+    """Every photo of the ``pack_*.npz`` shards in ``folder``, decoded.
+
+    Raises:
+        ValueError: no shard, a shard that is not a pack (truncated, corrupt), shards packed
+            at different sizes or with different targets, a photo in two shards, a held-out
+            photo, or no photo at all.
+    """
     files = sorted(Path(folder).glob("pack_*.npz"))
     files = [f for f in files if not f.name.endswith(".tmp.npz")]
     if not files:
         raise ValueError(f"no pack_*.npz in {folder} (d2f-train depth-pack writes them)")
-    photos = []
+    photos: list[PackedPhoto] = []
+    built: set[tuple] = set()
     for file in files:
         try:
             with np.load(file) as z:
                 keys, sources, spans, blob = z["keys"], z["sources"], z["spans"], z["blob"]
-        except (OSError, KeyError, ValueError) as exc:
+                side = int(z["side"])
+                how = (
+                    side,
+                    float(z["layout_teacher"]) if "layout_teacher" in z else None,
+                    bool(z["scene"]) if "scene" in z else None,
+                )
+            for key, source, row in zip(keys, sources, spans, strict=True):
+                image, target, mask = (
+                    None if n == 0 else _decode(blob[a : a + n].tobytes()) for a, n in row
+                )
+                if image is None or target is None or image.ndim != 3:
+                    raise ValueError(f"photo {key} has no image or target")
+                mask = None if mask is None else mask.astype(bool)
+                photos.append(PackedPhoto(str(key), str(source), image, target, mask))
+        except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile) as exc:
             raise ValueError(f"{file} is not a stage-0 pack: {exc}") from exc
-        for key, source, row in zip(keys, sources, spans, strict=True):
-            image, target, mask = (
-                None if n == 0 else _decode(blob[a : a + n].tobytes()) for a, n in row
-            )
-            if image is None or target is None or image.ndim != 3:
-                raise ValueError(f"{file}: photo {key} has no image or target")
-            photos.append(
-                PackedPhoto(str(key), str(source), image, target,
-                            None if mask is None else mask.astype(bool))
-            )  # fmt: skip
+        built.add(how)
+    if len(built) > 1:
+        raise ValueError(f"the shards in {folder} were packed differently: {sorted(built)}")
+    keys = [p.key for p in photos]
+    if len(set(keys)) != len(keys):
+        twice = sorted({k for k in keys if keys.count(k) > 1})
+        raise ValueError(f"{folder}: photos in two shards (left from another pack?): {twice[:3]}")
+    held = [k for k in keys if zlib.crc32(k.encode()) % HELDOUT_MODULUS == 0]
+    if held:
+        raise ValueError(f"{folder} holds held-out photos, which training never reads: {held[:3]}")
+    if not photos:
+        raise ValueError(f"the pack in {folder} holds no photos")
     photos.sort(key=lambda p: p.key)
-    return photos
+    side, layout_teacher, scene = built.pop()
+    return Pack(photos, side, layout_teacher, scene)
 
 
 class PackedDepthData(RealDepthData):
@@ -171,7 +216,8 @@ class PackedDepthData(RealDepthData):
         scene_weight: float = 1.0,
         standing: float = 0.0,
     ) -> None:
-        self.photos = read_pack(pack)
+        read = read_pack(pack)
+        self.photos, self.side = read.photos, read.side
         self.masked = [p for p in self.photos if p.mask is not None]
         self.size, self.paste, self.synth, self.standing = size, paste, synth, standing
         self.keep_on, self.scene_maps = None, False
@@ -180,7 +226,6 @@ class PackedDepthData(RealDepthData):
             raise ValueError(f"scene_weight must be positive, got {scene_weight}")
         self.scene_weight = scene_weight
         self._weigh()
-        self.scene_share = sum(p.source in SCENE_SOURCES for p in self.photos) / len(self.photos)
 
     def _photo(self, photo: PackedPhoto, rng: random.Random, size: tuple[int, int]):  # type: ignore[override]
         h0, w0 = photo.image.shape[:2]

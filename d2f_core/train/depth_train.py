@@ -181,6 +181,15 @@ def train_depth(args: argparse.Namespace) -> Path:
         raise ValueError("--pack holds the photos and their targets: no --data or --labels")
     if args.pack is not None and (args.keep is not None or args.distill is not None):
         raise ValueError("--keep and --distill need the photos' labels: --data and --labels")
+    if args.steps < 1:
+        raise ValueError(f"--steps must be at least 1, got {args.steps}")
+    if args.pack is not None and (
+        args.scene_targets or args.rescan_every or args.layout_teacher != 0.4
+    ):
+        raise ValueError(
+            "--scene-targets, --layout-teacher and --rescan-every build targets from the "
+            "labels; a pack's targets were built when it was written (d2f-train depth-pack)"
+        )
     if args.minutes is not None and args.minutes <= 0:
         raise ValueError(f"--minutes must be positive, got {args.minutes}")
     device = torch.device(args.device)
@@ -197,6 +206,12 @@ def train_depth(args: argparse.Namespace) -> Path:
             args.pack, size=(args.crop, args.crop), paste=args.paste, synth=args.synth,
             scene_weight=args.scene_weight, standing=args.standing,
         )  # fmt: skip
+        largest = max(args.sides or [args.crop])
+        if largest > data.side:
+            logger.warning(
+                "batches up to %d px from a pack of %d px photos: the larger crops are "
+                "upscaled", largest, data.side,
+            )  # fmt: skip
     else:
         data = _real_data(args)
     net = build_defocus_net(args.variant)
@@ -343,7 +358,7 @@ def train_depth(args: argparse.Namespace) -> Path:
                 "loss": loss.item(),
                 **parts,
                 "lr": lr,
-                "elapsed_s": round(time.perf_counter() - t0, 1),
+                "elapsed_s": round(spent + time.perf_counter() - t0, 1),
             }
             log.write(json.dumps(rec) + "\n")
             log.flush()
@@ -422,7 +437,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="train on a pack of the photos and their targets (d2f-train depth-pack) instead "
         "of --data and --labels",
     )
-    p.add_argument("--device", default="cpu", help="cpu or cuda")
+    p.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
     p.add_argument(
         "--minutes",
         type=float,
@@ -556,7 +571,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
-    path = train_depth(args)
+    try:
+        path = train_depth(args)
+    except (ValueError, FileNotFoundError) as exc:
+        print(f"d2f-train depth: error: {exc}", file=sys.stderr)
+        return 2
     print(f"stage 0 checkpoint: {path}")
     return 0
 
