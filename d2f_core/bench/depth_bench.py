@@ -443,7 +443,8 @@ def evaluate(
             pred = resize_array(fn(image), mask.shape)
             row[name] = subject_auc(pred, mask)
             row[name + "@edge"] = subject_auc(pred[band], mask[band])
-            # a subject whose lowest row is the frame's last has no ground in front: the same
+            # a subject that fills every row down to its feet leaves no background above
+            # them: the whole-frame AUC stands
             row[name + "@above"] = (
                 subject_auc(pred[upper], mask[upper]) if (~mask[upper]).any() else row[name]
             )
@@ -500,7 +501,7 @@ def summary(result: dict, predictors: Sequence[str], baseline: str = "ramp") -> 
         )
         aucs = [row[name] for row in result["masks"].values()]
         edge = [row[name + "@edge"] for row in result["masks"].values()]
-        above = [row[name + "@above"] for row in result["masks"].values() if name + "@above" in row]
+        above = [row[name + "@above"] for row in result["masks"].values()]
         out[name] = {
             "mean_spearman": float(np.mean(rhos)) if rhos else float("nan"),
             "mean_ssi_rmse": float(np.mean(rmses)) if rmses else float("nan"),

@@ -160,7 +160,7 @@ class RealDepthData:
     ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray | None, np.ndarray | None]:
         """Image, subject alpha (or None), layout, keep map (:meth:`_keep_map`) and scene
         maps (:attr:`DepthSample.maps`, or None), at ``size`` after a random crop."""
-        img = load_image(photo.path)
+        img = self._load(photo)
         h0, w0 = img.shape[:2]
         th, tw = size
         scale = max(th / h0, tw / w0) * rng.uniform(1.0, 1.3)
@@ -181,10 +181,14 @@ class RealDepthData:
         any crop, pasted cut-out, mirror or jitter. How close a network comes to these targets
         on the photos it was trained on (``d2f-bench depth --fit``) tells a network too small
         for its targets from one that does not carry them over to new photos."""
-        img = load_image(photo.path)
+        img = self._load(photo)
         size = scaled_size(img.shape[:2], long_side / max(img.shape[:2]), None)
         img, alpha, layout, keep, _ = self._whole(photo, img, size)
         return np.clip(img, 0.0, 1.0), _target(layout, alpha), keep
+
+    def _load(self, photo: Photo) -> np.ndarray:
+        """The photo, H x W x 3 float32 in [0, 1]."""
+        return load_image(photo.path)
 
     def _whole(
         self, photo: Photo, img: np.ndarray, size: tuple[int, int]

@@ -30,7 +30,6 @@ import logging
 import random
 import sys
 import zipfile
-import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,10 +37,10 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from ..sizing import scaled_size
 from .depth_data import RealDepthData, resize_array
-from .heldout import HELDOUT_MODULUS
-from .scene_targets import normalise
-from .teachers import read_mask
+from .heldout import is_heldout_key
+from .teachers import mask_box, read_mask, shard_arg
 
 __all__ = ["Pack", "PackedDepthData", "PackedPhoto", "read_pack", "write_pack"]
 
@@ -110,8 +109,7 @@ def write_pack(
     for i, photo in enumerate(photos):
         img, target, _ = data.photo_target(photo, side)
         h, w = target.shape
-        f = target_side / max(h, w)
-        small = resize_array(target, (max(1, round(h * f)), max(1, round(w * f))))
+        small = resize_array(target, scaled_size((h, w), target_side / max(h, w), None))
         parts = [
             _encode((img * 255 + 0.5).astype(np.uint8), "WEBP", quality=quality, method=6),
             _encode((np.clip(small, 0, 1) * 255 + 0.5).astype(np.uint8), "PNG", optimize=True),
@@ -188,7 +186,7 @@ def read_pack(folder: str | Path) -> Pack:
     if len(set(keys)) != len(keys):
         twice = sorted({k for k in keys if keys.count(k) > 1})
         raise ValueError(f"{folder}: photos in two shards (left from another pack?): {twice[:3]}")
-    held = [k for k in keys if zlib.crc32(k.encode()) % HELDOUT_MODULUS == 0]
+    held = [k for k in keys if is_heldout_key(k)]
     if held:
         raise ValueError(f"{folder} holds held-out photos, which training never reads: {held[:3]}")
     if not photos:
@@ -227,17 +225,14 @@ class PackedDepthData(RealDepthData):
         self.scene_weight = scene_weight
         self._weigh()
 
-    def _photo(self, photo: PackedPhoto, rng: random.Random, size: tuple[int, int]):  # type: ignore[override]
-        h0, w0 = photo.image.shape[:2]
-        th, tw = size
-        scale = max(th / h0, tw / w0) * rng.uniform(1.0, 1.3)
-        rh, rw = max(th, round(h0 * scale)), max(tw, round(w0 * scale))
-        img = resize_array(photo.image.astype(np.float32) / 255.0, (rh, rw))
-        target = resize_array(photo.target.astype(np.float32) / 255.0, (rh, rw))
-        y = rng.randint(0, rh - th)
-        x = rng.randint(0, rw - tw)
-        sl = (slice(y, y + th), slice(x, x + tw))
-        return np.clip(img[sl], 0.0, 1.0), None, normalise(target[sl]), None, None
+    def _load(self, photo: PackedPhoto) -> np.ndarray:  # type: ignore[override]
+        return photo.image.astype(np.float32) / 255.0
+
+    def _whole(self, photo: PackedPhoto, img: np.ndarray, size: tuple[int, int]):  # type: ignore[override]
+        """The packed photo and its target at ``size``: no subject alpha (its target holds
+        it), keep map or scene maps."""
+        target = resize_array(photo.target.astype(np.float32) / 255.0, size)
+        return resize_array(img, size), None, target, None, None
 
     def _subject(self, rng: random.Random) -> tuple[np.ndarray, np.ndarray] | None:
         if not self.masked:
@@ -245,17 +240,8 @@ class PackedDepthData(RealDepthData):
         photo = rng.choice(self.masked)
         if photo.mask is None or not photo.mask.any():
             return None
-        ys, xs = np.nonzero(photo.mask)
-        box = (slice(ys.min(), ys.max() + 1), slice(xs.min(), xs.max() + 1))
+        box = mask_box(photo.mask)
         return photo.image[box].astype(np.float32) / 255.0, photo.mask[box].astype(np.float32)
-
-
-def _shard(value: str) -> tuple[int, int]:
-    try:
-        i, n = (int(v) for v in value.split("/"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"--shard must be I/N, got {value!r}") from None
-    return i, n
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -274,7 +260,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--side", type=int, default=352)
     p.add_argument("--target-side", type=int, default=176)
     p.add_argument("--quality", type=int, default=80, help="WebP quality of the photos")
-    p.add_argument("--shard", type=_shard, default=(0, 1), metavar="I/N")
+    p.add_argument("--shard", type=shard_arg, default=(0, 1), metavar="I/N")
     p.add_argument("--threads", type=int, default=1)
     a = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")

@@ -74,6 +74,9 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
+#: ``--layout-teacher`` when it is not given
+LAYOUT_TEACHER = 0.4
+
 
 def batch_shapes(sides: Sequence[int]) -> list[tuple[int, int]]:
     """Sample shapes for multi-scale training: for every long side in ``sides``, a square,
@@ -184,7 +187,7 @@ def train_depth(args: argparse.Namespace) -> Path:
     if args.steps < 1:
         raise ValueError(f"--steps must be at least 1, got {args.steps}")
     if args.pack is not None and (
-        args.scene_targets or args.rescan_every or args.layout_teacher != 0.4
+        args.scene_targets or args.rescan_every or args.layout_teacher != LAYOUT_TEACHER
     ):
         raise ValueError(
             "--scene-targets, --layout-teacher and --rescan-every build targets from the "
@@ -365,8 +368,10 @@ def train_depth(args: argparse.Namespace) -> Path:
             logger.info("step %d loss %.4f %s", step, loss.item(), parts)
         final = done = progress() >= 1.0
         if step % args.save_every == 0 or final:
+            weights = _on_cpu(net.state_dict())
+            averaged = None if ema is None else _on_cpu(ema)
             state = {
-                "state_dict": _on_cpu(net.state_dict()),
+                "state_dict": weights,
                 "elapsed_s": spent + time.perf_counter() - t0,
                 "optimizer": opt.state_dict(),
                 "step": step,
@@ -374,24 +379,20 @@ def train_depth(args: argparse.Namespace) -> Path:
             }
             if distiller is not None:
                 state["distiller"] = distiller.state_dict()
-            if ema is not None:
-                state["ema"] = _on_cpu(ema)
+            if averaged is not None:
+                state["ema"] = averaged
             tmp = last.with_suffix(".tmp")
             torch.save(state, tmp)
             tmp.replace(last)
             if step % args.keep_every == 0 or final:
                 torch.save(
-                    {
-                        "state_dict": _on_cpu(net.state_dict()),
-                        "step": step,
-                        "variant": args.variant,
-                    },  # fmt: skip
+                    {"state_dict": weights, "step": step, "variant": args.variant},
                     out / f"depth_{step:06d}.pt",
                 )
-                if ema is not None:
+                if averaged is not None:
                     torch.save(
                         {
-                            "state_dict": _on_cpu(ema),
+                            "state_dict": averaged,
                             "step": step,
                             "variant": args.variant,
                             "ema": args.ema,
@@ -464,7 +465,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--layout-teacher",
         type=float,
-        default=0.4,
+        default=LAYOUT_TEACHER,
         help="weight of the depth teacher in the layout; -1: per photo, by its agreement "
         "with the ramp (teacher_weight)",
     )

@@ -10,12 +10,17 @@ import zlib
 
 from .teachers import Photo
 
-__all__ = ["HELDOUT_MODULUS", "is_heldout"]
+__all__ = ["HELDOUT_MODULUS", "is_heldout", "is_heldout_key"]
 
 #: one photo in HELDOUT_MODULUS is held out (by a CRC of its key)
 HELDOUT_MODULUS = 10
 
 
+def is_heldout_key(key: str) -> bool:
+    """:func:`is_heldout` for a photo known only by its :attr:`~.teachers.Photo.key`."""
+    return zlib.crc32(key.encode()) % HELDOUT_MODULUS == 0
+
+
 def is_heldout(photo: Photo) -> bool:
     """True for the photos that depth training never sees (about one in ten, fixed by name)."""
-    return zlib.crc32(photo.key.encode()) % HELDOUT_MODULUS == 0
+    return is_heldout_key(photo.key)

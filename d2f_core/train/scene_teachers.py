@@ -177,6 +177,8 @@ def run_label_scene(argv=None) -> int:
     import argparse
     import logging
 
+    from .teachers import shard_arg
+
     p = argparse.ArgumentParser(
         prog="d2f-train label-scene",
         description="label real photos with every teacher (VOC, depth, ADE20K, U^2-Net-p, M-LSD)",
@@ -185,18 +187,15 @@ def run_label_scene(argv=None) -> int:
     p.add_argument("--out", type=Path, required=True, help="folder for the .npz labels")
     p.add_argument("--teachers", type=Path, default=None)
     p.add_argument("--threads", type=int, default=1)
-    p.add_argument("--shard", default="0/1", metavar="I/N", help="every N-th photo from the I-th")
+    p.add_argument(
+        "--shard", type=shard_arg, default=(0, 1), metavar="I/N",
+        help="every N-th photo from the I-th",
+    )  # fmt: skip
     p.add_argument("--heldout", action="store_true", help="label the held-out photos too")
     args = p.parse_args(argv)
-    try:
-        i, n = (int(v) for v in args.shard.split("/"))
-        if not 0 <= i < n:
-            raise ValueError
-    except ValueError:
-        p.error(f"--shard must be I/N with 0 <= I < N, got {args.shard!r}")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     done = label_scene_photos(
-        args.root, args.out, args.teachers, args.threads, (i, n), args.heldout
+        args.root, args.out, args.teachers, args.threads, args.shard, args.heldout
     )
     print(f"labelled {done} photos into {args.out}")
     return 0

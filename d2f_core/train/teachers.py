@@ -35,9 +35,11 @@ __all__ = [
     "iter_photos",
     "label_maps",
     "label_photos",
+    "mask_box",
     "read_label",
     "read_mask",
     "run_label",
+    "shard_arg",
     "subject_cutout",
     "write_labels",
 ]
@@ -136,9 +138,27 @@ def subject_cutout(photo: Photo) -> tuple[np.ndarray, np.ndarray, float] | None:
     mask = read_mask(photo, rgb.shape[:2])
     if not mask.any():
         return None
-    ys, xs = np.nonzero(mask)
-    box = (slice(ys.min(), ys.max() + 1), slice(xs.min(), xs.max() + 1))
+    box = mask_box(mask)
     return rgb[box], mask[box], float(mask.mean())
+
+
+def mask_box(mask: np.ndarray) -> tuple[slice, slice]:
+    """The bounding box of a mask's non-zero pixels (the mask must have one)."""
+    ys, xs = np.nonzero(mask)
+    return slice(ys.min(), ys.max() + 1), slice(xs.min(), xs.max() + 1)
+
+
+def shard_arg(text: str) -> tuple[int, int]:
+    """``--shard I/N`` (every N-th photo from the I-th) as ``(I, N)``, for argparse."""
+    try:
+        i, n = (int(v) for v in text.split("/"))
+        if not 0 <= i < n:
+            raise ValueError
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"--shard must be I/N with 0 <= I < N, got {text!r}"
+        ) from None
+    return i, n
 
 
 class Teachers:
