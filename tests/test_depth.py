@@ -602,6 +602,43 @@ def test_samples_and_short_training_roundtrip(tmp_path, tiny_checkpoint, one_thr
         depth_train.export_checkpoint(last, tiny_checkpoint, tmp_path / "x.pt", ["nope=1"])
 
 
+def test_training_stopped_while_saving_resumes_and_keeps_every_file(
+    tmp_path, tiny_checkpoint, one_thread, monkeypatch
+):
+    """A run stopped while it writes its final step's files resumes from the step before
+    and writes them all: the kept weights, their average and depth_last.pt at that step.
+    The optimiser's state in depth_last.pt is on the CPU."""
+    root, labels = tmp_path / "datasets", tmp_path / "labels"
+    _tiny_datasets(root, labels)
+    run = tmp_path / "run"
+    args = depth_train.build_parser().parse_args(
+        ["--data", str(root), "--labels", str(labels), "--out", str(run), "--steps", "2",
+         "--batch-size", "2", "--crop", "64", "--save-every", "1", "--keep-every", "2",
+         "--workers", "0", "--threads", "1", "--log-every", "1", "--variant", "lite",
+         "--init", str(tiny_checkpoint), "--ema", "0.5"]
+    )  # fmt: skip
+    real_save = torch.save
+
+    def stop_at_the_final_average(obj, path, *a, **k):
+        if Path(path).name == "depth_000002_ema.pt":
+            raise KeyboardInterrupt  # the machine goes away mid-save
+        return real_save(obj, path, *a, **k)
+
+    monkeypatch.setattr(torch, "save", stop_at_the_final_average)
+    with pytest.raises(KeyboardInterrupt):
+        depth_train.train_depth(args)
+    assert torch.load(run / "depth_last.pt", weights_only=True)["step"] == 1
+    assert not (run / "depth_000002_ema.pt").exists()
+    monkeypatch.setattr(torch, "save", real_save)
+    last = torch.load(depth_train.train_depth(args), weights_only=True)
+    assert last["step"] == 2
+    for name in ("depth_000002.pt", "depth_000002_ema.pt"):
+        assert torch.load(run / name, weights_only=True)["step"] == 2
+    tensors = [v for s in last["optimizer"]["state"].values() for v in s.values()
+               if isinstance(v, torch.Tensor)]  # fmt: skip
+    assert tensors and all(v.device.type == "cpu" for v in tensors)
+
+
 def test_training_with_feature_distillation(tmp_path, tiny_checkpoint, one_thread):
     """``--distill``: batches carry the teacher's features on the network's stride-16 grid,
     the log records the distillation loss, and the distiller is saved and resumed with the

@@ -143,6 +143,18 @@ def _on_cpu(state: dict[str, Tensor]) -> dict[str, Tensor]:
     return {k: v.detach().cpu() for k, v in state.items()}
 
 
+def _optimizer_on_cpu(state: dict) -> dict:
+    """An optimiser's state dict with its per-parameter tensors on the CPU (loading it
+    moves them back to the parameters' device)."""
+    return {
+        **state,
+        "state": {
+            i: {k: v.detach().cpu() if isinstance(v, Tensor) else v for k, v in s.items()}
+            for i, s in state["state"].items()
+        },
+    }
+
+
 def _real_data(args: argparse.Namespace) -> RealDepthData:
     """The photos of ``--data`` with the labels of ``--labels``, as the options ask."""
     return RealDepthData(
@@ -370,20 +382,9 @@ def train_depth(args: argparse.Namespace) -> Path:
         if step % args.save_every == 0 or final:
             weights = _on_cpu(net.state_dict())
             averaged = None if ema is None else _on_cpu(ema)
-            state = {
-                "state_dict": weights,
-                "elapsed_s": spent + time.perf_counter() - t0,
-                "optimizer": opt.state_dict(),
-                "step": step,
-                "variant": args.variant,
-            }
-            if distiller is not None:
-                state["distiller"] = distiller.state_dict()
-            if averaged is not None:
-                state["ema"] = averaged
-            tmp = last.with_suffix(".tmp")
-            torch.save(state, tmp)
-            tmp.replace(last)
+            # the kept files first: a run stopped between them and depth_last.pt resumes
+            # from the step before and writes them again (the other way round, it resumed
+            # at its last step and never wrote them)
             if step % args.keep_every == 0 or final:
                 torch.save(
                     {"state_dict": weights, "step": step, "variant": args.variant},
@@ -399,6 +400,20 @@ def train_depth(args: argparse.Namespace) -> Path:
                         },  # fmt: skip
                         out / f"depth_{step:06d}_ema.pt",
                     )
+            state = {
+                "state_dict": weights,
+                "elapsed_s": spent + time.perf_counter() - t0,
+                "optimizer": _optimizer_on_cpu(opt.state_dict()),
+                "step": step,
+                "variant": args.variant,
+            }
+            if distiller is not None:
+                state["distiller"] = _on_cpu(distiller.state_dict())
+            if averaged is not None:
+                state["ema"] = averaged
+            tmp = last.with_suffix(".tmp")
+            torch.save(state, tmp)
+            tmp.replace(last)
     log.close()
     return last
 
