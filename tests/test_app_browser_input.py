@@ -45,12 +45,22 @@ def wait_full_render(page, focus: str | None = None, blur: str | None = None) ->
         parts.append(f"focus {float(focus):.3f} (0 = near")
     if blur is not None:
         parts.append(f"f/{float(blur):g}, blur {blur_px(float(blur), 320):g} px | full render")
-    page.wait_for_function(
-        f"(parts) => {{ const s = {STATUS}; return s.includes('full render') "
-        "&& parts.every(p => s.includes(p)); }",
-        arg=parts,
-        timeout=FULL_RENDER_WAIT_MS,
-    )
+    from playwright.sync_api import TimeoutError as PlaywrightTimeout
+
+    try:
+        page.wait_for_function(
+            f"(parts) => {{ const s = {STATUS}; return s.includes('full render') "
+            "&& parts.every(p => s.includes(p)); }",
+            arg=parts,
+            timeout=FULL_RENDER_WAIT_MS,
+        )
+    except PlaywrightTimeout:
+        status = page.locator("#info textarea").input_value()
+        blur_now, focus_now = number_value(page, "blur"), number_value(page, "focus")
+        raise AssertionError(
+            f"no full render of {parts} in {FULL_RENDER_WAIT_MS} ms; the status reads "
+            f"{status!r}, the boxes blur={blur_now} focus={focus_now}"
+        ) from None
     return page.locator("#info textarea").input_value()
 
 
