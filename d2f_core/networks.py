@@ -541,6 +541,19 @@ def read_torch_file(path: str | Path, *, not_found: str, unreadable: str) -> Any
         raise ValueError(f"{unreadable}: {exc}") from exc
 
 
+def optimizer_state_on_cpu(state: dict[str, Any]) -> dict[str, Any]:
+    """An optimiser's ``state_dict()`` with its per-parameter tensors on the CPU, for a
+    checkpoint that loads on any machine (``load_state_dict`` moves them back to the
+    parameters' device)."""
+    return {
+        **state,
+        "state": {
+            i: {k: v.detach().cpu() if isinstance(v, Tensor) else v for k, v in s.items()}
+            for i, s in state["state"].items()
+        },
+    }
+
+
 def load_local_state_dict(path: str | Path, what: str) -> Mapping[str, Tensor]:
     """Read a state dict of tensors from a LOCAL file (optionally wrapped in
     ``{"state_dict": ...}`` or ``{"model": ...}``); ``what`` names the weights in messages.

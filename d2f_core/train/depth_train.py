@@ -47,7 +47,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from ..networks import build_defocus_net, count_parameters
+from ..networks import build_defocus_net, count_parameters, optimizer_state_on_cpu
 from .depth_data import DepthSample, RealDepthData, resize_array
 from .depth_losses import (
     depth_loss,
@@ -141,18 +141,6 @@ def _load_defocus(net: torch.nn.Module, checkpoint: str | Path) -> torch.nn.Modu
 def _on_cpu(state: dict[str, Tensor]) -> dict[str, Tensor]:
     """A state dict with every tensor on the CPU (checkpoints load on any machine)."""
     return {k: v.detach().cpu() for k, v in state.items()}
-
-
-def _optimizer_on_cpu(state: dict) -> dict:
-    """An optimiser's state dict with its per-parameter tensors on the CPU (loading it
-    moves them back to the parameters' device)."""
-    return {
-        **state,
-        "state": {
-            i: {k: v.detach().cpu() if isinstance(v, Tensor) else v for k, v in s.items()}
-            for i, s in state["state"].items()
-        },
-    }
 
 
 def _real_data(args: argparse.Namespace) -> RealDepthData:
@@ -403,7 +391,7 @@ def train_depth(args: argparse.Namespace) -> Path:
             state = {
                 "state_dict": weights,
                 "elapsed_s": spent + time.perf_counter() - t0,
-                "optimizer": _optimizer_on_cpu(opt.state_dict()),
+                "optimizer": optimizer_state_on_cpu(opt.state_dict()),
                 "step": step,
                 "variant": args.variant,
             }

@@ -39,7 +39,7 @@ from torch import Tensor, nn
 from torch.utils.data import DataLoader, DistributedSampler, Sampler
 
 from .. import metrics
-from ..networks import read_torch_file
+from ..networks import optimizer_state_on_cpu, read_torch_file
 from ..pipeline import D2F, D2FConfig
 from ..progress import progress
 from ..rendering import PLACEMENTS
@@ -330,7 +330,7 @@ def train(args: argparse.Namespace) -> TrainResult:
         return {
             "stage": stage,
             "step": step,
-            "optimizer": optimizer.state_dict(),
+            "optimizer": optimizer_state_on_cpu(optimizer.state_dict()),
             "best_psnr": best,
             "args": run_args,
         }
