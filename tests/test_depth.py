@@ -1091,7 +1091,7 @@ def test_training_from_a_pack_on_a_time_budget(tmp_path, tiny_checkpoint, one_th
             "--minutes", "0.05", "--batch-size", "2", "--crop", "48", "--workers", "0",
             "--threads", "1", "--log-every", "1", "--save-every", "1000", "--keep-every",
             "1000", "--variant", "lite-ctx", "--init", str(tiny_checkpoint), "--ema", "0.9",
-            "--synth", "0.5"]  # fmt: skip
+            "--synth", "0.5", "--jitter", "strong"]  # fmt: skip
     last = depth_train.train_depth(depth_train.build_parser().parse_args(argv))
     state = torch.load(last, weights_only=True)
     step = state["step"]
@@ -1128,3 +1128,28 @@ def test_training_from_a_pack_on_a_time_budget(tmp_path, tiny_checkpoint, one_th
     assert depth_train.main(nothing) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "no pack_*.npz" in err and "Traceback" not in err
+
+
+def test_photometric_jitter_keeps_the_photo_a_photo():
+    """``"mild"``: the exposure only (a gain and a gamma, as drawn); ``"strong"``: colours,
+    blur and noise too, always a valid photo of the same size; anything else is refused."""
+    from d2f_core.train.depth_data import photometric_jitter
+
+    img = np.random.default_rng(3).uniform(0.05, 0.95, (24, 32, 3)).astype(np.float32)
+    rng, twin = random.Random(5), random.Random(5)
+    gain, gamma = twin.uniform(0.8, 1.2), twin.uniform(0.8, 1.25)
+    np.testing.assert_allclose(
+        photometric_jitter(img, rng, "mild"), np.clip(img * gain, 0, 1) ** gamma, rtol=1e-6
+    )
+    rng = random.Random(11)
+    greys, changed = 0, []
+    for _ in range(200):
+        out = photometric_jitter(img, rng, "strong")
+        assert out.shape == img.shape and out.dtype == np.float32
+        assert np.isfinite(out).all() and out.min() >= 0 and out.max() <= 1
+        greys += bool(np.ptp(out, axis=2).max() < 1e-6)
+        changed.append(np.abs(out - img).mean())
+    # about one in ten made grey (saturation 0); every one differs from the photo
+    assert 8 <= greys <= 35 and min(changed) > 0.005
+    with pytest.raises(ValueError, match="jitter"):
+        photometric_jitter(img, rng, "wild")

@@ -76,6 +76,38 @@ def _target(layout: np.ndarray, alpha: np.ndarray | None) -> np.ndarray:
     return normalise(subject_target(layout, alpha) if alpha is not None else layout)
 
 
+#: the photometric jitters of :func:`photometric_jitter`
+JITTERS = ("mild", "strong")
+
+
+def photometric_jitter(img: np.ndarray, rng: random.Random, kind: str = "mild") -> np.ndarray:
+    """A training photo (``H x W x 3`` in 0..1) with a random exposure: ``"mild"``, a gain of
+    0.8-1.2 and a gamma of 0.8-1.25; ``"strong"`` adds, each at random, a white balance
+    (channel gains 0.9-1.1), a saturation of 0.5-1.5 (or grey, one time in ten), a
+    Gaussian blur (sigma 0.5-1.5 px) and sensor noise (sigma up to 0.03), so that depth
+    cannot be read off one camera's colours and sharpness. The depth target is unchanged.
+    """
+    gain = rng.uniform(0.8, 1.2)
+    gamma = rng.uniform(0.8, 1.25)
+    img = np.clip(img * gain, 0, 1) ** gamma
+    if kind == "mild":
+        return img
+    if kind != "strong":
+        raise ValueError(f"jitter must be one of {', '.join(JITTERS)}, got {kind!r}")
+    img = img * np.array([rng.uniform(0.9, 1.1) for _ in range(3)], np.float32)
+    grey = img @ np.array([0.299, 0.587, 0.114], np.float32)
+    saturation = 0.0 if rng.random() < 0.1 else rng.uniform(0.5, 1.5)
+    img = grey[..., None] + saturation * (img - grey[..., None])
+    if rng.random() < 0.2:
+        from scipy.ndimage import gaussian_filter
+
+        img = gaussian_filter(img, sigma=(rng.uniform(0.5, 1.5),) * 2 + (0,))
+    if rng.random() < 0.2:
+        noise = np.random.default_rng(rng.randrange(1 << 30)).normal(size=img.shape)
+        img = img + rng.uniform(0.0, 0.03) * noise.astype(np.float32)
+    return np.clip(img, 0, 1).astype(np.float32)
+
+
 class RealDepthData:
     """Samples for stage 0 (see the module docstring); ``sample(rng)`` draws one.
 
@@ -102,6 +134,7 @@ class RealDepthData:
             targets: the subjects its depth target stands in front (human masks, clear
             silhouettes, the VOC subject, near occluders and pasted cut-outs) and the scene
             teacher's sky.
+        jitter: the photometric jitter of a photo's sample (:func:`photometric_jitter`).
     """
 
     def __init__(
@@ -120,7 +153,11 @@ class RealDepthData:
         standing: float = 0.0,
         keep_on: str | None = None,
         scene_maps: bool = False,
+        jitter: str = "mild",
     ) -> None:
+        if jitter not in JITTERS:
+            raise ValueError(f"jitter must be one of {', '.join(JITTERS)}, got {jitter!r}")
+        self.jitter = jitter
         if keep_on not in (None, "background", "plain"):
             raise ValueError(f"keep_on must be 'background', 'plain' or None, got {keep_on!r}")
         self.keep_on = keep_on
@@ -351,10 +388,7 @@ class RealDepthData:
             img, target = img[:, ::-1], target[:, ::-1]
             keep = None if keep is None else keep[:, ::-1]
             maps = None if maps is None else maps[:, :, ::-1]
-        # mild photometric jitter
-        gain = rng.uniform(0.8, 1.2)
-        gamma = rng.uniform(0.8, 1.25)
-        img = np.clip(img * gain, 0, 1) ** gamma
+        img = photometric_jitter(img, rng, self.jitter)
         return DepthSample(
             img.astype(np.float32), target.astype(np.float32), relative=True,
             keep=None if keep is None else np.ascontiguousarray(keep, dtype=np.float32),

@@ -38,7 +38,7 @@ import numpy as np
 from PIL import Image
 
 from ..sizing import scaled_size
-from .depth_data import RealDepthData, resize_array
+from .depth_data import JITTERS, RealDepthData, resize_array
 from .heldout import is_heldout_key
 from .teachers import mask_box, read_mask, shard_arg
 
@@ -202,7 +202,7 @@ class PackedDepthData(RealDepthData):
 
     Args:
         pack: the folder of ``pack_*.npz`` shards.
-        size, paste, synth, scene_weight, standing: as for ``RealDepthData``.
+        size, paste, synth, scene_weight, standing, jitter: as for ``RealDepthData``.
     """
 
     def __init__(
@@ -213,7 +213,11 @@ class PackedDepthData(RealDepthData):
         synth: float = 0.15,
         scene_weight: float = 1.0,
         standing: float = 0.0,
+        jitter: str = "mild",
     ) -> None:
+        if jitter not in JITTERS:
+            raise ValueError(f"jitter must be one of {', '.join(JITTERS)}, got {jitter!r}")
+        self.jitter = jitter
         read = read_pack(pack)
         self.photos, self.side = read.photos, read.side
         self.masked = [p for p in self.photos if p.mask is not None]

@@ -48,7 +48,7 @@ import torch
 from torch import Tensor
 
 from ..networks import build_defocus_net, count_parameters, optimizer_state_on_cpu
-from .depth_data import DepthSample, RealDepthData, resize_array
+from .depth_data import JITTERS, DepthSample, RealDepthData, resize_array
 from .depth_losses import (
     depth_loss,
     gradient_matching_loss,
@@ -158,6 +158,7 @@ def _real_data(args: argparse.Namespace) -> RealDepthData:
         standing=args.standing,
         keep_on=args.keep_on if args.keep is not None else None,
         scene_maps=build_defocus_net(args.variant).scene_head is not None,
+        jitter=args.jitter,
     )
 
 
@@ -207,7 +208,7 @@ def train_depth(args: argparse.Namespace) -> Path:
             raise ValueError("a pack holds no scene maps: a '-scene' --variant needs --data")
         data: RealDepthData = PackedDepthData(
             args.pack, size=(args.crop, args.crop), paste=args.paste, synth=args.synth,
-            scene_weight=args.scene_weight, standing=args.standing,
+            scene_weight=args.scene_weight, standing=args.standing, jitter=args.jitter,
         )  # fmt: skip
         largest = max(args.sides or [args.crop])
         if largest > data.side:
@@ -464,6 +465,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--lr", type=float, default=1e-3)
     p.add_argument("--paste", type=float, default=0.4)
+    p.add_argument(
+        "--jitter", choices=JITTERS, default="mild",
+        help="photometric jitter of the photos: mild (exposure) or strong (also white "
+        "balance, saturation, blur and noise)",
+    )  # fmt: skip
     p.add_argument("--synth", type=float, default=0.15)
     p.add_argument(
         "--layout-teacher",
