@@ -423,11 +423,26 @@ def build_demo(
 
         # blur_on last: the API's inputs before it keep their places
         render_inputs = [session, focus, blur, *options, blur_on, focal_range]
+        # renders run side by side and reach the page in their own order: after each one,
+        # the page's picture is brought in line with its controls (RenderEvents.settle: a
+        # full render sent again, or, rarely, rendered)
+        settle_io = {
+            "fn": logic.settle,
+            "inputs": [*render_inputs, info],
+            "outputs": [*shown, download],
+            "show_progress": "hidden",
+            "api_visibility": "private",
+            **heavy,
+        }
+
+        def settled(event: Any) -> None:
+            event.then(**settle_io).success(logic.download, [session, fmt], [download], **chained)
+
         # .change only (never .input as well: two concurrent runs break the image); .change
         # also follows values set by click-to-focus, whose preview is then skipped
         for slider in (focus, blur, rotation, focal_range):
             # a preview also disables Download until the full render is there to save
-            slider.change(
+            previewed = slider.change(
                 logic.render_preview,
                 render_inputs,
                 [*shown, download],
@@ -435,7 +450,8 @@ def build_demo(
                 **heavy,
                 **quiet,
             )
-            slider.release(
+            settled(previewed)
+            released = slider.release(
                 render_full_ui,
                 render_inputs,
                 [*shown, download],
@@ -443,8 +459,10 @@ def build_demo(
                 show_progress_on=[result, compare],
                 **heavy,
                 **timed,
-            ).success(logic.download, [session, fmt], [download], **chained)
-        gr.on(
+            )
+            released.success(logic.download, [session, fmt], [download], **chained)
+            settled(released)
+        optioned = gr.on(
             [blades.change, highlight.change, fusion.change, quality.change, blur_on.change],
             render_full_ui,
             render_inputs,
@@ -453,7 +471,9 @@ def build_demo(
             show_progress_on=[result, compare],
             **heavy,
             **timed,
-        ).success(logic.download, [session, fmt], [download], **chained)
+        )
+        optioned.success(logic.download, [session, fmt], [download], **chained)
+        settled(optioned)
         gr.on([blur.change, blur_on.change], trigger_mode="always_last", **note_io)
 
         # Gradio finds the event data by the annotation of a named positional parameter and

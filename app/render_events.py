@@ -240,6 +240,8 @@ class RenderEvents:
                     session.full_params = None
             raise
         bokeh = imaging.to_uint8(result.bokeh)
+        extra = self._settings_text(result.settings, params.quality)
+        info = self._info(session, params, "full", ms, extra) + f" | reproduce: {command}"
         with session.lock:
             if session.full_seq != seq or session.closed:
                 return SKIP4  # a newer full render is on its way
@@ -254,9 +256,8 @@ class RenderEvents:
             np.save(part, bokeh)
             os.replace(part, folder / "last_full.npy")
             session.last_full_params = params
+            session.last_full_info = info
             self._store_views(session, result, bokeh)
-        extra = self._settings_text(result.settings, params.quality)
-        info = self._info(session, params, "full", ms, extra) + f" | reproduce: {command}"
         return (*self.view_outputs(session, view), info)
 
     def _render_small(
@@ -392,6 +393,7 @@ class RenderEvents:
         session.touch()
         with session.lock:
             session.wanted = params
+            session.last_preview = params
             if params == session.full_params:
                 return (*SKIP4, gr.skip())
             seq = session.full_seq
@@ -406,6 +408,76 @@ class RenderEvents:
         extra = self._settings_text(result.settings, params.quality)
         info = self._info(session, params, "preview", ms, extra)
         return (*self.view_outputs(session, view), info, gr.update(**DOWNLOAD_WAIT))
+
+    @reported
+    def settle(
+        self,
+        session: Session | None,
+        focus: Any,
+        f_number: Any,
+        blades: Any = 0,
+        rotation: Any = 0.0,
+        highlight_boost: Any = True,
+        fusion: Any = True,
+        view: str = "Bokeh",
+        quality: Any = "balanced",
+        blur_on: Any = True,
+        focal_range: Any = 0.0,
+        shown_info: Any = "",
+    ) -> tuple:
+        """Bring the page's picture in line with its controls, after a preview or a full
+        render has reached it: the inputs are the controls' values and the status line on
+        the page when this event starts (the render events' inputs, then ``shown_info``).
+
+        Renders run side by side (the ``"model"`` group's concurrency) and reach the server
+        and the page in their own time, so two orders go wrong without this step:
+
+        - a preview stored just before the full render of its values started reaches the
+          page after it: the preview stays on screen, with Download disabled. When the full
+          render of the page's values is done and the views hold it, it is sent again (it is
+          not rendered again);
+        - a release sent before the last change of a value (a click into a number box, then
+          a value typed) reaches the server after that change's preview: the page shows a
+          full render of the old value under the new one. When the page shows the last full
+          render, its values are not the page's, and the page's values are those of the last
+          preview asked for, the page's values are rendered in full.
+
+        Otherwise (a preview on screen whose release is to come, a full render on its way,
+        values the render events refuse) it does nothing.
+
+        Returns:
+            ``(result, compare, legend, info, download)``: a picture sent again leaves the
+            Download button as it is (the chained download event enables it with the file
+            written for that render already), one rendered disables it until its file is
+            written, as every full render does.
+        """
+        skip = (*SKIP4, gr.skip())
+        if session is None or session.closed:
+            return skip
+        try:
+            params = RenderParams.from_inputs(
+                focus, f_number, blades, rotation, highlight_boost, fusion, quality, blur_on,
+                focal_range, size=session.size,
+            )  # fmt: skip
+        except gr.Error:
+            return skip  # the render events have said what is wrong
+        session.touch()
+        with session.lock:
+            done = session.last_full_params
+            if done is None or session.full_params != done:
+                return skip  # a preview is shown, or a full render is on its way
+            # a click's or an upload's status adds a note to the render's
+            shown = str(shown_info).startswith(session.last_full_info)
+            if done == params:
+                if shown:
+                    return skip
+                return (*self.view_outputs(session, view), session.last_full_info, gr.skip())
+            if not shown or session.last_preview != params:
+                # a preview on screen, its release to come; or the page's values not yet
+                # seen here (a drag started after a release): their preview is on its way
+                return skip
+        outputs = self._render_full(session, params, view)
+        return (*outputs, gr.skip() if outputs is SKIP4 else gr.update(**DOWNLOAD_WAIT))
 
     def click(self, *args: Any, **kwargs: Any) -> tuple:
         """:meth:`click_steps` without a first look: the outputs of the full-resolution render

@@ -73,6 +73,8 @@ class Session:
             render of other params that finishes after it was asked for is dropped, so the
             picture always belongs to the last value the user set (:meth:`still_wanted`).
         last_full_params: params of the full render saved for the download.
+        last_full_info: the status line of that full render.
+        last_preview: params of the latest preview asked for.
         download_file: ``(params, format, path)`` of the latest download file written.
         folder: this session's folder for display and download files (removed with it).
         icc_profile, exif: metadata of the upload, written into the download.
@@ -101,6 +103,8 @@ class Session:
     full_seq: int = 0
     wanted: RenderParams | None = None
     last_full_params: RenderParams | None = None
+    last_full_info: str = ""
+    last_preview: RenderParams | None = None
     download_file: tuple[RenderParams, str, Path] | None = None
     folder: Path | None = None
     icc_profile: bytes | None = None

@@ -66,12 +66,21 @@ def wait_full_render(page, focus: str | None = None, blur: str | None = None) ->
 
 def saved_name(page) -> str:
     """Click Download once it is enabled; the name of the file the browser saves."""
+    from playwright.sync_api import TimeoutError as PlaywrightTimeout
+
     button = page.locator("button#download, #download button").first
-    page.wait_for_function(
-        "() => { const b = document.querySelector('button#download, #download button');"
-        " return b && !b.disabled; }",
-        timeout=FULL_RENDER_WAIT_MS,
-    )
+    try:
+        page.wait_for_function(
+            "() => { const b = document.querySelector('button#download, #download button');"
+            " return b && !b.disabled; }",
+            timeout=FULL_RENDER_WAIT_MS,
+        )
+    except PlaywrightTimeout:
+        status = page.locator("#info textarea").input_value()
+        raise AssertionError(
+            f"Download still disabled after {FULL_RENDER_WAIT_MS} ms; the status reads "
+            f"{status!r}, the button {button.inner_text()!r}"
+        ) from None
     with page.expect_download(timeout=TIMEOUT_MS) as info:
         button.click()
     return info.value.suggested_filename

@@ -6,7 +6,9 @@ from __future__ import annotations
 import threading
 
 import gradio as gr
+import numpy as np
 import pytest
+from PIL import Image
 
 from app.cache import SceneCache
 from app.handlers import RefocusApp
@@ -32,6 +34,11 @@ class SlowFirst:
             self.started.set()
             assert self.go.wait(60)
         return self.model.render(scene, focus, blur, **options)
+
+
+def pixels(update) -> np.ndarray:
+    """The picture of an image update (a file path)."""
+    return np.asarray(Image.open(update["value"]))
 
 
 def is_skip(update) -> bool:
@@ -95,6 +102,94 @@ class TestLateRenderDropped:
         thread.join(60)
         assert "focus 0.397" in late["value"][3]
         assert session.last_full_params.position == pytest.approx(0.397)
+
+
+#: what settle returns when the page is left as it is
+SETTLED = (*SKIP4, gr.skip())
+
+
+def page(focus: float, f_number: float = APERTURE, view: str = "Bokeh") -> tuple:
+    """The controls' values as the page sends them to :meth:`RenderEvents.settle` (the
+    render events' inputs after the session), before the status line."""
+    return (focus, f_number, 0, 0.0, True, True, view, "balanced", True, 0.0)
+
+
+class TestPageBroughtInLine:
+    """:meth:`RenderEvents.settle`, which runs on the page after each preview and full
+    render, with the controls' values and the status line that the page then shows."""
+
+    def test_full_render_sent_again_after_a_preview_that_came_before_it(self, slow):
+        # the preview and the full render of 0.706 ran side by side; the preview's picture
+        # reached the page second
+        logic, session, _ = slow
+        preview = logic.render_preview(session, 0.706, APERTURE)
+        assert "preview" in preview[3]
+        full = logic.render_full(session, 0.706, APERTURE)
+        assert "full render" in full[3]
+        again = logic.settle(session, *page(0.706), preview[3])
+        assert again[3] == full[3]  # sent again, not rendered again: the same status line
+        assert is_skip(again[4])  # Download as it is: enabled by the download that follows
+        np.testing.assert_array_equal(pixels(again[0]), pixels(full[0]))
+        saved = logic.download(session, "JPEG")
+        assert saved["interactive"] is True and "_focus0.706_" in saved["value"]
+        # the other order: the page shows the full render already (a click's with its note)
+        assert logic.settle(session, *page(0.706), full[3]) == SETTLED
+        assert logic.settle(session, *page(0.706), full[3] + " | focused on the click") == SETTLED
+
+    def test_a_release_older_than_the_last_change_is_rendered_over(self, slow):
+        # f/0.5 rendered in full; a click into the number box sends its release (f/0.5),
+        # then f/2 is typed; the server gets the preview of f/2 first, then the old release
+        logic, session, _ = slow
+        logic.render_full(session, 0.3, APERTURE)
+        logic.render_preview(session, 0.3, 2.0)
+        old = logic.render_full(session, 0.3, APERTURE)
+        assert "f/0.5" in old[3] and "full render" in old[3]
+        # the page shows f/0.5 in full under f/2: f/2 is rendered in full
+        fixed = logic.settle(session, *page(0.3, 2.0), old[3])
+        assert "f/2, " in fixed[3] and "full render" in fixed[3]
+        assert fixed[4] == {"__type__": "update", "interactive": False}  # until its file
+        assert session.last_full_params.f_number == 2.0
+        assert "_f2_K" in logic.download(session, "JPEG")["value"]
+        # in line now: nothing more
+        assert logic.settle(session, *page(0.3, 2.0), fixed[3]) == SETTLED
+
+    def test_a_drag_just_started_is_left_to_its_previews(self, slow):
+        # the page shows the full render of 0.3, and its slider has moved on to 0.4 whose
+        # preview has not reached the server yet: no full render in the middle of a drag
+        logic, session, _ = slow
+        full = logic.render_full(session, 0.3, APERTURE)
+        assert logic.settle(session, *page(0.4), full[3]) == SETTLED
+        assert session.last_full_params.position == pytest.approx(0.3)
+
+    def test_nothing_while_a_preview_waits_for_its_release(self, slow):
+        logic, session, _ = slow
+        logic.render_full(session, 0.2, APERTURE)
+        shown = logic.render_preview(session, 0.3, APERTURE)[3]
+        assert logic.settle(session, *page(0.3), shown) == SETTLED  # the release of 0.3 is to come
+        # the page's controls already moved on (a drag): still only previews
+        assert logic.settle(session, *page(0.35), shown) == SETTLED
+        # the slider came back to 0.2 (its full render is stored) while the preview of 0.3
+        # is on screen: only the release of 0.2 shows it again
+        shown = logic.render_preview(session, 0.2, APERTURE)[3]
+        assert "preview" in shown and logic.settle(session, *page(0.2), shown) == SETTLED
+        assert logic.settle(None, *page(0.2), shown) == SETTLED
+        # values the render events refuse: they say so, settle stays silent
+        assert logic.settle(session, *page(7.0), shown) == SETTLED
+
+    def test_waits_for_the_full_render_on_its_way(self, slow):
+        logic, session, model = slow
+        shown = logic.render_preview(session, 0.397, APERTURE)[3]
+        thread, full = render_in_thread(logic.render_full, session, 0.397, APERTURE)
+        assert model.started.wait(60)
+        # still rendering: its own picture will reach the page after the preview's
+        assert logic.settle(session, *page(0.397), shown) == SETTLED
+        model.go.set()
+        thread.join(60)
+        assert "full render" in full["value"][3]
+        # had its picture come before the preview's, a later settle sends it again, in the
+        # view the page shows
+        again = logic.settle(session, *page(0.397, view="Disparity"), shown)
+        assert again[3] == full["value"][3] and "Disparity" in again[2]["value"]
 
 
 class TestRoomForANewPhoto:
