@@ -410,24 +410,11 @@ class RenderEvents:
         return (*self.view_outputs(session, view), info, gr.update(**DOWNLOAD_WAIT))
 
     @reported
-    def settle(
-        self,
-        session: Session | None,
-        focus: Any,
-        f_number: Any,
-        blades: Any = 0,
-        rotation: Any = 0.0,
-        highlight_boost: Any = True,
-        fusion: Any = True,
-        view: str = "Bokeh",
-        quality: Any = "balanced",
-        blur_on: Any = True,
-        focal_range: Any = 0.0,
-        shown_info: Any = "",
-    ) -> tuple:
+    def settle(self, session: Session | None, *page: Any) -> tuple:
         """Bring the page's picture in line with its controls, after a preview or a full
-        render has reached it: the inputs are the controls' values and the status line on
-        the page when this event starts (the render events' inputs, then ``shown_info``).
+        render has reached it. ``page``: the controls' values when this event starts, as
+        :meth:`render_full` takes them after the session (focus, f-number, blades, rotation,
+        highlight boost, fusion, view, quality, blur on, focal range), then the status line.
 
         Renders run side by side (the ``"model"`` group's concurrency) and reach the server
         and the page in their own time, so two orders go wrong without this step:
@@ -454,11 +441,12 @@ class RenderEvents:
         skip = (*SKIP4, gr.skip())
         if session is None or session.closed:
             return skip
+        if len(page) != 11:
+            raise user_error(f"settle takes 10 control values and the status line, got {page!r}")
+        *controls, shown_info = page
+        view = controls.pop(6)
         try:
-            params = RenderParams.from_inputs(
-                focus, f_number, blades, rotation, highlight_boost, fusion, quality, blur_on,
-                focal_range, size=session.size,
-            )  # fmt: skip
+            params = RenderParams.from_inputs(*controls, size=session.size)
         except gr.Error:
             return skip  # the render events have said what is wrong
         session.touch()
