@@ -212,11 +212,13 @@ class RenderEvents:
         scene: Any = None,
         *,
         newest: bool = True,
+        note: str = "",
     ) -> tuple:
         """Render ``params`` at full resolution and show it: ``(result, compare, legend,
         info)``, or skips when another value was set meanwhile. ``newest`` False: the render
         of values set earlier (an upload's, after its first look), skipped at once when the
-        user has set others since."""
+        user has set others since. ``note`` ends the status line (kept with the render, for
+        :meth:`settle`)."""
         session.touch()
         with session.lock:
             if not newest and not session.still_wanted(params):
@@ -241,7 +243,7 @@ class RenderEvents:
             raise
         bokeh = imaging.to_uint8(result.bokeh)
         extra = self._settings_text(result.settings, params.quality)
-        info = self._info(session, params, "full", ms, extra) + f" | reproduce: {command}"
+        info = self._info(session, params, "full", ms, extra) + f" | reproduce: {command}" + note
         with session.lock:
             if session.full_seq != seq or session.closed:
                 return SKIP4  # a newer full render is on its way
@@ -292,8 +294,7 @@ class RenderEvents:
         if looked:
             outputs = self._render_first_look(session, params, view, scene)
             yield (*outputs[:3], outputs[3] + note)
-        outputs = self._render_full(session, params, view, scene, newest=not looked)
-        yield outputs if outputs is SKIP4 else (*outputs[:3], outputs[3] + note)
+        yield self._render_full(session, params, view, scene, newest=not looked, note=note)
 
     def _render_first_look(
         self, session: Session, params: RenderParams, view: str, scene: Any

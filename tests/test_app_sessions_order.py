@@ -108,10 +108,12 @@ class TestLateRenderDropped:
 SETTLED = (*SKIP4, gr.skip())
 
 
-def page(focus: float, f_number: float = APERTURE, view: str = "Bokeh") -> tuple:
+def page(
+    focus: float, f_number: float = APERTURE, view: str = "Bokeh", focal_range: float = 0.0
+) -> tuple:
     """The controls' values as the page sends them to :meth:`RenderEvents.settle` (the
     render events' inputs after the session), before the status line."""
-    return (focus, f_number, 0, 0.0, True, True, view, "balanced", True, 0.0)
+    return (focus, f_number, 0, 0.0, True, True, view, "balanced", True, focal_range)
 
 
 class TestPageBroughtInLine:
@@ -135,6 +137,16 @@ class TestPageBroughtInLine:
         # the other order: the page shows the full render already (a click's with its note)
         assert logic.settle(session, *page(0.706), full[3]) == SETTLED
         assert logic.settle(session, *page(0.706), full[3] + " | focused on the click") == SETTLED
+
+    def test_a_click_sent_again_keeps_its_note(self, slow):
+        # a click's full render came before the first look it follows: sent again, its
+        # status line still says where the photo was focused
+        logic, session, _ = slow
+        focus, span, *out = logic.click(session, [40, 30], APERTURE)
+        assert "full render" in out[3] and "focused on the click" in out[3]
+        again = logic.settle(session, *page(focus, focal_range=span), "first look")
+        assert again[3] == out[3]
+        assert logic.settle(session, *page(focus, focal_range=span), out[3]) == SETTLED
 
     def test_a_release_older_than_the_last_change_is_rendered_over(self, slow):
         # f/0.5 rendered in full; a click into the number box sends its release (f/0.5),
