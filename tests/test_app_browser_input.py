@@ -37,6 +37,10 @@ def aperture_name(f_number: str | float, width: int = 320) -> str:
     return f"_f{n:g}_K{blur_px(n, width):g}.jpg"
 
 
+def status_line(page) -> str:
+    return page.locator("#info textarea").input_value()
+
+
 def wait_full_render(page, focus: str | None = None, blur: str | None = None) -> str:
     """Wait until the status line reports a full render at these slider values (the focus
     slider's position, the f-number)."""
@@ -55,13 +59,13 @@ def wait_full_render(page, focus: str | None = None, blur: str | None = None) ->
             timeout=FULL_RENDER_WAIT_MS,
         )
     except PlaywrightTimeout:
-        status = page.locator("#info textarea").input_value()
+        status = status_line(page)
         blur_now, focus_now = number_value(page, "blur"), number_value(page, "focus")
         raise AssertionError(
             f"no full render of {parts} in {FULL_RENDER_WAIT_MS} ms; the status reads "
             f"{status!r}, the boxes blur={blur_now} focus={focus_now}"
         ) from None
-    return page.locator("#info textarea").input_value()
+    return status_line(page)
 
 
 def saved_name(page) -> str:
@@ -76,7 +80,7 @@ def saved_name(page) -> str:
             timeout=FULL_RENDER_WAIT_MS,
         )
     except PlaywrightTimeout:
-        status = page.locator("#info textarea").input_value()
+        status = status_line(page)
         raise AssertionError(
             f"Download still disabled after {FULL_RENDER_WAIT_MS} ms; the status reads "
             f"{status!r}, the button {button.inner_text()!r}"
@@ -210,13 +214,13 @@ def test_failed_upload_leaves_one_state(
             page.wait_for_function(f"() => {STATUS}.startsWith('Error: notes.jpg')")
             # the panel shows the loaded photo again, not the broken file
             page.wait_for_function(f"() => JSON.stringify(({PHOTO_SIZE})()) === '[320,240]'")
-            status = page.locator("#info textarea").input_value()
+            status = status_line(page)
             assert "not an image" in status and "Still showing scene" in status
             assert result_src == page.evaluate(
                 "() => document.querySelector('#result img')?.getAttribute('src')"
             )
             page.locator(".toast-body.error").first.wait_for(state="detached", timeout=60_000)
-            assert page.locator("#info textarea").input_value() == status
+            assert status_line(page) == status
             # the photo still renders (the slider drives the session's photo)
             box = page.locator("#focus input[data-testid=number-input]")
             box.fill("0.2")
@@ -280,7 +284,7 @@ def test_lens_blur_panel_shows_the_original(
             page.wait_for_function(f"() => JSON.stringify(({PHOTO_SIZE})()) === '[320,240]'")
             # the subject is warm in the original and cool in the file's main picture
             assert page.evaluate(PANEL_WARMTH, box) > 20
-            status = page.locator("#info textarea").input_value()
+            status = status_line(page)
             assert "depth embedded in the photo" in status
 
             # a click on the subject in the panel focuses on it: the focus slider's near end
@@ -292,7 +296,7 @@ def test_lens_blur_panel_shows_the_original(
             nx, ny = scene.near_point
             page.mouse.click(left + nx / 2 * scale, top + ny / 2 * scale)
             page.wait_for_function(f"() => {STATUS}.includes('focused on the click')")
-            status = page.locator("#info textarea").input_value()
+            status = status_line(page)
             focus = float(status.split("focus ")[1].split(" ")[0])
             assert focus == pytest.approx(0.0, abs=0.02), status
             assert float(page.locator("#focus input[data-testid=number-input]").input_value()) == (
@@ -328,7 +332,7 @@ def test_heic_upload_shows_and_clicks(
             heic = {"name": path.name, "mimeType": "image/heic", "buffer": path.read_bytes()}
             page.set_input_files("#input input[type=file]", files=[heic])
             page.wait_for_function(f"() => {STATUS}.includes('full render')")
-            assert "focus on the subject at" in page.locator("#info textarea").input_value()
+            assert "focus on the subject at" in status_line(page)
             page.wait_for_function(f"() => JSON.stringify(({PHOTO_SIZE})()) === '[320,240]'")
             src = page.evaluate("() => document.querySelector('#input img').getAttribute('src')")
             assert "d2f-rendered-from-" in src and not src.lower().endswith(".heic")
@@ -336,7 +340,7 @@ def test_heic_upload_shows_and_clicks(
             nx, ny = two_plane_scene.near_point
             click_photo_at(page, nx, ny)
             page.wait_for_function(f"() => {STATUS}.includes('focused on the click')")
-            status = page.locator("#info textarea").input_value()
+            status = status_line(page)
             # the click lands on the photo where it was made (the panel is the photo's size)
             x, y = status.split("focused on the click at (")[1].split(")")[0].split(", ")
             assert abs(float(x) - nx) <= 2 and abs(float(y) - ny) <= 2, status

@@ -80,6 +80,13 @@ def _target(layout: np.ndarray, alpha: np.ndarray | None) -> np.ndarray:
 JITTERS = ("mild", "strong")
 
 
+def check_jitter(kind: str) -> str:
+    """``kind`` if it names one of :data:`JITTERS`; else a ``ValueError`` that lists them."""
+    if kind not in JITTERS:
+        raise ValueError(f"jitter must be one of {', '.join(JITTERS)}, got {kind!r}")
+    return kind
+
+
 def photometric_jitter(img: np.ndarray, rng: random.Random, kind: str = "mild") -> np.ndarray:
     """A training photo (``H x W x 3`` in 0..1) with a random exposure: ``"mild"``, a gain of
     0.8-1.2 and a gamma of 0.8-1.25; ``"strong"`` adds, each at random, a white balance
@@ -90,10 +97,8 @@ def photometric_jitter(img: np.ndarray, rng: random.Random, kind: str = "mild") 
     gain = rng.uniform(0.8, 1.2)
     gamma = rng.uniform(0.8, 1.25)
     img = np.clip(img * gain, 0, 1) ** gamma
-    if kind == "mild":
+    if check_jitter(kind) == "mild":
         return img
-    if kind != "strong":
-        raise ValueError(f"jitter must be one of {', '.join(JITTERS)}, got {kind!r}")
     img = img * np.array([rng.uniform(0.9, 1.1) for _ in range(3)], np.float32)
     grey = img @ np.array([0.299, 0.587, 0.114], np.float32)
     saturation = 0.0 if rng.random() < 0.1 else rng.uniform(0.5, 1.5)
@@ -155,9 +160,7 @@ class RealDepthData:
         scene_maps: bool = False,
         jitter: str = "mild",
     ) -> None:
-        if jitter not in JITTERS:
-            raise ValueError(f"jitter must be one of {', '.join(JITTERS)}, got {jitter!r}")
-        self.jitter = jitter
+        self.jitter = check_jitter(jitter)
         if keep_on not in (None, "background", "plain"):
             raise ValueError(f"keep_on must be 'background', 'plain' or None, got {keep_on!r}")
         self.keep_on = keep_on

@@ -38,7 +38,7 @@ import numpy as np
 from PIL import Image
 
 from ..sizing import scaled_size
-from .depth_data import JITTERS, RealDepthData, resize_array
+from .depth_data import RealDepthData, check_jitter, resize_array
 from .heldout import is_heldout_key
 from .teachers import mask_box, read_mask, shard_arg
 
@@ -215,9 +215,7 @@ class PackedDepthData(RealDepthData):
         standing: float = 0.0,
         jitter: str = "mild",
     ) -> None:
-        if jitter not in JITTERS:
-            raise ValueError(f"jitter must be one of {', '.join(JITTERS)}, got {jitter!r}")
-        self.jitter = jitter
+        self.jitter = check_jitter(jitter)
         read = read_pack(pack)
         self.photos, self.side = read.photos, read.side
         self.masked = [p for p in self.photos if p.mask is not None]
