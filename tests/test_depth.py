@@ -455,6 +455,42 @@ def test_keep_loss_holds_relative_depth_only_where_weighted():
     assert pred.grad[:, :, :, :8].abs().sum() > 0 and pred.grad[:, :, :, 8:].abs().sum() == 0
 
 
+def test_rank_loss_counts_order_only():
+    """The ranking term is blind to a positive scale and shift, low for any map in the
+    target's order, high for a near-far swap, zero where targets are equal, and trains the
+    order."""
+    torch.manual_seed(0)
+    yy, xx = torch.meshgrid(torch.linspace(0, 1, 32), torch.linspace(0, 1, 48), indexing="ij")
+    target = (yy + 0.3 * torch.sin(6 * xx)).expand(2, 1, 32, 48).contiguous()
+    target[:, :, 10:20, 20:30] = 2.0  # a subject far in front
+    right = depth_losses.rank_loss(target, target)
+    torch.manual_seed(0)  # the same pairs
+    assert torch.allclose(depth_losses.rank_loss(5.0 * target - 2.0, target), right)
+    torch.manual_seed(1)
+    remapped = depth_losses.rank_loss(target.pow(3), target)  # the same order
+    torch.manual_seed(2)
+    swapped = depth_losses.rank_loss(-target, target)
+    assert float(swapped) > 1.0 and float(swapped) > 4 * max(float(right), float(remapped))
+    # flat targets order nothing: the loss is zero whatever the prediction
+    flat = torch.ones(2, 1, 32, 48)
+    assert float(depth_losses.rank_loss(torch.rand(2, 1, 32, 48), flat)) == 0.0
+    # and it trains: gradient steps on a random map raise its rank agreement with the target
+    pred = torch.rand(2, 1, 32, 48, requires_grad=True)
+    opt = torch.optim.SGD([pred], lr=20.0)
+    before = _spearman(pred.detach(), target)
+    for _ in range(60):
+        opt.zero_grad()
+        depth_losses.rank_loss(pred, target).backward()
+        opt.step()
+    assert before < 0.1 and _spearman(pred.detach(), target) > 0.8
+
+
+def _spearman(a: torch.Tensor, b: torch.Tensor) -> float:
+    ra = a.flatten().argsort().argsort().float()
+    rb = b.flatten().argsort().argsort().float()
+    return float(torch.corrcoef(torch.stack([ra, rb]))[0, 1])
+
+
 def _tiny_datasets(root: Path, labels: Path, n: int = 6) -> None:
     """A datasets folder like ../shared/datasets: ECSSD-style photos with binary masks,
     plain photos, and teacher labels written by hand."""

@@ -1,14 +1,23 @@
 """Stage 0's losses: a scale- and shift-invariant L1 (relative targets of real photos), a
 plain L1 (absolute targets of generated scenes) and multi-scale gradient matching (MiDaS);
-the keep term, a weighted scale- and shift-invariant L1 to an earlier network's output; and
+the keep term, a weighted scale- and shift-invariant L1 to an earlier network's output; the
+pairwise ranking term (pixel pairs whose targets differ must come out in the same order); and
 the scene head's binary cross-entropy."""
 
 from __future__ import annotations
 
+import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-__all__ = ["depth_loss", "gradient_matching_loss", "keep_loss", "scene_map_loss", "ssi_align"]
+__all__ = [
+    "depth_loss",
+    "gradient_matching_loss",
+    "keep_loss",
+    "rank_loss",
+    "scene_map_loss",
+    "ssi_align",
+]
 
 
 def ssi_align(pred: Tensor, target: Tensor) -> Tensor:
@@ -83,6 +92,52 @@ def keep_loss(pred: Tensor, reference: Tensor, weight: Tensor) -> Tensor:
     p, _ = normed(pred)
     r, r_dev = normed(reference)
     return ((w * (p - r).abs()).sum(1, keepdim=True) / total * r_dev).mean()
+
+
+def rank_loss(
+    pred: Tensor,
+    target: Tensor,
+    pairs: int = 2048,
+    reach: int = 12,
+    margin: float = 0.25,
+    gain: float = 2.0,
+) -> Tensor:
+    """Pairwise ranking loss: the order of pixel pairs, not their distance.
+
+    Per sample, ``pairs`` pixel pairs are drawn: half anywhere in the frame (the layout),
+    half within ``reach`` pixels of each other (a subject against what is right behind it).
+    A pair counts when its targets differ by more than ``margin`` times the target's mean
+    absolute deviation; its loss is ``softplus(-gain * s * (p_i - p_j))`` with ``s`` the
+    sign of the targets' difference and ``p`` the prediction centred on its mean and
+    divided by its mean absolute deviation (so a positive scale and a shift change nothing,
+    and a near-far swap is never fitted away). Samples without a counted pair count nothing.
+
+    Shape: (B, 1, H, W) and (B, 1, H, W) -> a scalar.
+    """
+    b, _, h, w = pred.shape
+    p = pred.flatten(1)
+    t = target.flatten(1).to(p.dtype)
+    p = p - p.mean(1, keepdim=True)
+    p = p / p.abs().mean(1, keepdim=True).clamp_min(1e-6)
+    t_dev = (t - t.mean(1, keepdim=True)).abs().mean(1, keepdim=True)
+    dev = pred.device
+    half = pairs // 2
+    first = torch.randint(0, h * w, (b, pairs), device=dev)
+    far = torch.randint(0, h * w, (b, half), device=dev)
+    y0, x0 = first[:, half:] // w, first[:, half:] % w
+    dy = torch.randint(-reach, reach + 1, (b, pairs - half), device=dev)
+    dx = torch.randint(-reach, reach + 1, (b, pairs - half), device=dev)
+    near = (y0 + dy).clamp(0, h - 1) * w + (x0 + dx).clamp(0, w - 1)
+    second = torch.cat([far, near], 1)
+    dt = t.gather(1, first) - t.gather(1, second)
+    dp = p.gather(1, first) - p.gather(1, second)
+    counted = (dt.abs() > margin * t_dev).to(p.dtype)
+    per = F.softplus(-gain * torch.sign(dt) * dp) * counted
+    n = counted.sum(1)
+    used = n > 0
+    if not bool(used.any()):
+        return (pred * 0).sum()  # zero, still in the graph
+    return (per.sum(1)[used] / n[used]).mean()
 
 
 def scene_map_loss(logits: Tensor, maps: Tensor) -> Tensor:

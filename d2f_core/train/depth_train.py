@@ -53,6 +53,7 @@ from .depth_losses import (
     depth_loss,
     gradient_matching_loss,
     keep_loss,
+    rank_loss,
     scene_map_loss,
     ssi_align,
 )
@@ -175,6 +176,8 @@ def train_depth(args: argparse.Namespace) -> Path:
     if args.head_only and (args.keep is not None or args.distill is not None):
         raise ValueError("--head-only trains the scene head alone: --keep and --distill train "
                          "the rest of the network")  # fmt: skip
+    if args.rank_weight < 0:
+        raise ValueError(f"--rank-weight must be >= 0, got {args.rank_weight}")
     if args.scene_map_weight < 0:
         raise ValueError(f"--scene-map-weight must be >= 0, got {args.scene_map_weight}")
     if args.ema and not 0.0 < args.ema < 1.0:
@@ -327,6 +330,10 @@ def train_depth(args: argparse.Namespace) -> Path:
         else:
             pred, logits = net.forward_scene(images)
         loss, parts = depth_loss(pred, targets, relative, args.absolute_weight)
+        if args.rank_weight:
+            ranked = rank_loss(pred, targets)
+            loss = loss + args.rank_weight * ranked
+            parts["rank"] = ranked.item()
         if net.scene_head is not None:
             scene = scene_map_loss(logits, maps)
             loss = loss + args.scene_map_weight * scene
@@ -479,6 +486,12 @@ def build_parser() -> argparse.ArgumentParser:
         "with the ramp (teacher_weight)",
     )
     p.add_argument("--absolute-weight", type=float, default=0.25)
+    p.add_argument(
+        "--rank-weight",
+        type=float,
+        default=0.0,
+        help="weight of the pairwise ranking term (pixel pairs kept in their targets' order)",
+    )
     p.add_argument(
         "--scene-weight",
         type=float,
