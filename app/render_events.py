@@ -226,7 +226,7 @@ class RenderEvents:
             session.full_seq += 1
             seq = session.full_seq
             session.full_params = params
-            session.wanted = params
+            session.ask(params)
         try:
             if scene is None:
                 scene = session.scene
@@ -309,7 +309,7 @@ class RenderEvents:
         with session.lock:
             session.full_seq += 1
             session.full_params = params
-            session.wanted = params
+            session.ask(params)
         result, bokeh, ms = self._render_small(scene, params, FIRST_LOOK_MAX_SIDE)
         with session.lock:
             self._store_views(session, result, bokeh)
@@ -354,7 +354,7 @@ class RenderEvents:
         )  # fmt: skip
         session.touch()
         with session.lock:
-            session.wanted = params
+            session.ask(params)
             if params == session.full_params:
                 return SKIP4  # already rendered (or being rendered) at full resolution
         return self._render_full(session, params, view)
@@ -393,7 +393,7 @@ class RenderEvents:
         )  # fmt: skip
         session.touch()
         with session.lock:
-            session.wanted = params
+            session.ask(params)
             session.last_preview = params
             if params == session.full_params:
                 return (*SKIP4, gr.skip())
@@ -425,10 +425,12 @@ class RenderEvents:
           render of the page's values is done and the views hold it, it is sent again (it is
           not rendered again);
         - a release sent before the last change of a value (a click into a number box, then
-          a value typed) reaches the server after that change's preview: the page shows a
-          full render of the old value under the new one. When the page shows the last full
-          render, its values are not the page's, and the page's values are those of the last
-          preview asked for, the page's values are rendered in full.
+          a value typed; a slider let go, then an option chosen) reaches the server after
+          that change's preview or full render: the page shows a full render of the old
+          value under the new one. When the page shows the last full render, its values are
+          not the page's, and the page's values are those of the last preview asked for or
+          the ones asked for just before that full render, the page's values are rendered
+          in full.
 
         Otherwise (a preview on screen whose release is to come, a full render on its way,
         values the render events refuse) it does nothing.
@@ -461,7 +463,8 @@ class RenderEvents:
                 if shown:
                     return skip
                 return (*self.view_outputs(session, view), session.last_full_info, gr.skip())
-            if not shown or session.last_preview != params:
+            late = session.wanted == done and session.asked_before == params
+            if not shown or not (late or session.last_preview == params):
                 # a preview on screen, its release to come; or the page's values not yet
                 # seen here (a drag started after a release): their preview is on its way
                 return skip

@@ -75,6 +75,9 @@ class Session:
         last_full_params: params of the full render saved for the download.
         last_full_info: the status line of that full render.
         last_preview: params of the latest preview asked for.
+        asked_before: the values asked for before :attr:`wanted` (the last other ones):
+            the page's when a release or option's full render that the user made before
+            them reached the server after them (:meth:`ask`).
         download_file: ``(params, format, path)`` of the latest download file written.
         folder: this session's folder for display and download files (removed with it).
         icc_profile, exif: metadata of the upload, written into the download.
@@ -105,6 +108,7 @@ class Session:
     last_full_params: RenderParams | None = None
     last_full_info: str = ""
     last_preview: RenderParams | None = None
+    asked_before: RenderParams | None = None
     download_file: tuple[RenderParams, str, Path] | None = None
     folder: Path | None = None
     icc_profile: bytes | None = None
@@ -138,6 +142,12 @@ class Session:
             return np.load(self.folder / "last_full.npy")
         except FileNotFoundError:
             return None
+
+    def ask(self, params: RenderParams) -> None:
+        """A render of ``params`` was asked for (call with :attr:`lock` held)."""
+        if params != self.wanted:
+            self.asked_before = self.wanted
+        self.wanted = params
 
     def still_wanted(self, params: RenderParams) -> bool:
         """Whether no render of other params was asked for since ``params`` (call with

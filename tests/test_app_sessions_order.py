@@ -109,11 +109,15 @@ SETTLED = (*SKIP4, gr.skip())
 
 
 def page(
-    focus: float, f_number: float = APERTURE, view: str = "Bokeh", focal_range: float = 0.0
+    focus: float,
+    f_number: float = APERTURE,
+    view: str = "Bokeh",
+    focal_range: float = 0.0,
+    blades: int = 0,
 ) -> tuple:
     """The controls' values as the page sends them to :meth:`RenderEvents.settle` (the
     render events' inputs after the session), before the status line."""
-    return (focus, f_number, 0, 0.0, True, True, view, "balanced", True, focal_range)
+    return (focus, f_number, blades, 0.0, True, True, view, "balanced", True, focal_range)
 
 
 class TestPageBroughtInLine:
@@ -164,6 +168,26 @@ class TestPageBroughtInLine:
         assert "_f2_K" in logic.download(session, "JPEG")["value"]
         # in line now: nothing more
         assert logic.settle(session, *page(0.3, 2.0), fixed[3]) == SETTLED
+
+    def test_a_release_older_than_an_option_is_rendered_over(self, slow):
+        # the focus slider let go at 0.3 (its release on its way), then 6 blades chosen:
+        # the option's full render reaches the server first, and the release, with 0
+        # blades, replaces it
+        logic, session, _ = slow
+        logic.render_full(session, 0.2, APERTURE)
+        logic.render_full(session, 0.3, APERTURE, 6)
+        old = logic.render_full(session, 0.3, APERTURE, 0)
+        assert "full render" in old[3] and session.last_full_params.blades == 0
+        fixed = logic.settle(session, *page(0.3, blades=6), old[3])
+        assert "full render" in fixed[3] and fixed[3] != old[3]
+        assert session.last_full_params.blades == 6
+        assert logic.download(session, "JPEG")["interactive"] is True
+        assert session.download_file[0].blades == 6  # the file is the 6-blade render
+        assert logic.settle(session, *page(0.3, blades=6), fixed[3]) == SETTLED
+        # values asked for long before are not the page's last change: left alone
+        logic.render_full(session, 0.5, APERTURE)
+        late = logic.render_full(session, 0.6, APERTURE)
+        assert logic.settle(session, *page(0.3, blades=6), late[3]) == SETTLED
 
     def test_a_drag_just_started_is_left_to_its_previews(self, slow):
         # the page shows the full render of 0.3, and its slider has moved on to 0.4 whose
