@@ -1127,7 +1127,7 @@ def test_training_from_a_pack_on_a_time_budget(tmp_path, tiny_checkpoint, one_th
             "--minutes", "0.05", "--batch-size", "2", "--crop", "48", "--workers", "0",
             "--threads", "1", "--log-every", "1", "--save-every", "1000", "--keep-every",
             "1000", "--variant", "lite-ctx", "--init", str(tiny_checkpoint), "--ema", "0.9",
-            "--synth", "0.5", "--jitter", "strong"]  # fmt: skip
+            "--synth", "0.5", "--jitter", "strong", "--rank-weight", "1.0"]  # fmt: skip
     last = depth_train.train_depth(depth_train.build_parser().parse_args(argv))
     state = torch.load(last, weights_only=True)
     step = state["step"]
@@ -1135,6 +1135,7 @@ def test_training_from_a_pack_on_a_time_budget(tmp_path, tiny_checkpoint, one_th
     assert (run / f"depth_{step:06d}.pt").is_file() and (run / f"depth_{step:06d}_ema.pt").is_file()
     log = [json.loads(line) for line in (run / "depth_log.jsonl").open()]
     assert len(log) == step and all(math.isfinite(r["loss"]) for r in log)
+    assert all(r["rank"] >= 0 and math.isfinite(r["rank"]) for r in log)  # the ranking term
     # the schedule followed the time spent: by steps alone it would still be near its top
     assert log[0]["lr"] > 0.99e-3 and log[-1]["lr"] < 0.5e-3
     again = depth_train.train_depth(depth_train.build_parser().parse_args(argv))
@@ -1145,6 +1146,7 @@ def test_training_from_a_pack_on_a_time_budget(tmp_path, tiny_checkpoint, one_th
         (["--keep", str(tiny_checkpoint)], "need the photos"),
         (["--minutes", "0"], "--minutes"),
         (["--steps", "0"], "--steps"),
+        (["--rank-weight", "-1"], "--rank-weight"),
         (["--scene-targets"], "when it was written"),
         (["--layout-teacher", "-1"], "when it was written"),
     ):
