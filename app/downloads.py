@@ -19,8 +19,13 @@ class DownloadEvents:
     written to a file."""
 
     @reported
-    def download(self, session: Session | None, fmt: str = "PNG") -> Any:
+    def download(self, session: Session | None, fmt: str = "PNG", shown: Any = None) -> Any:
         """Write the latest full-resolution render to a file for the download button.
+
+        ``shown``: the status line the page shows, where the event follows a render: the
+        button is left as it is unless the page shows that full render (a preview whose
+        picture reached the page after it keeps the button disabled; :meth:`settle` sends
+        the full render again, and its download enables it).
 
         Returns:
             a ``gr.DownloadButton`` update with the file (or ``gr.skip()`` without a render).
@@ -35,6 +40,8 @@ class DownloadEvents:
             params = session.last_full_params
             if params is None or session.full_params != params:
                 return gr.skip()  # no full render, or a preview is shown
+            if shown is not None and not str(shown).startswith(session.last_full_info):
+                return gr.skip()  # the page shows another picture
             done = session.download_file
             image = None
             if done is None or done[:2] != (params, fmt) or not done[2].exists():

@@ -435,8 +435,11 @@ def build_demo(
             **heavy,
         }
 
+        # after a render, Download is enabled only when the page shows that render
+        download_io = {"fn": logic.download, "inputs": [session, fmt, info], "outputs": [download]}
+
         def settled(event: Any) -> None:
-            event.then(**settle_io).success(logic.download, [session, fmt], [download], **chained)
+            event.then(**settle_io).success(**download_io, **chained)
 
         # .change only (never .input as well: two concurrent runs break the image); .change
         # also follows values set by click-to-focus, whose preview is then skipped
@@ -460,7 +463,7 @@ def build_demo(
                 **heavy,
                 **timed,
             )
-            released.success(logic.download, [session, fmt], [download], **chained)
+            released.success(**download_io, **chained)
             settled(released)
         optioned = gr.on(
             [blades.change, highlight.change, fusion.change, quality.change, blur_on.change],
@@ -472,7 +475,7 @@ def build_demo(
             **heavy,
             **timed,
         )
-        optioned.success(logic.download, [session, fmt], [download], **chained)
+        optioned.success(**download_io, **chained)
         settled(optioned)
         gr.on([blur.change, blur_on.change], trigger_mode="always_last", **note_io)
 

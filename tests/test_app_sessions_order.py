@@ -132,11 +132,14 @@ class TestPageBroughtInLine:
         assert "preview" in preview[3]
         full = logic.render_full(session, 0.706, APERTURE)
         assert "full render" in full[3]
+        # the full render's download finds the preview on the page: the button stays
+        # disabled, as the preview left it
+        assert is_skip(logic.download(session, "JPEG", preview[3]))
         again = logic.settle(session, *page(0.706), preview[3])
         assert again[3] == full[3]  # sent again, not rendered again: the same status line
         assert is_skip(again[4])  # Download as it is: enabled by the download that follows
         np.testing.assert_array_equal(pixels(again[0]), pixels(full[0]))
-        saved = logic.download(session, "JPEG")
+        saved = logic.download(session, "JPEG", again[3])
         assert saved["interactive"] is True and "_focus0.706_" in saved["value"]
         # the other order: the page shows the full render already (a click's with its note)
         assert logic.settle(session, *page(0.706), full[3]) == SETTLED
