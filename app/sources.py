@@ -35,7 +35,7 @@ CHOICES = (
 NETWORK_NOTE = (
     "Without phone depth the shipped network guesses the depth: right for one clear subject "
     "(a person, a pet, an object) and for tall subjects, posts and trunks crossing the frame; "
-    "often wrong for rooms, shelves and flower beds; about 1 in 10 subjects over water or a "
+    "often wrong for rooms, shelves and flower beds; about 1 in 20 subjects over water or a "
     "floor goes behind. If the blur lands on your subject, click the subject."
 )
 HUB_PLACEHOLDER = "depth-anything/Depth-Anything-V2-Small-hf"

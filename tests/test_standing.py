@@ -61,24 +61,40 @@ def shipped():
 @pytest.mark.slow
 def test_shipped_weights_put_generated_subjects_in_front(shipped, one_thread):
     """The shipped weights on the 24 held-out generated cases of ``d2f-bench standing``
-    (measured at 2 threads: 79 % in front, median margin +0.17; far lights at night 100 %,
-    a subject over a far floor 88 %, a post across the frame 50 %: what stays to be done)."""
+    (measured at 1 thread: all 24 in front, median margin +0.91; the weights of 2026-12-04
+    also 24, those of 2026-12-03 79 % at 2 threads, with a post across the frame 50 %)."""
     result = standing.score({"shipped": shipped}, standing.generated_cases(24))
     summary = {kind: row["shipped"] for kind, row in result["summary"].items()}
-    assert summary["all"]["share"] >= 0.75 and summary["all"]["median_margin"] > 0.1
+    assert summary["all"]["share"] >= 0.9 and summary["all"]["median_margin"] > 0.5
     assert summary["generated night"]["share"] == 1.0
-    assert summary["generated over"]["share"] >= 0.75
-    assert summary["generated post"]["share"] >= 0.375
+    assert summary["generated over"]["share"] >= 0.875
+    assert summary["generated post"]["share"] >= 0.75
 
 
 @pytest.mark.slow
 @pytest.mark.shared_data
 def test_shipped_weights_put_tall_held_out_subjects_in_front(shipped, one_thread):
     """The held-out masked photos whose subject spans the frame's height (measured: 47 of 48
-    in front, median margin +0.43)."""
+    in front, median margin +0.42)."""
     if not DATASETS.is_dir():
         pytest.skip(f"held-out photos not available: {DATASETS}")
     cases = [c for c in standing.photo_cases(DATASETS) if c[1] == "photo tall"]
     assert len(cases) >= 40
     row = standing.score({"shipped": shipped}, cases)["summary"]["all"]["shipped"]
     assert row["share"] >= 0.95 and row["median_margin"] > 0.3
+
+
+@pytest.mark.slow
+@pytest.mark.shared_data
+def test_shipped_weights_put_held_out_subjects_over_ground_in_front(shipped, one_thread):
+    """The held-out masked photos of a subject over ground, water or a floor (measured: 67 of
+    70 in front, median margin +0.22; the weights before the 2026-12-05 ranking term: 63)."""
+    if not DATASETS.is_dir():
+        pytest.skip(f"held-out photos not available: {DATASETS}")
+    # the ADE20K teacher tells the ground under the subject
+    pytest.importorskip("ai_edge_litert", reason="ai-edge-litert is not installed (.[teach])")
+    cases = standing.photo_cases(DATASETS, teachers=DATASETS / "teachers")
+    cases = [c for c in cases if c[1] == "photo over ground"]
+    assert len(cases) >= 60
+    row = standing.score({"shipped": shipped}, cases)["summary"]["all"]["shipped"]
+    assert row["share"] >= 0.92 and row["median_margin"] > 0.15  # 63 of 70 fails
