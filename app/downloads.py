@@ -40,7 +40,7 @@ class DownloadEvents:
             params = session.last_full_params
             if params is None or session.full_params != params:
                 return gr.skip()  # no full render, or a preview is shown
-            if shown is not None and not str(shown).startswith(session.last_full_info):
+            if shown is not None and not session.shows_last_full(shown):
                 return gr.skip()  # the page shows another picture
             done = session.download_file
             image = None

@@ -457,8 +457,7 @@ class RenderEvents:
             done = session.last_full_params
             if done is None or session.full_params != done:
                 return skip  # a preview is shown, or a full render is on its way
-            # a click's or an upload's status adds a note to the render's
-            shown = str(shown_info).startswith(session.last_full_info)
+            shown = session.shows_last_full(shown_info)
             if done == params:
                 if shown:
                     return skip

@@ -149,6 +149,12 @@ class Session:
             self.asked_before = self.wanted
         self.wanted = params
 
+    def shows_last_full(self, status: Any) -> bool:
+        """Whether a page whose status line reads ``status`` shows the last full render (a
+        click's or an upload's status adds a note to the render's; call with :attr:`lock`
+        held)."""
+        return str(status).startswith(self.last_full_info)
+
     def still_wanted(self, params: RenderParams) -> bool:
         """Whether no render of other params was asked for since ``params`` (call with
         :attr:`lock` held, where the render's picture is stored)."""

@@ -58,6 +58,16 @@ def shipped():
     return network_predictor(None)
 
 
+def _held_out_row(shipped, kind: str, at_least: int, teachers: Path | None = None) -> dict:
+    """The shipped weights' summary row on the held-out photo cases of ``kind`` (skips when
+    ``../shared/datasets`` is absent); there must be ``at_least`` of them."""
+    if not DATASETS.is_dir():
+        pytest.skip(f"held-out photos not available: {DATASETS}")
+    cases = [c for c in standing.photo_cases(DATASETS, teachers=teachers) if c[1] == kind]
+    assert len(cases) >= at_least
+    return standing.score({"shipped": shipped}, cases)["summary"]["all"]["shipped"]
+
+
 @pytest.mark.slow
 def test_shipped_weights_put_generated_subjects_in_front(shipped, one_thread):
     """The shipped weights on the 24 held-out generated cases of ``d2f-bench standing``
@@ -76,11 +86,7 @@ def test_shipped_weights_put_generated_subjects_in_front(shipped, one_thread):
 def test_shipped_weights_put_tall_held_out_subjects_in_front(shipped, one_thread):
     """The held-out masked photos whose subject spans the frame's height (measured: 47 of 48
     in front, median margin +0.42)."""
-    if not DATASETS.is_dir():
-        pytest.skip(f"held-out photos not available: {DATASETS}")
-    cases = [c for c in standing.photo_cases(DATASETS) if c[1] == "photo tall"]
-    assert len(cases) >= 40
-    row = standing.score({"shipped": shipped}, cases)["summary"]["all"]["shipped"]
+    row = _held_out_row(shipped, "photo tall", at_least=40)
     assert row["share"] >= 0.95 and row["median_margin"] > 0.3
 
 
@@ -89,12 +95,7 @@ def test_shipped_weights_put_tall_held_out_subjects_in_front(shipped, one_thread
 def test_shipped_weights_put_held_out_subjects_over_ground_in_front(shipped, one_thread):
     """The held-out masked photos of a subject over ground, water or a floor (measured: 67 of
     70 in front, median margin +0.22; the weights before the 2026-12-05 ranking term: 63)."""
-    if not DATASETS.is_dir():
-        pytest.skip(f"held-out photos not available: {DATASETS}")
     # the ADE20K teacher tells the ground under the subject
     pytest.importorskip("ai_edge_litert", reason="ai-edge-litert is not installed (.[teach])")
-    cases = standing.photo_cases(DATASETS, teachers=DATASETS / "teachers")
-    cases = [c for c in cases if c[1] == "photo over ground"]
-    assert len(cases) >= 60
-    row = standing.score({"shipped": shipped}, cases)["summary"]["all"]["shipped"]
+    row = _held_out_row(shipped, "photo over ground", at_least=60, teachers=DATASETS / "teachers")
     assert row["share"] >= 0.92 and row["median_margin"] > 0.15  # 63 of 70 fails
