@@ -485,6 +485,27 @@ def test_rank_loss_counts_order_only():
     assert before < 0.1 and _spearman(pred.detach(), target) > 0.8
 
 
+def test_rank_loss_edge_pairs_find_the_silhouette():
+    """With ``edge``, the close pairs start on the target's edges: a small subject put behind
+    a gentle ramp costs far more than with pairs drawn anywhere, and edges alone change
+    nothing where the order is right."""
+    yy = torch.linspace(0, 1, 64).view(1, 1, 64, 1).expand(4, 1, 64, 64)
+    target = 0.5 * yy.clone()
+    target[:, :, 20:26, 30:36] = 2.0  # a small subject far in front
+    wrong = target.clone()
+    wrong[:, :, 20:26, 30:36] = -2.0  # drawn behind the ramp
+    torch.manual_seed(0)
+    anywhere = float(depth_losses.rank_loss(wrong, target))
+    torch.manual_seed(0)
+    on_edges = float(depth_losses.rank_loss(wrong, target, edge=1.0))
+    assert on_edges > 2.0 * anywhere
+    torch.manual_seed(0)
+    right = float(depth_losses.rank_loss(target, target, edge=1.0))
+    assert right < 0.5 * on_edges
+    flat = torch.ones(2, 1, 16, 16)  # no edge at all: pairs drawn anywhere, none counted
+    assert float(depth_losses.rank_loss(torch.rand(2, 1, 16, 16), flat, edge=1.0)) == 0.0
+
+
 def _spearman(a: torch.Tensor, b: torch.Tensor) -> float:
     ra = a.flatten().argsort().argsort().float()
     rb = b.flatten().argsort().argsort().float()
@@ -1127,7 +1148,8 @@ def test_training_from_a_pack_on_a_time_budget(tmp_path, tiny_checkpoint, one_th
             "--minutes", "0.05", "--batch-size", "2", "--crop", "48", "--workers", "0",
             "--threads", "1", "--log-every", "1", "--save-every", "1000", "--keep-every",
             "1000", "--variant", "lite-ctx", "--init", str(tiny_checkpoint), "--ema", "0.9",
-            "--synth", "0.5", "--jitter", "strong", "--rank-weight", "1.0"]  # fmt: skip
+            "--synth", "0.5", "--jitter", "strong", "--rank-weight", "1.0",
+            "--rank-edge", "0.5"]  # fmt: skip
     last = depth_train.train_depth(depth_train.build_parser().parse_args(argv))
     state = torch.load(last, weights_only=True)
     step = state["step"]
@@ -1147,6 +1169,7 @@ def test_training_from_a_pack_on_a_time_budget(tmp_path, tiny_checkpoint, one_th
         (["--minutes", "0"], "--minutes"),
         (["--steps", "0"], "--steps"),
         (["--rank-weight", "-1"], "--rank-weight"),
+        (["--rank-edge", "1.5"], "--rank-edge"),
         (["--scene-targets"], "when it was written"),
         (["--layout-teacher", "-1"], "when it was written"),
     ):

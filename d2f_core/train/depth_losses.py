@@ -101,11 +101,15 @@ def rank_loss(
     reach: int = 12,
     margin: float = 0.25,
     gain: float = 2.0,
+    edge: float = 0.0,
 ) -> Tensor:
     """Pairwise ranking loss: the order of pixel pairs, not their distance.
 
     Per sample, ``pairs`` pixel pairs are drawn: half anywhere in the frame (the layout),
     half within ``reach`` pixels of each other (a subject against what is right behind it).
+    A share ``edge`` of the close pairs starts on a target edge: its first pixel is drawn in
+    proportion to the target's step to its right and lower neighbours, so the pairs fall
+    across silhouettes rather than inside flat regions.
     A pair counts when its targets differ by more than ``margin`` times the target's mean
     absolute deviation; its loss is ``softplus(-gain * s * (p_i - p_j))`` with ``s`` the
     sign of the targets' difference and ``p`` the prediction centred on its mean and
@@ -123,6 +127,16 @@ def rank_loss(
     dev = pred.device
     half = pairs // 2
     first = torch.randint(0, h * w, (b, pairs), device=dev)
+    on_edge = int(round(edge * (pairs - half)))
+    if on_edge > 0:
+        tm = target.detach().to(p.dtype)
+        step = torch.zeros_like(tm)
+        step[..., :, :-1] = (tm[..., :, 1:] - tm[..., :, :-1]).abs()
+        down = (tm[..., 1:, :] - tm[..., :-1, :]).abs()
+        step[..., :-1, :] = torch.maximum(step[..., :-1, :], down)
+        step = step.flatten(1)
+        weight = torch.where(step.sum(1, keepdim=True) > 0, step, torch.ones_like(step))
+        first[:, pairs - on_edge :] = torch.multinomial(weight, on_edge, replacement=True)
     far = torch.randint(0, h * w, (b, half), device=dev)
     y0, x0 = first[:, half:] // w, first[:, half:] % w
     dy = torch.randint(-reach, reach + 1, (b, pairs - half), device=dev)

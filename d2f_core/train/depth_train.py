@@ -178,6 +178,8 @@ def train_depth(args: argparse.Namespace) -> Path:
                          "the rest of the network")  # fmt: skip
     if args.rank_weight < 0:
         raise ValueError(f"--rank-weight must be >= 0, got {args.rank_weight}")
+    if not 0.0 <= args.rank_edge <= 1.0:
+        raise ValueError(f"--rank-edge must lie in [0, 1], got {args.rank_edge}")
     if args.scene_map_weight < 0:
         raise ValueError(f"--scene-map-weight must be >= 0, got {args.scene_map_weight}")
     if args.ema and not 0.0 < args.ema < 1.0:
@@ -331,7 +333,7 @@ def train_depth(args: argparse.Namespace) -> Path:
             pred, logits = net.forward_scene(images)
         loss, parts = depth_loss(pred, targets, relative, args.absolute_weight)
         if args.rank_weight:
-            ranked = rank_loss(pred, targets)
+            ranked = rank_loss(pred, targets, edge=args.rank_edge)
             loss = loss + args.rank_weight * ranked
             parts["rank"] = ranked.item()
         if net.scene_head is not None:
@@ -491,6 +493,12 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         default=0.0,
         help="weight of the pairwise ranking term (pixel pairs kept in their targets' order)",
+    )
+    p.add_argument(
+        "--rank-edge",
+        type=float,
+        default=0.0,
+        help="share of the ranking term's close pairs that start on a target edge",
     )
     p.add_argument(
         "--scene-weight",
