@@ -107,8 +107,9 @@ class TestMetrics:
             "a", np.full((h, w, 3), 0.5, np.float32), truth, np.ones((h, w), bool)
         )
         preds = {"ramp": depth_bench.ramp_predictor, "truth": lambda im: truth}
-        result = depth_bench.evaluate(preds, [photo], [("m", photo.image, mask),
-                                                        ("e", photo.image, feet_on_edge)])
+        result = depth_bench.evaluate(
+            preds, [photo], [("m", photo.image, mask), ("e", photo.image, feet_on_edge)]
+        )
         m, e = result["masks"]["m"], result["masks"]["e"]
         assert m["truth"] < 0.8 and m["truth@above"] == 1.0
         assert e["truth@above"] == e["truth"]  # feet on the frame's edge: nothing set aside
@@ -1214,3 +1215,112 @@ def test_photometric_jitter_keeps_the_photo_a_photo():
     assert 8 <= greys <= 35 and min(changed) > 0.005
     with pytest.raises(ValueError, match="jitter"):
         photometric_jitter(img, rng, "wild")
+
+
+def test_equalize_keeps_order_and_limits_the_slope():
+    """Known answers of the contrast-limited equalisation: an even map is only stretched; no
+    clip gives the ranks (an even histogram); order and ties are kept; a flat map
+    is left alone; no step between neighbouring values grows more than ``clip`` times."""
+    from d2f_core.depth.refine import equalize
+
+    g = torch.Generator().manual_seed(5)
+    # a map bunched near the far end: 80 % of it in [0.10, 0.15], a subject at 0.6
+    d = 0.10 + 0.05 * torch.rand(1, 1, 60, 80, generator=g)
+    d[..., 10:40, 20:50] = 0.6 + 0.01 * torch.rand(1, 1, 30, 30, generator=g)
+    # an evenly spread map is already equalised: only stretched to its 1st-99th percentiles
+    # (up to the 1 % of pixels clamped at each end, which the end bins hold)
+    even = torch.linspace(0.2, 0.7, 4800).view(1, 1, 60, 80)
+    lo, hi = torch.quantile(even.flatten(), torch.tensor([0.01, 0.99]))
+    stretched = ((even - lo) / (hi - lo)).clamp(0, 1)
+    for clip in (1.0, 4.0, math.inf):
+        np.testing.assert_allclose(equalize(even, clip), stretched, atol=0.015)
+
+    ranks = equalize(d, math.inf, bins=4096).flatten()
+    share_below = torch.tensor([(ranks < q).float().mean() for q in (0.25, 0.5, 0.75)])
+    np.testing.assert_allclose(share_below, [0.25, 0.5, 0.75], atol=0.02)
+
+    for clip in (1.0, 2.0, 4.0, math.inf):
+        e = equalize(d, clip).flatten()
+        order = d.flatten().argsort()
+        assert (e[order].diff() >= -1e-6).all()  # never decreasing
+        assert 0 <= float(e.min()) and float(e.max()) <= 1
+    # the far band, 80 % of the pixels, is spread over more of [0, 1] the larger the clip
+    far = d.flatten() < 0.2
+    spans = [float(np.ptp(equalize(d, c).flatten()[far].numpy())) for c in (1.0, 2.0, 4.0)]
+    assert spans[0] < spans[1] < spans[2] < 0.8, spans
+    # a slope limited by clip: values 0.001 apart end at most (clip + 1) x 0.001 apart once
+    # stretched (the capped bins plus an even share of the excess); unlimited, the spike at
+    # 0.5 holding 80 % of the pixels takes 80 % of [0, 1]
+    x = torch.linspace(0, 1, 1001).view(1, 1, 1, -1)
+    x = torch.cat([x, torch.full((1, 1, 1, 4000), 0.5)], -1)
+    lo, hi = (float(v) for v in torch.quantile(x.flatten(), torch.tensor([0.01, 0.99])))
+    step = equalize(x, 4.0)[0, 0, 0, :1001].diff()
+    assert 4 * 0.001 / (hi - lo) < float(step.max()) <= 5 * 0.001 / (hi - lo) + 1e-6
+    jump = equalize(x, math.inf)[0, 0, 0, [490, 510]]  # either side of the spike
+    assert float(jump[1] - jump[0]) > 0.75
+
+    ties = torch.tensor([0.2, 0.2, 0.7, 0.7, 0.2, 0.9]).view(1, 1, 2, 3)
+    e = equalize(ties, 4.0).flatten()
+    assert e[0] == e[1] == e[4] and e[2] == e[3] and e[0] < e[2] < e[5]
+    flat = torch.full((2, 1, 8, 8), 0.3)
+    assert torch.equal(equalize(flat), flat)
+    with pytest.raises(ValueError, match="clip must be >= 1"):
+        equalize(d, 0.5)
+    with pytest.raises(ValueError, match=r"\(B, 1, H, W\)"):
+        equalize(d[0])
+
+
+def test_spread_changes_only_the_networks_map(tiny_checkpoint):
+    """``config.spread`` mixes the equalised map into the network's own map (the order of
+    depths kept) and leaves a given map as it is; out-of-range values are refused."""
+    from d2f_core.depth.refine import equalize
+    from d2f_core.pipeline import D2FConfig
+    from d2f_core.train.two_stage import apply_overrides
+
+    model = D2F.from_checkpoint(tiny_checkpoint)
+    image = np.random.default_rng(4).random((64, 96, 3)).astype(np.float32)
+    given = np.tile(np.linspace(0.4, 0.5, 96, dtype=np.float32), (64, 1))
+    x = torch.from_numpy(image).permute(2, 0, 1)[None]
+    with torch.no_grad():
+        plain = model.predict_disparity(x, refine=False)
+    plain_given = model.prepare(image, disparity=given, refine=False).disparity_full()
+    model.config = D2FConfig.from_dict(
+        apply_overrides(model.config.to_dict(), ["spread=0.5", "spread_clip=2"])
+    )
+    with torch.no_grad():
+        spread = model.predict_disparity(x, refine=False)
+    torch.testing.assert_close(spread, 0.5 * plain + 0.5 * equalize(plain, 2.0))
+    assert float(spread.std()) > float(plain.std())
+    assert depth_bench.spearman(spread[0, 0].numpy(), plain[0, 0].numpy()) > 0.999
+    np.testing.assert_array_equal(
+        model.prepare(image, disparity=given, refine=False).disparity_full(), plain_given
+    )
+    for bad in ({"spread": 1.5}, {"spread": -0.1}, {"spread_clip": 0.5}):
+        with pytest.raises(ValueError, match="spread"):
+            D2FConfig(**bad)
+
+
+def test_measured_bokeh_scores_the_map_not_the_renderer(tiny_checkpoint, tmp_path, one_thread):
+    """The render from the network's map against the render from a measured map: where the
+    measured map is the network's own map the two renders agree (both sides render alike);
+    the same map mirrored costs decibels."""
+    import dataclasses
+
+    model = D2F.from_checkpoint(tiny_checkpoint)
+    # the random network's map is nearly flat: its ranks (spread 1, no clip) span [0, 1] as
+    # the stretched measured map does
+    model.config = dataclasses.replace(model.config, spread=1.0, spread_clip=math.inf)
+    weights = tmp_path / "ranks.pt"
+    model.save(weights)
+    rng = np.random.default_rng(8)
+    image = np.clip(rng.random((48, 64, 3)) * 0.3 + np.linspace(0, 0.7, 64)[None, :, None], 0, 1)
+    image = image.astype(np.float32)
+    own = model.prepare(image).disparity_full()
+    valid = np.ones(own.shape, bool)
+    same = depth_bench.MeasuredPhoto("same", image, own, valid)
+    flipped = depth_bench.MeasuredPhoto("flipped", image, own[:, ::-1].copy(), valid)
+    scores = depth_bench.measured_bokeh({"tiny": weights}, [same, flipped], blur=0.1)
+    assert scores["tiny"]["same"] > 40, scores
+    assert scores["tiny"]["flipped"] < scores["tiny"]["same"] - 10, scores
+    table = depth_bench.format_bokeh({"a": {"x": 30.0, "y": 20.0}, "b": {"x": 31.0, "y": 19.0}})
+    assert "| mean | **25.00** | **25.00** |" in table and "| beats a | - | 1 of 2 |" in table

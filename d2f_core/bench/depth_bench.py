@@ -20,6 +20,10 @@ Two test sets, both read from outside the package and skipped with a reason when
 
 Beside every network it scores a plain ramp ("the bottom of the image is near") in the same
 run, and ``--sheet`` draws a contact sheet: photo | measured | each predictor.
+
+``--bokeh`` also renders each measured photo from each network's map and from its measured
+map, with the same model at the same pass (:func:`measured_bokeh`): how far the network's
+map takes a render from what the real depth would give, in dB.
 """
 
 from __future__ import annotations
@@ -45,6 +49,7 @@ __all__ = [
     "evaluate",
     "heldout_masks",
     "main",
+    "measured_bokeh",
     "measured_photos",
     "network_predictors",
     "ramp_predictor",
@@ -286,17 +291,74 @@ def network_predictor(weights: str | Path | None = None) -> Predictor:
     return _remember_last(lambda image: model.prepare(image).disparity_full())
 
 
-def network_predictors(specs: Sequence[str] | None) -> dict[str, Predictor]:
-    """``--weights [NAME=]PATH`` options as predictors, by name (the shipped weights, as
-    ``"network"``, when there are none; a path without a name is named by its stem)."""
-    out: dict[str, Predictor] = {}
+def measured_bokeh(
+    weights: dict[str, str | Path | None],
+    photos: Sequence[MeasuredPhoto],
+    blur: float = 0.04,
+    percentiles: Sequence[float] = (90.0, 50.0),
+) -> dict[str, dict[str, float]]:
+    """PSNR (dB) of each network's render of each photo against the same model's render from
+    the photo's measured map, by photo: the mean over focal planes at ``percentiles`` of the
+    measured map (90: the near subject; 50: the middle).
+
+    The measured nearness is stretched to [0, 1] between its 1st and 99th percentiles (holes
+    count as farthest, and are left out of the PSNR) and rendered at the pass the network's
+    map gets (``full_pass_side`` 0 for this render only), with blur ``K = blur`` x the long
+    side. The network's render is focused as a click on the sharp part would be
+    (:func:`d2f_core.evaluate.click_focus`: its own disparity where the measured map is in
+    focus). Rendering is the same on both sides, so only the maps differ.
+    """
+    import dataclasses
+
+    from ..evaluate import click_focus
+    from ..pipeline import D2F
+
+    out: dict[str, dict[str, float]] = {}
+    for name, path in weights.items():
+        model = D2F.from_pretrained(path)
+        ref_model = D2F.from_pretrained(path)
+        ref_model.config = dataclasses.replace(ref_model.config, full_pass_side=0)
+        row = {}
+        for ph in photos:
+            h, w = ph.image.shape[:2]
+            valid = ph.valid
+            lo, hi = np.percentile(ph.nearness[valid], [1, 99])
+            t = np.clip((ph.nearness - lo) / max(float(hi - lo), 1e-6), 0, 1)
+            t = np.where(valid, t, 0.0).astype(np.float32)
+            truth = resize_array(t, (h, w)).astype(np.float32)
+            keep = resize_array(valid.astype(np.float32), (h, w), nearest=True) > 0.5
+            reference = ref_model.prepare(ph.image, disparity=truth)
+            scene = model.prepare(ph.image)
+            k = blur * max(h, w)
+            scores = []
+            for q in percentiles:
+                focus = float(np.percentile(t[valid], q))
+                want = ref_model.render(reference, focus, k).bokeh
+                clicked = click_focus(scene.disparity_full(), truth, focus)
+                got = model.render(scene, clicked, k).bokeh
+                err = float(np.mean((got - want)[keep] ** 2))
+                scores.append(10 * np.log10(1.0 / max(err, 1e-10)))
+            row[ph.name] = float(np.mean(scores))
+        out[name] = row
+    return out
+
+
+def weight_specs(specs: Sequence[str] | None) -> dict[str, str | None]:
+    """``--weights [NAME=]PATH`` options by name (the shipped weights, as ``"network"``,
+    when there are none; a path without a name is named by its stem)."""
+    out: dict[str, str | None] = {}
     for spec in specs or [None]:
         if spec is not None and "=" in spec:
             name, path = spec.split("=", 1)
         else:
             name, path = ("network" if spec is None else Path(spec).stem), spec
-        out[name] = network_predictor(path)
+        out[name] = path
     return out
+
+
+def network_predictors(specs: Sequence[str] | None) -> dict[str, Predictor]:
+    """``--weights [NAME=]PATH`` options as predictors, by name (:func:`weight_specs`)."""
+    return {name: network_predictor(path) for name, path in weight_specs(specs).items()}
 
 
 def _remember_last(fn: Callable[[np.ndarray], Any]) -> Callable[[np.ndarray], Any]:
@@ -601,6 +663,25 @@ def format_table(result: dict, predictors: Sequence[str]) -> str:
     return "\n".join(lines)
 
 
+def format_bokeh(scores: dict[str, dict[str, float]]) -> str:
+    """Markdown table of :func:`measured_bokeh`: per photo, then the mean and, for every
+    network after the first, the photos where it beats the first."""
+    names = list(scores)
+    photos = list(scores[names[0]])
+    lines = ["| photo | " + " | ".join(names) + " |", "|" + " --- |" * (1 + len(names))]
+    for ph in photos:
+        lines.append(f"| {ph} | " + " | ".join(f"{scores[n][ph]:.2f}" for n in names) + " |")
+    means = [float(np.mean(list(scores[n].values()))) for n in names]
+    lines.append("| mean | " + " | ".join(f"**{m:.2f}**" for m in means) + " |")
+    if len(names) > 1:
+        first = scores[names[0]]
+        wins = [sum(scores[n][ph] > first[ph] for ph in photos) for n in names[1:]]
+        lines.append(
+            f"| beats {names[0]} | - | " + " | ".join(f"{w} of {len(photos)}" for w in wins) + " |"
+        )
+    return "\n".join(lines)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="d2f-bench depth", description=__doc__.split("\n\n")[0])
     p.add_argument(
@@ -632,6 +713,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         metavar="LABELS",
         help="also score each network against stage 0's targets on training photos, with "
         "the labels in LABELS (d2f-train label / label-scene)",
+    )
+    p.add_argument(
+        "--bokeh",
+        action="store_true",
+        help="also render each measured photo from each network's map and from its measured "
+        "map, and print the PSNR between the two (dB)",
     )
     p.add_argument("--fit-photos", type=int, default=60, help="training photos for --fit")
     p.add_argument(
@@ -681,6 +768,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             f"(mean Spearman): "
             + ", ".join(f"{name} {v:+.3f}" for name, v in result["fit"].items())
         )
+    if args.bokeh:
+        result["bokeh"] = measured_bokeh(weight_specs(args.weights), photos)
+        print("\nrender from the network's map against the render from the measured map (dB)")
+        print(format_bokeh(result["bokeh"]))
     if args.sheet is not None:
         print(f"contact sheet: {contact_sheet(result, photos, names, args.sheet)}")
     if args.json is not None:
@@ -690,8 +781,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             "masks": result["masks"],
             "summary": summary(result, names),
         }
-        if "fit" in result:
-            payload["fit"] = result["fit"]
+        for key in ("fit", "bokeh"):
+            if key in result:
+                payload[key] = result[key]
         args.json.write_text(json.dumps(payload, indent=1))
     return 0
 

@@ -73,6 +73,13 @@ class D2FConfig:
             edges are snapped. 0 keeps the network's disparity as it is.
         subject_clarity: the subjects are stood only where the scene head's subject map is
             at least this clear (``min_clarity`` of :func:`~d2f_core.depth.scene.stand_subjects`).
+        spread: share of the network's map that is replaced by the same map equalised
+            (:func:`d2f_core.depth.refine.equalize`, clip limit ``spread_clip``): the network
+            learns the order of depths better than their spacing, and a map bunched in a
+            narrow band leaves a far background nearly as sharp as the subject. 0 keeps the
+            network's map as it is; maps from any other source are never changed.
+        spread_clip: the equalisation's clip limit, at least 1 (the larger, the nearer the
+            equalised map is to the map's ranks).
     """
 
     defocus: str = "lite"
@@ -97,6 +104,8 @@ class D2FConfig:
     edge_radius: float = 0.004
     subject_lift: float = 0.05
     subject_clarity: float = 0.0
+    spread: float = 0.0
+    spread_clip: float = 4.0
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -129,6 +138,11 @@ class D2FConfig:
             )
         if not 0 <= self.subject_lift <= 0.5:
             raise ValueError(f"config.subject_lift must be in [0, 0.5], got {self.subject_lift}")
+        if not (0 <= self.spread <= 1 and self.spread_clip >= 1):
+            raise ValueError(
+                f"config.spread must be in [0, 1] and spread_clip >= 1, got {self.spread} "
+                f"and {self.spread_clip}"
+            )
         if not 0 < self.render_scale <= 1:
             raise ValueError(f"config.render_scale must be in (0, 1], got {self.render_scale}")
         if self.full_pass_side < 0:

@@ -14,7 +14,7 @@ from torch import Tensor, nn
 
 from .. import rendering
 from ..depth import sources as depth_sources
-from ..depth.refine import harden_edges, snap_edges
+from ..depth.refine import equalize, harden_edges, snap_edges
 from ..errors import InputTypeError
 from ..io.embedded import Photo
 from ..lens import blur_px
@@ -175,7 +175,8 @@ class D2F(FusionStage, FocusStage, nn.Module):
         """Defocus network at ``config.network_size`` (averaged with its mirror image with
         ``config.flip_average``), resized back to the input size; with ``refine`` and
         ``config.refine="snap"`` its edges are then moved onto the photo's
-        (:func:`refine.snap_edges`).
+        (:func:`refine.snap_edges`); with ``config.spread`` the map is then partly equalised
+        (:func:`refine.equalize`).
 
         Args:
             image: the photo at the size the map is wanted at (the rendering pass's).
@@ -212,7 +213,11 @@ class D2F(FusionStage, FocusStage, nn.Module):
         d = resize(d, size)  # [B,1,h,w]
         if refine:
             d = self._snap(image, d)
-        return d.clamp(0, 1)
+        d = d.clamp(0, 1)
+        if self.config.spread > 0:
+            s = self.config.spread
+            d = (1 - s) * d + s * equalize(d, self.config.spread_clip)
+        return d
 
     def _stand(self, disparity: Tensor, maps: Tensor) -> Tensor:
         """:func:`~d2f_core.depth.scene.stand_subjects` on each map of a batch, with the
