@@ -306,7 +306,9 @@ def measured_bokeh(
     map gets (``full_pass_side`` 0 for this render only), with blur ``K = blur`` x the long
     side. The network's render is focused as a click on the sharp part would be
     (:func:`d2f_core.evaluate.click_focus`: its own disparity where the measured map is in
-    focus). Rendering is the same on both sides, so only the maps differ.
+    focus). Rendering is the same on both sides, so only the maps differ. The reference is
+    as true as the measured map's spacing: the Depthy maps are grey levels of depth, not
+    disparity, and the Kinect room's is the inverse of its depth.
     """
     import dataclasses
 
@@ -329,12 +331,13 @@ def measured_bokeh(
             keep = resize_array(valid.astype(np.float32), (h, w), nearest=True) > 0.5
             reference = ref_model.prepare(ph.image, disparity=truth)
             scene = model.prepare(ph.image)
+            own = scene.disparity_full()
             k = blur * max(h, w)
             scores = []
             for q in percentiles:
                 focus = float(np.percentile(t[valid], q))
                 want = ref_model.render(reference, focus, k).bokeh
-                clicked = click_focus(scene.disparity_full(), truth, focus)
+                clicked = click_focus(own, truth, focus)
                 got = model.render(scene, clicked, k).bokeh
                 err = float(np.mean((got - want)[keep] ** 2))
                 scores.append(10 * np.log10(1.0 / max(err, 1e-10)))
