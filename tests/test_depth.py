@@ -1220,7 +1220,7 @@ def test_photometric_jitter_keeps_the_photo_a_photo():
 def test_equalize_keeps_order_and_limits_the_slope():
     """Known answers of the contrast-limited equalisation: an even map is only stretched; no
     clip gives the ranks (an even histogram); order and ties are kept; a flat map
-    is left alone; no step between neighbouring values grows more than ``clip`` times."""
+    is left alone; no step between neighbouring values grows more than ``clip + 1`` times."""
     from d2f_core.depth.refine import equalize
 
     g = torch.Generator().manual_seed(5)

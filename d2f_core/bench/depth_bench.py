@@ -313,6 +313,7 @@ def measured_bokeh(
     import dataclasses
 
     from ..evaluate import click_focus
+    from ..metrics import psnr
     from ..pipeline import D2F
 
     out: dict[str, dict[str, float]] = {}
@@ -339,8 +340,7 @@ def measured_bokeh(
                 want = ref_model.render(reference, focus, k).bokeh
                 clicked = click_focus(own, truth, focus)
                 got = model.render(scene, clicked, k).bokeh
-                err = float(np.mean((got - want)[keep] ** 2))
-                scores.append(10 * np.log10(1.0 / max(err, 1e-10)))
+                scores.append(psnr(got[keep], want[keep]))
             row[ph.name] = float(np.mean(scores))
         out[name] = row
     return out
