@@ -285,11 +285,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--focus-by",
-        choices=("given", "click"),
+        choices=("given", "click", "subject", "subject-range"),
         default="given",
         help="given: render at the pair's focal disparity; click: at the model's own disparity "
         "where the pair is in focus (the median over the pixels whose true disparity is within "
-        "0.02 of the focus), as a user clicking the sharp subject would",
+        "0.02 of the focus), as a user clicking the sharp subject would; subject: where the app "
+        "and the CLI focus with no focus given (D2F.subject_focus), for pairs focused on their "
+        "subject; subject-range: the same with the focal range that keeps the whole subject "
+        "sharp, as a click gets it",
     )
     p.add_argument("--sigma", type=float, default=3.0, help="gaussian baseline sigma (px)")
     p.add_argument("--theta", type=float, default=0.25, help="binary-mask threshold on D")
@@ -340,9 +343,14 @@ def _run(args: argparse.Namespace) -> int:
             focus, blur = _focus_blur(item, model.config)
             disparity = item["disparity"][0].numpy() if args.use_gt_disparity else None
             scene = model.prepare(image, disparity=disparity)
+            focal_range = 0.0
             if args.focus_by == "click" and item["has_disparity"]:
                 focus = click_focus(scene.disparity_full(), item["disparity"][0].numpy(), focus)
-            result = model.render(scene, focus, blur)
+            elif args.focus_by == "subject":
+                focus, _ = model.subject_focus(scene)
+            elif args.focus_by == "subject-range":
+                focus, _, focal_range = model.subject_focus(scene, with_range=True)
+            result = model.render(scene, focus, blur, focal_range=focal_range)
             pred = result.bokeh
             if item["has_disparity"] and not args.use_gt_disparity:
                 gt = torch.from_numpy(item["disparity"][0].numpy())[None, None]

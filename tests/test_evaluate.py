@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import csv
+import json
+import shutil
 
 import numpy as np
 import pytest
@@ -169,6 +171,29 @@ class TestCLI:
         assert main([*argv, "--out", str(tmp_path / "b"), "--focus-by", "click"]) == 0
         a, b = _rows(tmp_path / "a" / "eval_all.csv"), _rows(tmp_path / "b" / "eval_all.csv")
         assert [r["psnr"] for r in a] == [r["psnr"] for r in b]
+
+    def test_focus_by_subject_ignores_the_pairs_focus(self, setup, tmp_path):
+        """The subject focus is the model's own: with the true disparity (the near half as
+        the subject) it renders every pair as at its focus on the near half, whatever focus
+        the pair records; the range a flat subject gets is nil."""
+        data, weights, _ = setup
+        far = tmp_path / "far"
+        shutil.copytree(data, far)
+        for path in (far / "params").glob("*.json"):
+            path.write_text(json.dumps({"focus": 0.0, "blur": 60.0}))
+        common = ["--weights", str(weights), "--split", "all", "--use-gt-disparity"]
+        runs = {
+            "near": [str(data), *common],
+            "far": [str(far), *common],
+            "subject": [str(far), *common, "--focus-by", "subject"],
+            "range": [str(far), *common, "--focus-by", "subject-range"],
+        }
+        psnr = {}
+        for name, argv in runs.items():
+            assert main([*argv, "--out", str(tmp_path / name)]) == 0
+            psnr[name] = [r["psnr"] for r in _rows(tmp_path / name / "eval_all.csv")]
+        assert psnr["subject"] == psnr["near"] == psnr["range"]
+        assert psnr["far"] != psnr["near"]
 
     def test_eval_csv(self, setup, tmp_path, capsys):
         data, weights, _ = setup

@@ -12,6 +12,7 @@ import torch
 from d2f_core.depth.subject import MAX_FOCAL_RANGE, subject_range
 from d2f_core.lens import blur_px, focus_of_position, position_of_focus
 from d2f_core.pipeline import D2F
+from d2f_core.pipeline.focus import FocusStage
 from d2f_core.rendering import render
 from d2f_core.rendering.schedule import check_focal_range, fold_focal_range, outside_range
 
@@ -145,6 +146,25 @@ class TestPipeline:
         assert not np.array_equal(thin.bokeh[inner], _photo()[inner])
         # the background is still blurred
         assert np.abs(res.bokeh[:, :20] - _photo()[:, :20]).mean() > 0.05
+
+    def test_subject_focus_takes_the_subjects_range_on_request(self, model):
+        """The subject found with no focus given gets, on request, the range a click on it
+        gets: the subject's 0.1 of depth, far from the background; without the request the
+        call is as before."""
+        scene = model.prepare(_photo(), depth=_depth(), refine=False)
+        focus, (x, y) = model.subject_focus(scene)
+        assert 40 <= x < 88 and 20 <= y < 76 and 0.7 <= focus <= 0.8
+        again, point, r = model.subject_focus(scene, with_range=True)
+        assert (again, point) == (focus, (x, y))
+        click = FocusStage._range_at(scene, x, y, focus)
+        assert r == click
+        assert 0.09 <= r <= 0.2
+        assert focus - r / 2 <= 0.7 + 0.01 and focus + r / 2 >= 0.8 - 0.01  # the whole subject
+        assert focus - r / 2 > 0.15 + 0.3  # not the background
+        flat = model.prepare(_photo(), depth=np.full((96, 128), 0.4, np.float32), refine=False)
+        f, (cx, cy), r = model.subject_focus(flat, with_range=True)
+        assert (cx, cy) == (63.5, 47.5) and f == pytest.approx(0.4)  # the centre
+        assert r == pytest.approx(0.0, abs=1e-3)  # a flat map: no depth to cover
 
     def test_zero_range_is_todays_render(self, model):
         scene = model.prepare(_photo(), depth=_depth(), refine=False)

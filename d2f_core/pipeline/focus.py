@@ -71,25 +71,46 @@ class FocusStage:
         focus = float(np.clip(np.median(window.detach().cpu().numpy()), 0.0, 1.0))
         if not with_range:
             return focus
+        return focus, self._range_at(scene, xf, yf, focus)
+
+    @staticmethod
+    def _range_at(scene: Scene, x: float, y: float, focus: float) -> float:
+        """:func:`subject_range` at full-res pixel ``(x, y)`` on the scene's map at
+        :data:`RANGE_MAP_SIDE` px (made once per scene)."""
         key = ("range_map", RANGE_MAP_SIDE)
         if key not in scene.cache:
             with torch.no_grad():
-                small = resize(d[None, None], scaled_size(scene.size, 1.0, RANGE_MAP_SIDE))
+                d = scene.disparity_full_tensor()
+                small = resize(d, scaled_size(scene.size, 1.0, RANGE_MAP_SIDE))
             scene.cache[key] = small[0, 0].clamp(0, 1).cpu().numpy()
-        point = ((xf + 0.5) / width, (yf + 0.5) / height)
-        return focus, subject_range(scene.cache[key], point, focus)
+        height, width = scene.size
+        point = ((x + 0.5) / width, (y + 0.5) / height)
+        return subject_range(scene.cache[key], point, focus)
 
-    def subject_focus(self, scene: Scene) -> tuple[float, tuple[float, float]]:
+    def subject_focus(
+        self, scene: Scene, *, with_range: bool = False
+    ) -> tuple[float, tuple[float, float]] | tuple[float, tuple[float, float], float]:
         """The focal disparity of the subject the disparity map shows, and where it is
         (:func:`find_subject`); a map in which nothing stands out (flat, or a plain ramp) gets
         the focus at the centre, as :meth:`focus_at`.
 
+        With ``with_range``, also the focal range that keeps the whole subject sharp, as a
+        click there gets it (:meth:`focus_at`'s ``with_range``: the extent in depth of the
+        connected region around the point, about the subject's focus). A map that spreads a
+        near subject over some depth otherwise leaves only its focal plane sharp.
+
         Returns:
-            ``(focus, (x, y))``, the point in full-res pixel coordinates.
+            ``(focus, (x, y))``, the point in full-res pixel coordinates; with
+            ``with_range``, ``(focus, (x, y), focal_range)``.
         """
         if not isinstance(scene, Scene):
             kind = type(scene).__name__
             raise InputTypeError(f"scene must be a Scene from prepare(), got {kind}")
         with torch.no_grad():
             d = resize(scene.disparity_lr, scaled_size(scene.size, 1.0, 128))[0, 0]
-        return locate_subject(d.cpu().numpy(), scene.size, lambda x, y: self.focus_at(scene, x, y))
+        focus, point = locate_subject(
+            d.cpu().numpy(), scene.size, lambda x, y: self.focus_at(scene, x, y)
+        )
+        if not with_range:
+            return focus, point
+        return focus, point, self._range_at(scene, *point, focus)
