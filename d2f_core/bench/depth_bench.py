@@ -301,8 +301,9 @@ def measured_bokeh(
     the photo's measured map, by photo: the mean over focal planes at ``percentiles`` of the
     measured map (90: the near subject; 50: the middle).
 
-    The measured nearness is stretched to [0, 1] between its 1st and 99th percentiles (holes
-    count as farthest, and are left out of the PSNR) and rendered at the pass the network's
+    The measured nearness is stretched to [0, 1] as a map given to the app is
+    (:func:`~d2f_core.io.depth.normalize_disparity`: between its 0.5th and 99.5th
+    percentiles; holes count as farthest, and are left out of the PSNR) and rendered at the pass the network's
     map gets (``full_pass_side`` 0 for this render only), with blur ``K = blur`` x the long
     side. The network's render is focused as a click on the sharp part would be
     (:func:`d2f_core.evaluate.click_focus`: its own disparity where the measured map is in
@@ -313,6 +314,7 @@ def measured_bokeh(
     import dataclasses
 
     from ..evaluate import click_focus
+    from ..io.depth import normalize_disparity
     from ..metrics import psnr
     from ..pipeline import D2F
 
@@ -325,9 +327,7 @@ def measured_bokeh(
         for ph in photos:
             h, w = ph.image.shape[:2]
             valid = ph.valid
-            lo, hi = np.percentile(ph.nearness[valid], [1, 99])
-            t = np.clip((ph.nearness - lo) / max(float(hi - lo), 1e-6), 0, 1)
-            t = np.where(valid, t, 0.0).astype(np.float32)
+            t = np.where(valid, normalize_disparity(ph.nearness, valid), 0.0).astype(np.float32)
             truth = resize_array(t, (h, w)).astype(np.float32)
             keep = resize_array(valid.astype(np.float32), (h, w), nearest=True) > 0.5
             reference = ref_model.prepare(ph.image, disparity=truth)
