@@ -35,8 +35,9 @@ Example::
 
     model = D2F.from_pretrained()
     scene = model.prepare(load_image("photo.jpg"))
-    focus, _ = model.subject_focus(scene)
-    save_image("bokeh.jpg", model.render(scene, focus, blur=40).bokeh)
+    result = model.render(scene, blur=40)  # focused on the subject; result.focus says where
+    save_image("bokeh.jpg", result.bokeh)
+    save_image("refocused.jpg", model.render(scene, model.focus_at(scene, 120, 80), 40).bokeh)
 
 Other modules: :mod:`d2f_core.pipeline` (the model's stages), :mod:`d2f_core.networks`,
 :mod:`d2f_core.rendering` (the renderer's stages; :mod:`d2f_core.rendering.adaptive`, renderer

@@ -166,6 +166,20 @@ class TestPipeline:
         assert (cx, cy) == (63.5, 47.5) and f == pytest.approx(0.4)  # the centre
         assert r == pytest.approx(0.0, abs=1e-3)  # a flat map: no depth to cover
 
+    def test_no_focus_given_renders_at_the_subject(self, model):
+        """The library with no focus focuses as the app and the CLI do: on the subject, found
+        once per scene; ``result.focus`` says where (and repeats a focus given)."""
+        scene = model.prepare(_photo(), depth=_depth(), refine=False)
+        focus, _ = model.subject_focus(scene)
+        auto = model.render(scene, blur=30.0)
+        assert auto.focus == focus and 0.7 <= focus <= 0.8
+        assert np.array_equal(auto.bokeh, model.render(scene, focus, 30.0).bokeh)
+        middle = model.render(scene, 0.5, 30.0)
+        assert middle.focus == 0.5 and not np.array_equal(middle.bokeh, auto.bokeh)
+        assert scene.cache["subject_focus"] == focus
+        with pytest.raises(ValueError, match="focus"):
+            model.render(scene, float("nan"), 30.0)
+
     def test_zero_range_is_todays_render(self, model):
         scene = model.prepare(_photo(), depth=_depth(), refine=False)
         a = model.render(scene, 0.75, 30.0)

@@ -359,7 +359,7 @@ class D2F(FusionStage, FocusStage, nn.Module):
     def render(
         self,
         scene: Scene,
-        focus: float = 0.5,
+        focus: float | None = None,
         blur: float | None = None,
         fusion: bool = True,
         max_side: int | None = None,
@@ -373,7 +373,10 @@ class D2F(FusionStage, FocusStage, nn.Module):
 
         Args:
             scene: from :meth:`prepare`.
-            focus: focal disparity in [0, 1] (1 = nearest); see :meth:`focus_at`.
+            focus: focal disparity in [0, 1] (1 = nearest); see :meth:`focus_at`. ``None``
+                (the default) focuses on the subject the map puts in front, as the app and
+                the CLI do (:meth:`subject_focus`, found once per scene); ``result.focus``
+                says where.
             blur: ``K``, CoC diameter in px at FULL resolution for ``|d - focus| = 1``
                 (default 40 px unless ``f_number`` is given).
             f_number: the blur as the f-number of the stated virtual lens
@@ -409,6 +412,10 @@ class D2F(FusionStage, FocusStage, nn.Module):
             if isinstance(f_number, bool) or not isinstance(f_number, (int, float)):
                 raise ValueError(f"f_number must be a number, got {f_number!r}")
             blur = blur_px(f_number, max(scene.size))
+        if focus is None:
+            if "subject_focus" not in scene.cache:
+                scene.cache["subject_focus"] = self.subject_focus(scene)[0]
+            focus = scene.cache["subject_focus"]
         focus, blur = rendering.check_focus_blur(focus, 40.0 if blur is None else blur)
         focal_range = check_focal_range(focal_range)
         if "rotation" in render_options:  # named even when no kernel needs it
@@ -558,6 +565,7 @@ class D2F(FusionStage, FocusStage, nn.Module):
             fusion_mask=mask[0, 0].cpu().numpy(),
             timings=timings,
             settings=settings,
+            focus=float(focus),
         )
         timings["to_numpy"] = ms_since(t0)
         timings["total"] = ms_since(t_all)

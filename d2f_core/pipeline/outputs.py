@@ -94,6 +94,7 @@ class Result:
         settings: what the adaptive picker chose for this focus and blur
             (:class:`adaptive.RenderSettings`: layer count, reduced-resolution preset,
             identity path, predicted PSNR), ``None`` when the settings were fixed.
+        focus: the focal disparity rendered at (the subject's when none was given).
     """
 
     bokeh: np.ndarray
@@ -103,3 +104,4 @@ class Result:
     fusion_mask: np.ndarray
     timings: dict[str, float]
     settings: adaptive.RenderSettings | None = None
+    focus: float | None = None
