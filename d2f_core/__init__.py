@@ -35,7 +35,7 @@ Example::
 
     model = D2F.from_pretrained()
     scene = model.prepare(load_image("photo.jpg"))
-    result = model.render(scene, blur=40)  # focused on the subject; result.focus says where
+    result = model.render(scene, blur=40)  # the phone's focus, else the subject: result.focus
     save_image("bokeh.jpg", result.bokeh)
     save_image("refocused.jpg", model.render(scene, model.focus_at(scene, 120, 80), 40).bokeh)
 

@@ -14,7 +14,10 @@ writing ``DIR/fusion_<split>.csv`` (``id, method, psnr, ssim, ms``):
 
 ``--baseline identity`` (the input itself) and ``--baseline gaussian`` (a global Gaussian
 blur) need no weights. Focus and blur come from each pair's params file, else from the
-model config's training defaults (EBB!: focus 1.0, K = 138 px at 1024x1536).
+model config's training defaults (EBB!: focus 1.0, K = 138 px at 1024x1536). ``--focus-by``
+chooses the focus otherwise: ``click`` reads the model's map where the pair is sharp,
+``subject`` and ``subject-range`` focus where the app and the CLI do with no focus given
+(the search counts in ``ms``); the blur still comes from the pair.
 """
 
 from __future__ import annotations
@@ -312,6 +315,9 @@ def _run(args: argparse.Namespace) -> int:
         model = D2F.from_checkpoint(args.weights).to(args.device)
     if args.fusion and model is None:
         raise ValueError("--fusion needs --weights (it compares fusions of the model's render)")
+    if args.focus_by != "given" and (args.fusion or args.baseline is not None):
+        what = "--fusion" if args.fusion else "--baseline"
+        raise ValueError(f"--focus-by {args.focus_by} renders the model alone, not with {what}")
     args.out.mkdir(parents=True, exist_ok=True)
     header = (
         ["id", "method", "psnr", "ssim", "ms"]

@@ -194,6 +194,11 @@ class TestCLI:
             psnr[name] = [r["psnr"] for r in _rows(tmp_path / name / "eval_all.csv")]
         assert psnr["subject"] == psnr["near"] == psnr["range"]
         assert psnr["far"] != psnr["near"]
+        # a baseline or the fusion comparison takes no focus of the model's: refused
+        for extra in (["--baseline", "gaussian"], ["--fusion"]):
+            argv = [str(far), *common, *extra, "--focus-by", "subject"]
+            assert main([*argv, "--out", str(tmp_path / "refused")]) == 2
+        assert not (tmp_path / "refused").exists()
 
     def test_eval_csv(self, setup, tmp_path, capsys):
         data, weights, _ = setup

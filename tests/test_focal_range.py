@@ -180,6 +180,23 @@ class TestPipeline:
         with pytest.raises(ValueError, match="focus"):
             model.render(scene, float("nan"), 30.0)
 
+    def test_no_focus_given_renders_at_the_phones_focal_plane(self, model):
+        """A map that came with a focal plane (a phone's) is rendered there by default, as
+        the CLI does; a focus that is not a finite number counts as none recorded."""
+        from d2f_core.depth.sources import DepthMap
+
+        recorded = DepthMap(_depth(), "embedded", "phone depth", focus=0.2)
+        scene = model.prepare(_photo(), depth=recorded, refine=False)
+        assert scene.focus == 0.2
+        result = model.render(scene, blur=30.0)
+        assert result.focus == 0.2
+        assert np.array_equal(result.bokeh, model.render(scene, 0.2, 30.0).bokeh)
+        for bad in (float("nan"), None):
+            odd = DepthMap(_depth(), "embedded", "phone depth", focus=bad)
+            scene = model.prepare(_photo(), depth=odd, refine=False)
+            assert scene.focus is None
+            assert model.render(scene, blur=30.0).focus == model.subject_focus(scene)[0]
+
     def test_zero_range_is_todays_render(self, model):
         scene = model.prepare(_photo(), depth=_depth(), refine=False)
         a = model.render(scene, 0.75, 30.0)

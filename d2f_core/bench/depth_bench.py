@@ -302,14 +302,14 @@ def measured_bokeh(
     measured map (90: the near subject; 50: the middle).
 
     The measured nearness is stretched to [0, 1] as a map given to the app is
-    (:func:`~d2f_core.io.depth.normalize_disparity`: between its 0.5th and 99.5th
-    percentiles; holes count as farthest, and are left out of the PSNR) and rendered at the
-    pass the network's map gets (``full_pass_side`` 0 for this render only), with blur
-    ``K = blur`` x the long side. The network's render is focused as a click on the sharp
-    part would be (:func:`d2f_core.evaluate.click_focus`: its own disparity where the
-    measured map is in focus). Rendering is the same on both sides, so only the maps
-    differ. The reference is as true as the measured map's spacing: the Depthy maps are
-    grey levels of depth, not disparity, and the Kinect room's is the inverse of its depth.
+    (:func:`~d2f_core.io.depth.normalize_disparity`: between its 0.5th and 99.5th percentiles,
+    its extremes under 1000 valid pixels; holes count as farthest, and are left out of the PSNR)
+    and rendered at the pass the network's map gets (``full_pass_side`` 0 for this render only),
+    with blur ``K = blur`` x the long side. The network's render is focused as a click on the
+    sharp part would be (:func:`d2f_core.evaluate.click_focus`: its own disparity where the
+    measured map is in focus). Rendering is the same on both sides, so only the maps differ. The
+    reference is as true as the measured map's spacing: the Depthy maps are grey levels of
+    depth, not disparity, and the Kinect room's is the inverse of its depth.
     """
     import dataclasses
 

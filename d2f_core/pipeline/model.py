@@ -57,6 +57,16 @@ def _check_photo(photo: Tensor, image: Tensor) -> None:
         raise ValueError(f"photo ({ph}x{pw}) and image ({h}x{w}) are not the same frame")
 
 
+def _recorded_focus(value: Any) -> float | None:
+    """A depth source's recorded focal disparity clipped to [0, 1]; ``None`` when there is
+    none or it is not a finite number."""
+    try:
+        f = float(value)
+    except (TypeError, ValueError):
+        return None
+    return min(max(f, 0.0), 1.0) if math.isfinite(f) else None
+
+
 class D2F(FusionStage, FocusStage, nn.Module):
     """Defocus-to-Focus: defocus, radiance and fusion networks plus the layered renderer.
 
@@ -309,6 +319,7 @@ class D2F(FusionStage, FocusStage, nn.Module):
         device = self.device
         image_t = rendering.image_tensor(image).to(device)  # [1,3,H,W]
         source, output = depth_sources.DEFAULT_SOURCE, "D2F network disparity"
+        recorded = None
         if isinstance(depth, (str, depth_sources.DepthSource)):
             spec = depth_sources.parse_source(depth)
             if spec.kind == "d2f":
@@ -316,7 +327,8 @@ class D2F(FusionStage, FocusStage, nn.Module):
             else:
                 depth = depth_sources.depth_map(spec, image_t, photo=photo, device=device)
         if isinstance(depth, depth_sources.DepthMap):
-            source, output, depth = depth.source, depth.output, depth.disparity
+            source, output, recorded = depth.source, depth.output, depth.focus
+            depth = depth.disparity
         elif depth is not None:
             source, output = "given", "disparity map"
         given = None if depth is None else rendering.disparity_tensor(depth).to(device)
@@ -339,6 +351,7 @@ class D2F(FusionStage, FocusStage, nn.Module):
             disparity_source=source,
             disparity_output=output,
             refined=bool(refine),
+            focus=_recorded_focus(recorded),
             given_disparity=given,
         )
 
@@ -374,9 +387,10 @@ class D2F(FusionStage, FocusStage, nn.Module):
         Args:
             scene: from :meth:`prepare`.
             focus: focal disparity in [0, 1] (1 = nearest); see :meth:`focus_at`. ``None``
-                (the default) focuses on the subject the map puts in front, as the app and
-                the CLI do (:meth:`subject_focus`, found once per scene); ``result.focus``
-                says where.
+                (the default) focuses where the CLI does with no focus given: on the focal
+                plane a phone recorded with its depth (``scene.focus``), else on the subject
+                the map puts in front (:meth:`subject_focus`, found once per scene);
+                ``result.focus`` says where.
             blur: ``K``, CoC diameter in px at FULL resolution for ``|d - focus| = 1``
                 (default 40 px unless ``f_number`` is given).
             f_number: the blur as the f-number of the stated virtual lens
@@ -412,7 +426,9 @@ class D2F(FusionStage, FocusStage, nn.Module):
             if isinstance(f_number, bool) or not isinstance(f_number, (int, float)):
                 raise ValueError(f"f_number must be a number, got {f_number!r}")
             blur = blur_px(f_number, max(scene.size))
-        if focus is None:
+        if focus is None and scene.focus is not None:
+            focus = scene.focus
+        elif focus is None:
             if "subject_focus" not in scene.cache:
                 scene.cache["subject_focus"] = self.subject_focus(scene)[0]
             focus = scene.cache["subject_focus"]

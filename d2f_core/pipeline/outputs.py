@@ -33,6 +33,8 @@ class Scene:
         disparity_output: what that source gave (``"relative inverse depth"``, ``"metric
             depth"``, ``"apple_mpo phone depth"``, ``"D2F network disparity"``, ...).
         refined: whether :meth:`D2F.refine_disparity` ran on the map.
+        focus: the focal disparity the depth source recorded with the map (a phone's focal
+            plane), ``None`` for the others; :meth:`D2F.render` focuses there by default.
         cache: derived tensors (full-res disparity, preview-size inputs), filled lazily.
     """
 
@@ -44,6 +46,7 @@ class Scene:
     disparity_source: str = "d2f"
     disparity_output: str = "D2F network disparity"
     refined: bool = True
+    focus: float | None = None
     given_disparity: Tensor | None = field(default=None, repr=False)
     cache: dict[Any, Any] = field(default_factory=dict, repr=False)
 
