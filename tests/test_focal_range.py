@@ -176,7 +176,7 @@ class TestPipeline:
         assert np.array_equal(auto.bokeh, model.render(scene, focus, 30.0).bokeh)
         middle = model.render(scene, 0.5, 30.0)
         assert middle.focus == 0.5 and not np.array_equal(middle.bokeh, auto.bokeh)
-        assert scene.cache["subject_focus"] == focus
+        assert scene.cache["subject"] == (focus, model.subject_focus(scene)[1])  # found once
         with pytest.raises(ValueError, match="focus"):
             model.render(scene, float("nan"), 30.0)
 

@@ -106,11 +106,13 @@ class FocusStage:
         if not isinstance(scene, Scene):
             kind = type(scene).__name__
             raise InputTypeError(f"scene must be a Scene from prepare(), got {kind}")
-        with torch.no_grad():
-            d = resize(scene.disparity_lr, scaled_size(scene.size, 1.0, 128))[0, 0]
-        focus, point = locate_subject(
-            d.cpu().numpy(), scene.size, lambda x, y: self.focus_at(scene, x, y)
-        )
+        if "subject" not in scene.cache:  # found once per scene (the map never changes)
+            with torch.no_grad():
+                d = resize(scene.disparity_lr, scaled_size(scene.size, 1.0, 128))[0, 0]
+            scene.cache["subject"] = locate_subject(
+                d.cpu().numpy(), scene.size, lambda x, y: self.focus_at(scene, x, y)
+            )
+        focus, point = scene.cache["subject"]
         if not with_range:
             return focus, point
         return focus, point, self._range_at(scene, *point, focus)

@@ -429,9 +429,7 @@ class D2F(FusionStage, FocusStage, nn.Module):
         if focus is None and scene.focus is not None:
             focus = scene.focus
         elif focus is None:
-            if "subject_focus" not in scene.cache:
-                scene.cache["subject_focus"] = self.subject_focus(scene)[0]
-            focus = scene.cache["subject_focus"]
+            focus = self.subject_focus(scene)[0]
         focus, blur = rendering.check_focus_blur(focus, 40.0 if blur is None else blur)
         focal_range = check_focal_range(focal_range)
         if "rotation" in render_options:  # named even when no kernel needs it
