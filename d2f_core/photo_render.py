@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from .depth.subject import focus_in_map, subject_in_map
 from .io import SAVE_FORMATS, load_photo, same_file, save_depth, save_image
 
 __all__ = [
@@ -128,16 +129,6 @@ class RenderInfo:
     focal_range: float = 0.0
 
 
-def _focus_from_map(disparity: np.ndarray, x: float, y: float) -> float:
-    """Median disparity around pixel (x, y); same window as ``D2F.focus_at``."""
-    h, w = disparity.shape
-    r = max(2, round(max(h, w) / 200))
-    xi = min(max(round(x), 0), w - 1)
-    yi = min(max(round(y), 0), h - 1)
-    win = disparity[max(0, yi - r) : yi + r + 1, max(0, xi - r) : xi + r + 1]
-    return float(np.clip(np.median(win), 0.0, 1.0))
-
-
 def _say_subject(
     args: argparse.Namespace, src: Path, photo: Any, point: tuple[float, float], focus: float
 ) -> None:
@@ -161,16 +152,6 @@ def _range_from_map(disparity: np.ndarray, x: float, y: float, focus: float) -> 
     h, w = disparity.shape
     step = max(1, max(h, w) // RANGE_MAP_SIDE)
     return subject_range(disparity[::step, ::step], ((x + 0.5) / w, (y + 0.5) / h), focus)
-
-
-def _subject_from_map(disparity: np.ndarray) -> tuple[float, tuple[float, float]]:
-    """``D2F.subject_focus`` for a bare disparity map (the centre when nothing stands out)."""
-    from .pipeline import locate_subject
-
-    step = max(1, max(disparity.shape) // 128)
-    return locate_subject(
-        disparity[::step, ::step], disparity.shape, lambda x, y: _focus_from_map(disparity, x, y)
-    )
 
 
 def render_with_depth_only(
@@ -366,11 +347,11 @@ def render_file(
         )
     elif disparity is not None:
         if point == "subject":
-            focus, (sx, sy) = _subject_from_map(disparity)
+            focus, (sx, sy) = subject_in_map(disparity)
             _say_subject(args, src, photo, (sx, sy), focus)
             point = (sx, sy)
         elif point is not None:
-            focus = _focus_from_map(disparity, *point)
+            focus = focus_in_map(disparity, *point)
             if focal_range is None:
                 focal_range = _range_from_map(disparity, *point, focus)
         focal_range = focal_range or 0.0

@@ -14,7 +14,9 @@ The cases where "the bottom of the frame is near" fails, held out of training:
 A case passes when the predictor's median disparity over the subject is above its median over
 the background around it (a ring as wide as a tenth of the frame): the subject comes out
 nearer than what is behind it. The table gives each predictor's share of passing cases, by
-kind, beside the "bottom is near" ramp.
+kind, beside the "bottom is near" ramp, with the median margin in brackets; after the
+semicolon, the share of cases whose automatic focus on that map (what the app, the CLI and
+the library focus on with no focus given) lands on the subject.
 """
 
 from __future__ import annotations
@@ -110,14 +112,29 @@ def in_front(pred: np.ndarray, mask: np.ndarray) -> tuple[bool, float]:
     return margin > 0, margin
 
 
+def focuses_on(pred: np.ndarray, mask: np.ndarray) -> bool:
+    """Whether the automatic focus on ``pred`` lands on the subject: the point
+    :func:`~d2f_core.depth.subject.subject_in_map` picks (what the app, the CLI and the
+    library focus on with no focus given) lies on ``mask`` or within 3 px of it."""
+    from scipy.ndimage import binary_dilation
+
+    from ..depth.subject import subject_in_map
+
+    _, (x, y) = subject_in_map(np.asarray(pred, dtype=np.float32))
+    h, w = mask.shape
+    xi, yi = min(max(round(x), 0), w - 1), min(max(round(y), 0), h - 1)
+    return bool(binary_dilation(mask, iterations=3)[yi, xi])
+
+
 def score(
     predictors: dict[str, Callable[[np.ndarray], np.ndarray]],
     cases: Sequence[Case],
     maps: dict | None = None,
 ) -> dict:
-    """Per case and predictor ``(passes, margin)``, and per kind and predictor the share
-    of cases passing and the median margin; ``maps`` (a dict) receives each predictor's map
-    by ``(case name, predictor)``, for :func:`contact_sheet`."""
+    """Per case and predictor ``(passes, margin)`` and whether the automatic focus lands on
+    the subject (:func:`focuses_on`), and per kind and predictor the share of cases passing,
+    the median margin and the share focused on the subject; ``maps`` (a dict) receives each
+    predictor's map by ``(case name, predictor)``, for :func:`contact_sheet`."""
     from ..train.depth_train import resize_array
 
     per_case: dict[str, dict] = {}
@@ -128,7 +145,7 @@ def score(
             if maps is not None:
                 maps[(name, pname)] = pred
             ok, margin = in_front(pred, mask)
-            row[pname] = {"in_front": bool(ok), "margin": margin}
+            row[pname] = {"in_front": bool(ok), "margin": margin, "focused": focuses_on(pred, mask)}
         per_case[name] = {"kind": kind, **row}
     kinds = sorted({c[1] for c in cases})
     summary: dict[str, dict] = {}
@@ -138,6 +155,7 @@ def score(
             p: {
                 "share": float(np.mean([r[p]["in_front"] for r in rows])),
                 "median_margin": float(np.median([r[p]["margin"] for r in rows])),
+                "focused": float(np.mean([r[p]["focused"] for r in rows])),
                 "cases": len(rows),
             }
             for p in predictors
@@ -199,7 +217,10 @@ def format_table(result: dict, predictors: Sequence[str]) -> str:
     ]
     for kind, row in result["summary"].items():
         n = next(iter(row.values()))["cases"]
-        cells = [f"{row[p]['share']:.0%} ({row[p]['median_margin']:+.2f})" for p in predictors]
+        cells = [
+            f"{row[p]['share']:.0%} ({row[p]['median_margin']:+.2f}); {row[p]['focused']:.0%}"
+            for p in predictors
+        ]
         lines.append(f"| {kind} | {n} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 

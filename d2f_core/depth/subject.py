@@ -71,6 +71,31 @@ def locate_subject(
     return focus, (fx * width - 0.5, fy * height - 0.5)
 
 
+def focus_in_map(disparity: np.ndarray, x: float, y: float) -> float:
+    """:meth:`D2F.focus_at` on a bare ``H x W`` disparity map: the median in the same
+    window around pixel ``(x, y)`` (clipped to the map)."""
+    h, w = disparity.shape
+    r = max(2, round(max(h, w) / 200))
+    xi = min(max(round(x), 0), w - 1)
+    yi = min(max(round(y), 0), h - 1)
+    win = disparity[max(0, yi - r) : yi + r + 1, max(0, xi - r) : xi + r + 1]
+    return float(np.clip(np.median(win), 0.0, 1.0))
+
+
+def subject_in_map(disparity: np.ndarray) -> tuple[float, tuple[float, float]]:
+    """:meth:`D2F.subject_focus` on a bare ``H x W`` disparity map (what the CLI does with a
+    map and no weights): :func:`locate_subject` on a copy of about 128 px, the centre when
+    nothing stands out.
+
+    Returns:
+        ``(focus, (x, y))``, the point in the map's pixels.
+    """
+    step = max(1, max(disparity.shape) // 128)
+    return locate_subject(
+        disparity[::step, ::step], disparity.shape, lambda x, y: focus_in_map(disparity, x, y)
+    )
+
+
 #: A subject's focal range is never wider than this span of disparity: a click on a thing
 #: that fills the depth (a floor, a wall seen at an angle) keeps most of the photo blurred.
 MAX_FOCAL_RANGE = 0.25
