@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from .depth.subject import focus_in_map, subject_in_map
+from .depth.subject import focus_in_map, range_in_map, subject_in_map
 from .io import SAVE_FORMATS, load_photo, same_file, save_depth, save_image
 
 __all__ = [
@@ -143,15 +143,6 @@ def _say_subject(
         f"{src}: focused on the subject at ({x:.0f}, {y:.0f}), focal disparity {focus:.3f} "
         f"(--focus-at X,Y or --focus D to choose)"
     )
-
-
-def _range_from_map(disparity: np.ndarray, x: float, y: float, focus: float) -> float:
-    """``D2F.focus_at(..., with_range=True)``'s focal range for a bare disparity map."""
-    from .depth.subject import RANGE_MAP_SIDE, subject_range
-
-    h, w = disparity.shape
-    step = max(1, max(h, w) // RANGE_MAP_SIDE)
-    return subject_range(disparity[::step, ::step], ((x + 0.5) / w, (y + 0.5) / h), focus)
 
 
 def render_with_depth_only(
@@ -353,7 +344,7 @@ def render_file(
         elif point is not None:
             focus = focus_in_map(disparity, *point)
             if focal_range is None:
-                focal_range = _range_from_map(disparity, *point, focus)
+                focal_range = range_in_map(disparity, *point, focus)
         focal_range = focal_range or 0.0
         logger.info("%s: rendering with the depth map only (no D2F weights)", src)
         rendered = render_with_depth_only(

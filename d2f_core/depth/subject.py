@@ -71,14 +71,23 @@ def locate_subject(
     return focus, (fx * width - 0.5, fy * height - 0.5)
 
 
-def focus_in_map(disparity: np.ndarray, x: float, y: float) -> float:
-    """:meth:`D2F.focus_at` on a bare ``H x W`` disparity map: the median in the same
-    window around pixel ``(x, y)`` (clipped to the map)."""
-    h, w = disparity.shape
-    r = max(2, round(max(h, w) / 200))
+def click_window(
+    size: tuple[int, int], x: float, y: float, radius: int | None = None
+) -> tuple[slice, slice]:
+    """The rows and columns of the ``(2r+1)^2`` window a click at pixel ``(x, y)`` of a map of
+    ``size = (H, W)`` reads (:meth:`D2F.focus_at`, :func:`focus_in_map`), clipped to the map;
+    ``radius`` defaults to ``max(2, round(max(H, W) / 200))`` px."""
+    h, w = size
+    r = max(2, round(max(h, w) / 200)) if radius is None else radius
     xi = min(max(round(x), 0), w - 1)
     yi = min(max(round(y), 0), h - 1)
-    win = disparity[max(0, yi - r) : yi + r + 1, max(0, xi - r) : xi + r + 1]
+    return slice(max(0, yi - r), yi + r + 1), slice(max(0, xi - r), xi + r + 1)
+
+
+def focus_in_map(disparity: np.ndarray, x: float, y: float) -> float:
+    """:meth:`D2F.focus_at` on a bare ``H x W`` disparity map: the median in the same
+    window around pixel ``(x, y)`` (:func:`click_window`)."""
+    win = disparity[click_window(disparity.shape, x, y)]
     return float(np.clip(np.median(win), 0.0, 1.0))
 
 
@@ -159,6 +168,14 @@ def subject_range(
     low, high = np.percentile(d[region], percentiles)
     extent = 2.0 * max(focus - low, high - focus, 0.0)
     return round(float(min(extent, cap)), 3)
+
+
+def range_in_map(disparity: np.ndarray, x: float, y: float, focus: float) -> float:
+    """:meth:`D2F.focus_at`'s focal range (``with_range``) on a bare ``H x W`` disparity map:
+    :func:`subject_range` on a copy of about :data:`RANGE_MAP_SIDE` px, at pixel ``(x, y)``."""
+    h, w = disparity.shape
+    step = max(1, max(h, w) // RANGE_MAP_SIDE)
+    return subject_range(disparity[::step, ::step], ((x + 0.5) / w, (y + 0.5) / h), focus)
 
 
 def index_runs(columns: list[int]) -> list[tuple[int, int]]:

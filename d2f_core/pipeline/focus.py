@@ -10,7 +10,7 @@ import math
 import numpy as np
 import torch
 
-from ..depth.subject import RANGE_MAP_SIDE, locate_subject, subject_range
+from ..depth.subject import RANGE_MAP_SIDE, click_window, locate_subject, subject_range
 from ..errors import InputTypeError
 from ..sizing import resize, scaled_size
 from .outputs import Scene
@@ -61,13 +61,10 @@ class FocusStage:
                 f"the point ({x!r}, {y!r}) is outside the {width}x{height} photo: x must be in "
                 f"[0, {width - 1}] and y in [0, {height - 1}]"
             )
-        r = max(2, round(max(height, width) / 200)) if radius is None else int(radius)
-        if r < 0:
+        r = None if radius is None else int(radius)
+        if r is not None and r < 0:
             raise ValueError(f"radius must be >= 0, got {radius!r}")
-        xi = min(max(round(xf), 0), width - 1)
-        yi = min(max(round(yf), 0), height - 1)
-        d = scene.disparity_full_tensor()[0, 0]
-        window = d[max(0, yi - r) : yi + r + 1, max(0, xi - r) : xi + r + 1]
+        window = scene.disparity_full_tensor()[0, 0][click_window(scene.size, xf, yf, r)]
         focus = float(np.clip(np.median(window.detach().cpu().numpy()), 0.0, 1.0))
         if not with_range:
             return focus
