@@ -311,6 +311,7 @@ def measured_bokeh(
     reference is as true as the measured map's spacing: the Depthy maps are grey levels of
     depth, not disparity, and the Kinect room's is the inverse of its depth.
     """
+    import copy
     import dataclasses
 
     from ..evaluate import click_focus
@@ -321,7 +322,7 @@ def measured_bokeh(
     out: dict[str, dict[str, float]] = {}
     for name, path in weights.items():
         model = D2F.from_pretrained(path)
-        ref_model = D2F.from_pretrained(path)
+        ref_model = copy.deepcopy(model)  # the same networks, another pass size
         ref_model.config = dataclasses.replace(ref_model.config, full_pass_side=0)
         row = {}
         for ph in photos:
