@@ -15,6 +15,8 @@ Architectures are picked by name from the registry dicts :data:`DEFOCUS_NETS`,
 from __future__ import annotations
 
 import logging
+import pickle
+import re
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -538,7 +540,25 @@ def read_torch_file(path: str | Path, *, not_found: str, unreadable: str) -> Any
     try:
         return torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # pickle/zip errors come in many types
-        raise ValueError(f"{unreadable}: {exc}") from exc
+        raise ValueError(f"{unreadable}: {_load_failure(exc)}") from exc
+
+
+def _load_failure(exc: BaseException) -> str:
+    """One line on why ``torch.load(weights_only=True)`` refused a file. Torch's own text
+    runs over several lines and advises ``weights_only=False``, which would run whatever
+    code the file holds: it is never passed on."""
+    text = str(exc)
+    if text.startswith("Weights only load failed"):
+        blocked = re.search(r"unsupported GLOBAL (\S+)", text)
+        if blocked:
+            return f"it holds a Python object ({blocked.group(1)}), not only tensors"
+        return "not a PyTorch checkpoint, or cut short"
+    if "PytorchStreamReader" in text:
+        return "its archive is damaged or cut short"
+    if isinstance(exc, (pickle.UnpicklingError, KeyError, EOFError)):
+        return "not a PyTorch checkpoint, or cut short"
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    return lines[0] if lines else type(exc).__name__
 
 
 def optimizer_state_on_cpu(state: dict[str, Any]) -> dict[str, Any]:

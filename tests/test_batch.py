@@ -288,6 +288,34 @@ class TestLocalEngine:
             err = capsys.readouterr().err
             assert words in err and "Traceback" not in err
             assert err.strip().splitlines()[-1].startswith("d2f: error:")
+        # rows are appended only to a manifest: never to a photo, a list, an output or a
+        # file of other text, and a glob whose files all lie in -o says so
+        listing = tmp_path / "picks.txt"
+        listing.write_text(os.fspath(lib / "p.png") + "\n")
+        notes = tmp_path / "notes.txt"
+        notes.write_text("my notes\n")
+        binary = tmp_path / "blob.bin"
+        binary.write_bytes(b"\x89PNG\r\n\x1a\n\x00\xff")
+        out = tmp_path / "out"
+        refused = [
+            ([listing, "--manifest", listing], "is one of the photos, lists or outputs"),
+            ([lib, "--manifest", lib / "p.png"], "is one of the photos, lists or outputs"),
+            ([lib, "--manifest", out / "p_bokeh.png"], "is one of the photos, lists or outputs"),
+            ([lib, "--manifest", notes], "exists and is not a d2f manifest"),
+            ([lib, "--manifest", binary], "exists and is not a d2f manifest"),
+            ([lib, "--manifest", tmp_path], "is a folder"),
+        ]
+        kept = {p: p.read_bytes() for p in (listing, notes, binary, lib / "p.png")}
+        for args, words in refused:
+            argv = ["batch", *map(os.fspath, args), "-o", os.fspath(out), "--blur", "5"]
+            assert main(argv) == 2
+            err = capsys.readouterr().err
+            last = err.strip().splitlines()[-1]
+            assert last.startswith("d2f: error:") and words in last, (args, err)
+        assert {p: p.read_bytes() for p in kept} == kept and not out.exists()
+        assert main(["batch", os.fspath(lib / "*.png"), "-o", os.fspath(lib), "--blur", "5"]) == 2
+        last = capsys.readouterr().err.strip().splitlines()[-1]
+        assert last.startswith("d2f: error:") and "lies in the output folder" in last
         monkeypatch.setitem(sys.modules, "ray", None)  # Ray not installed
         assert main(["batch", os.fspath(lib), "-o", "o", "--blur", "5", "--engine", "ray"]) == 1
         err = capsys.readouterr().err

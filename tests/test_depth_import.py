@@ -160,6 +160,18 @@ class TestLoadDepth:
             with pytest.raises(ValueError, match="no valid pixels"):
                 load_depth(tmp_path / "z.npy", zero_is_hole=True)
 
+    def test_negative_depth_is_named(self, tmp_path):
+        """A metric depth map of negative numbers (a sign flipped on export) is refused for
+        what it is, not as holes; a few negative pixels in a good map are holes."""
+        np.save(tmp_path / "neg.npy", -np.linspace(1.0, 2.0, 16).reshape(4, 4))
+        with pytest.raises(ValueError, match=r"no positive values \(from -2 to -1\)"):
+            load_depth(tmp_path / "neg.npy", kind="depth")
+        d = np.linspace(1.0, 2.0, 64).reshape(8, 8)
+        d[0, 0] = -1.0
+        np.save(tmp_path / "few.npy", d)
+        out = load_depth(tmp_path / "few.npy", kind="depth", robust=False)
+        assert np.isfinite(out).all() and out[-1, -1] == 0.0 and out[0, 1] > 0.95
+
     def test_zero_disparity_is_far_unless_marked_as_hole(self, tmp_path):
         d = np.zeros((8, 8))
         d[:, 4:] = 10.0

@@ -417,6 +417,24 @@ class TestSave:
         assert src.read_bytes() == before
 
 
+    def test_sides_over_the_encoders_limit(self, tmp_path):
+        """WebP writes at most 16,383 px a side and JPEG 65,500: a longer picture is refused
+        before the encoder runs, naming the limit, and a file already there is kept; PNG
+        takes it."""
+        long = np.zeros((1, 16384, 3), np.uint8)
+        old = tmp_path / "x.webp"
+        save_image(old, np.zeros((2, 2, 3), np.uint8))
+        before = old.read_bytes()
+        with pytest.raises(ValueError, match=r"WEBP holds at most 16383 px a side .* 16384x1"):
+            save_image(old, long)
+        assert old.read_bytes() == before
+        with pytest.raises(ValueError, match="JPEG holds at most 65500 px"):
+            save_image(tmp_path / "x.jpg", np.zeros((65501, 1), np.uint8))
+        assert not (tmp_path / "x.jpg").exists()
+        save_image(tmp_path / "x.png", long)
+        assert load_image(tmp_path / "x.png").shape[:2] == (1, 16384)
+
+
 class TestFloatToUint8:
     """Floats to bytes by bands of rows: the same bytes as the whole-picture formula."""
 

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 import torch
+from PIL import Image
 
 from d2f_core import rendering
 from d2f_core.metrics import psnr
@@ -245,6 +248,15 @@ class TestFocusAt:
             model.focus_at(scene, float("nan"), 3)
         with pytest.raises(TypeError, match="scene"):
             model.focus_at("scene", 1, 1)
+        # a window radius is a whole number of pixels, never truncated
+        for radius, words in ((float("nan"), "radius must be a whole number"),
+                              (2.7, "radius must be a whole number, got 2.7"),
+                              (-1, "radius must be >= 0"), ("3", "radius must be a whole")):
+            with pytest.raises(ValueError, match=words):
+                model.focus_at(scene, 5, 5, radius=radius)
+        assert model.focus_at(scene, 5, 5, radius=np.int64(2)) == model.focus_at(
+            scene, 5, 5, radius=2.0
+        )
 
 
 class TestInputChecks:
@@ -301,6 +313,17 @@ class TestInputChecks:
             model.render(scene, focus=0.5, blur=-1.0)
         with pytest.raises(ValueError, match="max_side"):
             model.render(scene, focus=0.5, blur=1.0, max_side=0)
+        # a preview side is a whole number: 1.5 is not truncated to a 1 px preview
+        for side in (float("nan"), 1.5, "x", True):
+            with pytest.raises(ValueError, match="max_side must be a whole number"):
+                model.render(scene, focus=0.5, blur=1.0, max_side=side)
+        same = model.render(scene, focus=0.5, blur=4.0, max_side=np.int32(32)).bokeh
+        np.testing.assert_array_equal(same, model.render(scene, 0.5, 4.0, max_side=32.0).bokeh)
+        # an f-number may be a NumPy scalar, as focus and blur may
+        np.testing.assert_array_equal(
+            model.render(scene, 0.5, f_number=np.float32(2.8)).bokeh,
+            model.render(scene, 0.5, f_number=float(np.float32(2.8))).bokeh,
+        )
         with pytest.raises(TypeError, match="scene"):
             model.render(None, 0.5, 1.0)
 
@@ -351,13 +374,30 @@ class TestCheckpoints:
         model.save(path)
         data = path.read_bytes()
         path.write_bytes(data[: len(data) // 2])
-        with pytest.raises(ValueError, match="corrupt or truncated"):
+        with pytest.raises(ValueError, match="cannot be read: its archive is damaged or cut short"):
             D2F.from_checkpoint(path)
+
+    def test_not_a_checkpoint_in_one_line(self, tmp_path):
+        """A photo or a pickled object given as weights: one line that names the file and
+        says why, never torch's advice to load it with ``weights_only=False``."""
+        photo = tmp_path / "photo.png"
+        Image.fromarray(np.zeros((8, 8, 3), np.uint8)).save(photo)
+        with pytest.raises(ValueError) as info:
+            D2F.from_checkpoint(photo)
+        text = str(info.value)
+        assert text == f"checkpoint {photo} cannot be read: not a PyTorch checkpoint, or cut short"
+        obj = tmp_path / "obj.pt"
+        torch.save({"weights": os.getcwd}, obj)
+        with pytest.raises(ValueError) as info:
+            D2F.from_checkpoint(obj)
+        text = str(info.value)
+        assert "holds a Python object (posix.getcwd)" in text
+        assert "\n" not in text and "weights_only" not in text
 
     def test_garbage_and_wrong_layout(self, tmp_path):
         path = tmp_path / "g.pt"
         path.write_bytes(b"\x00garbage")
-        with pytest.raises(ValueError, match="corrupt"):
+        with pytest.raises(ValueError, match="cannot be read: not a PyTorch checkpoint"):
             D2F.from_checkpoint(path)
         torch.save({"weights": torch.zeros(1)}, path)
         with pytest.raises(ValueError, match="'config' and 'state_dict'"):

@@ -13,7 +13,15 @@ from pathlib import Path
 from typing import Any
 
 from ..io import SAVE_FORMATS, same_file
-from .manifest import DONE, Summary, fold_parts, last_rows, read_rows, worker_name
+from .manifest import (
+    DONE,
+    Summary,
+    check_manifest,
+    fold_parts,
+    last_rows,
+    read_rows,
+    worker_name,
+)
 from .plan import find_photos, plan_jobs
 from .worker import PARTIAL_PREFIX
 
@@ -188,6 +196,15 @@ def run_batch(args: argparse.Namespace) -> int:
             raise UsageError(f"output {job.output!r} would replace an input; choose another -o")
 
     manifest: Path = args.manifest or out / MANIFEST_NAME
+    named = [Path(p) for p in args.input if Path(p).is_file()]  # photos and lists named
+    for job in jobs:
+        named += [Path(p) for p in (job.input, job.output, job.depth_file) if p]
+    if any(same_file(manifest, p) for p in named):
+        raise UsageError(f"--manifest {manifest} is one of the photos, lists or outputs")
+    try:
+        check_manifest(manifest)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
     out.mkdir(parents=True, exist_ok=True)
     for folder in {Path(job.output).parent for job in jobs}:
         folder.mkdir(parents=True, exist_ok=True)

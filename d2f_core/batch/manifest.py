@@ -23,6 +23,7 @@ __all__ = [
     "FIELDS",
     "PartWriter",
     "Summary",
+    "check_manifest",
     "fold_parts",
     "last_rows",
     "parts_dir",
@@ -85,9 +86,41 @@ class PartWriter:
             self._file = None
 
 
+def check_manifest(path: str | os.PathLike) -> None:
+    """Refuse a manifest path that rows must not be appended to: a folder, or a file that is
+    not a manifest (a photo, a list of photos, any text that is not one JSON row a line).
+    A missing or empty file, or one whose first line is a row, is fine.
+
+    Raises:
+        ValueError: naming the path and what it holds.
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise ValueError(f"--manifest {path} is a folder; name a .jsonl file")
+    try:
+        with open(path, "rb") as f:
+            head = f.read(64 * 1024)
+    except FileNotFoundError:
+        return
+    except OSError as exc:
+        raise ValueError(f"--manifest {path} cannot be read: {exc.strerror or exc}") from None
+    first = next((line for line in head.splitlines() if line.strip()), None)
+    if first is None:
+        return
+    try:
+        row = json.loads(first.decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError):
+        row = None
+    if not (isinstance(row, dict) and "input" in row):
+        raise ValueError(
+            f"--manifest {path} exists and is not a d2f manifest (its first line is not a "
+            "row); rows are never appended to another file: name a new .jsonl file"
+        )
+
+
 def _lines(path: Path) -> Iterator[dict[str, Any]]:
     try:
-        with open(path, encoding="utf-8") as f:
+        with open(path, encoding="utf-8", errors="replace") as f:
             for line in f:
                 try:
                     row = json.loads(line)

@@ -108,8 +108,8 @@ def find_photos(
         file that cannot be read becomes a failed photo, not a silent omission.
 
     Raises:
-        ValueError: a source is neither an existing folder, file nor a glob, or a glob or
-            folder names nothing.
+        ValueError: a source is neither an existing folder, file nor a glob, a glob or
+            folder names nothing, or all it names lies in ``exclude``.
     """
     if not sources:
         raise ValueError("sources: expected at least one folder, glob or list of photos")
@@ -145,7 +145,13 @@ def find_photos(
                 f"input: {text!r} is not a folder, a glob or a list of photos "
                 f"({', '.join(LIST_EXTENSIONS)})"
             )
-        found = [p for p in found if not _under(p, banned)]
+        kept = [p for p in found if not _under(p, banned)]
+        if found and not kept:
+            raise ValueError(
+                f"input: every file of {text!r} lies in the output folder {exclude}, whose "
+                "files are never inputs; choose another -o"
+            )
+        found = kept
         photos.extend(p for p in found if p.suffix.lower() in READ_EXTENSIONS)
         skipped.extend(p for p in found if p.suffix.lower() not in READ_EXTENSIONS)
         roots.append(root)

@@ -419,6 +419,12 @@ def depth_to_disparity(
         valid &= a != 0
     n_holes = int(valid.size - valid.sum())
     if not valid.any():
+        finite = np.isfinite(a)
+        if kind == "depth" and finite.any() and (a[finite] < 0).any():
+            raise ValueError(
+                f"{name}: depth map has no positive values (from {a[finite].min():.4g} to "
+                f"{a[finite].max():.4g}); a depth map holds distances, which are positive"
+            )
         raise ValueError(f"{name}: depth map has no valid pixels (all zero, NaN or inf)")
     disp = np.where(valid, a, 0.0)
     if kind == "depth":

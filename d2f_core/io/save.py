@@ -70,6 +70,10 @@ def float_to_uint8(a: np.ndarray, name: str | None = "array") -> np.ndarray:
     return out
 
 
+#: The longest side each format's encoder writes (libjpeg: 65,500 px; libwebp: 16,383 px).
+_SIDE_LIMITS = {"JPEG": 65500, "WEBP": 16383}
+
+
 def same_file(a: str | os.PathLike, b: str | os.PathLike) -> bool:
     """True when two paths name the same file (existing or not)."""
     pa, pb = Path(a), Path(b)
@@ -145,6 +149,13 @@ def save_image(
     if not out.parent.exists():
         raise ValueError(f"path: directory {os.fspath(out.parent)!r} does not exist")
     pixels = to_uint8(array, "array")
+    limit = _SIDE_LIMITS.get(fmt)
+    if limit is not None and max(pixels.shape[:2]) > limit:
+        h, w = pixels.shape[:2]
+        raise ValueError(
+            f"path: cannot save {out.name!r}: {fmt} holds at most {limit} px a side and the "
+            f"image is {w}x{h}; save it as .png or .tif"
+        )
     if pixels.ndim == 3 and pixels.shape[2] == 4:
         pixels = pixels[..., :3]
     img = Image.fromarray(pixels)

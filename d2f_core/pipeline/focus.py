@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from ..depth.subject import RANGE_MAP_SIDE, click_window, locate_subject, subject_range
-from ..errors import InputTypeError
+from ..errors import InputTypeError, whole_number
 from ..sizing import resize, scaled_size
 from .outputs import Scene
 
@@ -61,9 +61,7 @@ class FocusStage:
                 f"the point ({x!r}, {y!r}) is outside the {width}x{height} photo: x must be in "
                 f"[0, {width - 1}] and y in [0, {height - 1}]"
             )
-        r = None if radius is None else int(radius)
-        if r is not None and r < 0:
-            raise ValueError(f"radius must be >= 0, got {radius!r}")
+        r = None if radius is None else whole_number(radius, "radius", 0)
         window = scene.disparity_full_tensor()[0, 0][click_window(scene.size, xf, yf, r)]
         focus = float(np.clip(np.median(window.detach().cpu().numpy()), 0.0, 1.0))
         if not with_range:

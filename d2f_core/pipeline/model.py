@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import math
+import numbers
 import time
 from pathlib import Path
 from typing import Any
@@ -15,7 +16,7 @@ from torch import Tensor, nn
 from .. import rendering
 from ..depth import sources as depth_sources
 from ..depth.refine import equalize, harden_edges, snap_edges
-from ..errors import InputTypeError
+from ..errors import InputTypeError, whole_number
 from ..io.embedded import Photo
 from ..lens import blur_px
 from ..networks import build_defocus_net, build_fusion_net, build_radiance_net, read_torch_file
@@ -114,7 +115,7 @@ class D2F(FusionStage, FocusStage, nn.Module):
         ckpt = read_torch_file(
             path,
             not_found="checkpoint not found",
-            unreadable=f"checkpoint {path} is corrupt or truncated",
+            unreadable=f"checkpoint {path} cannot be read",
         )
         if not isinstance(ckpt, dict) or not {"config", "state_dict"} <= set(ckpt):
             keys = sorted(ckpt) if isinstance(ckpt, dict) else type(ckpt).__name__
@@ -423,8 +424,9 @@ class D2F(FusionStage, FocusStage, nn.Module):
         if f_number is not None:
             if blur is not None:
                 raise ValueError("give blur or f_number, not both")
-            if isinstance(f_number, bool) or not isinstance(f_number, (int, float)):
+            if isinstance(f_number, bool) or not isinstance(f_number, numbers.Real):
                 raise ValueError(f"f_number must be a number, got {f_number!r}")
+            f_number = float(f_number)
             blur = blur_px(f_number, max(scene.size))
         if focus is None and scene.focus is not None:
             focus = scene.focus
@@ -434,8 +436,8 @@ class D2F(FusionStage, FocusStage, nn.Module):
         focal_range = check_focal_range(focal_range)
         if "rotation" in render_options:  # named even when no kernel needs it
             render_options["rotation"] = check_rotation(render_options["rotation"])
-        if max_side is not None and (isinstance(max_side, bool) or int(max_side) < 1):
-            raise ValueError(f"max_side must be a positive integer or None, got {max_side!r}")
+        if max_side is not None:
+            max_side = whole_number(max_side, "max_side", 1)
         if "radiance" in render_options:
             raise ValueError("render_options must not contain 'radiance' (it comes from scene)")
         if "checked" in render_options:
