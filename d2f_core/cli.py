@@ -162,11 +162,12 @@ def _jpeg_quality(text: str) -> int:
 
 
 class _Parser(argparse.ArgumentParser):
-    """Reports errors as ``d2f: error: ...`` for subcommands too (not ``d2f render: ...``)."""
+    """Reports errors as one line, ``d2f: error: ... (see 'd2f render --help')``, for
+    subcommands too (not ``d2f render: ...``, and without the usage block, which runs to a
+    dozen lines for ``d2f render``)."""
 
     def error(self, message: str):  # type: ignore[override]
-        self.print_usage(sys.stderr)
-        self.exit(2, f"{PROG}: error: {message}\n")
+        self.exit(2, f"{PROG}: error: {message} (see '{self.prog} --help')\n")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -442,7 +443,6 @@ def main(argv: list[str] | None = None) -> int:
 
         return run_batch(args)
     except UsageError as exc:
-        parser.print_usage(sys.stderr)
         print(f"{PROG}: error: {exc}", file=sys.stderr)
         return 2
     except Exception as exc:  # expected ones name the problem; any other, one line too
