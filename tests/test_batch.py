@@ -4,6 +4,7 @@ pool against Ray Data on a real local cluster (these skip with the reason withou
 from __future__ import annotations
 
 import io
+import json
 import os
 import secrets
 import shutil
@@ -135,6 +136,31 @@ class TestPlan:
             plan_jobs(root, photos, tmp_path / "out", suffix="x/y")
         with pytest.raises(ValueError, match="not under"):
             plan_jobs(tmp_path / "elsewhere", photos, tmp_path / "out")
+
+
+def test_check_manifest_tells_a_manifest_from_other_files(tmp_path):
+    """A manifest is any file that starts with a row, even one cut short by a kill (its
+    first write); missing and empty files are new manifests; anything else is refused."""
+    from d2f_core.batch.manifest import check_manifest
+
+    row = json.dumps({k: None for k in FIELDS} | {"input": "/photos/a.jpg"})
+    cases = {
+        "missing.jsonl": None,
+        "empty.jsonl": "",
+        "rows.jsonl": f"\n{row}\n{row}\n",
+        "cut.jsonl": row[:17],
+    }
+    for name, text in cases.items():
+        if text is not None:
+            (tmp_path / name).write_text(text)
+        check_manifest(tmp_path / name)
+    others = {"list.txt": "a.jpg\n", "table.csv": "id,path\n", "x.json": '{"a": 1}'}
+    for name, text in others.items():
+        (tmp_path / name).write_text(text)
+        with pytest.raises(ValueError, match="is not a d2f manifest"):
+            check_manifest(tmp_path / name)
+    with pytest.raises(ValueError, match="is a folder"):
+        check_manifest(tmp_path)
 
 
 class TestLens:

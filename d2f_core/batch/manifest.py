@@ -86,10 +86,14 @@ class PartWriter:
             self._file = None
 
 
+_ROW_START = b'{"input": '
+
+
 def check_manifest(path: str | os.PathLike) -> None:
     """Refuse a manifest path that rows must not be appended to: a folder, or a file that is
     not a manifest (a photo, a list of photos, any text that is not one JSON row a line).
-    A missing or empty file, or one whose first line is a row, is fine.
+    A missing or empty file, or one whose first line is a row (or the start of one, cut short
+    by a kill), is fine.
 
     Raises:
         ValueError: naming the path and what it holds.
@@ -104,14 +108,10 @@ def check_manifest(path: str | os.PathLike) -> None:
         return
     except OSError as exc:
         raise ValueError(f"--manifest {path} cannot be read: {exc.strerror or exc}") from None
-    first = next((line for line in head.splitlines() if line.strip()), None)
-    if first is None:
-        return
-    try:
-        row = json.loads(first.decode("utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError):
-        row = None
-    if not (isinstance(row, dict) and "input" in row):
+    first = next((line.strip() for line in head.splitlines() if line.strip()), None)
+    # every row is written with "input" first, so a first line cut short by a kill still
+    # starts so
+    if first is not None and not first.startswith(_ROW_START):
         raise ValueError(
             f"--manifest {path} exists and is not a d2f manifest (its first line is not a "
             "row); rows are never appended to another file: name a new .jsonl file"
