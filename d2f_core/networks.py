@@ -549,7 +549,7 @@ def _load_failure(exc: BaseException) -> str:
     code the file holds: it is never passed on."""
     text = str(exc)
     if text.startswith("Weights only load failed"):
-        blocked = re.search(r"unsupported GLOBAL (\S+)", text)
+        blocked = re.search(r"GLOBAL (\S+)", text, re.IGNORECASE)
         if blocked:
             return f"it holds a Python object ({blocked.group(1)}), not only tensors"
         return "not a PyTorch checkpoint, or cut short"

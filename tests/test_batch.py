@@ -149,6 +149,9 @@ def test_check_manifest_tells_a_manifest_from_other_files(tmp_path):
         "empty.jsonl": "",
         "rows.jsonl": f"\n{row}\n{row}\n",
         "cut.jsonl": row[:17],
+        # rewritten by another tool: compact, keys in another order, a byte-order mark
+        "compact.jsonl": json.dumps({"status": "done", "input": "/a.jpg"}, separators=(",", ":")),
+        "bom.jsonl": "\ufeff" + row + "\n",
     }
     for name, text in cases.items():
         if text is not None:
@@ -161,6 +164,7 @@ def test_check_manifest_tells_a_manifest_from_other_files(tmp_path):
             check_manifest(tmp_path / name)
     with pytest.raises(ValueError, match="is a folder"):
         check_manifest(tmp_path)
+    assert [r["input"] for r in read_rows(tmp_path / "bom.jsonl")] == ["/photos/a.jpg"]
 
 
 class TestLens:
@@ -330,6 +334,8 @@ class TestLocalEngine:
             ([lib, "--manifest", notes], "exists and is not a d2f manifest"),
             ([lib, "--manifest", binary], "exists and is not a d2f manifest"),
             ([lib, "--manifest", tmp_path], "is a folder"),
+            # a map still to be written by --save-maps, or any picture
+            ([lib, "--manifest", tmp_path / "maps" / "p_bokeh_disparity.png"], "image's ext"),
         ]
         kept = {p: p.read_bytes() for p in (listing, notes, binary, lib / "p.png")}
         for args, words in refused:

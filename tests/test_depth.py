@@ -658,6 +658,14 @@ def test_samples_and_short_training_roundtrip(tmp_path, tiny_checkpoint, one_thr
         assert torch.equal(model.fusion_net.state_dict()[key], value)
     with pytest.raises(ValueError, match="KEY=VALUE"):
         depth_train.export_checkpoint(last, tiny_checkpoint, tmp_path / "x.pt", ["nope=1"])
+    # stage-0 weights that are not: a whole D2F checkpoint, or a photo; nothing written
+    with pytest.raises(ValueError, match="holds no stage-0 weights"):
+        depth_train.export_checkpoint(tiny_checkpoint, tiny_checkpoint, tmp_path / "x.pt")
+    photo = tmp_path / "photo.jpg"
+    Image.fromarray(np.zeros((8, 8, 3), np.uint8)).save(photo)
+    with pytest.raises(ValueError, match=r"photo.jpg cannot be read: not a PyTorch checkpoint"):
+        depth_train.export_checkpoint(photo, tiny_checkpoint, tmp_path / "x.pt")
+    assert not (tmp_path / "x.pt").exists()
 
 
 def test_training_stopped_while_saving_resumes_and_keeps_every_file(

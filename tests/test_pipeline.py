@@ -393,6 +393,10 @@ class TestCheckpoints:
         text = str(info.value)
         assert "holds a Python object (posix.getcwd)" in text
         assert "\n" not in text and "weights_only" not in text
+        # the usual form of torch's refusal: an object of an allowed-looking class
+        torch.save({"weights": slice(1, 2)}, obj)
+        with pytest.raises(ValueError, match=r"holds a Python object \(slice\)"):
+            D2F.from_checkpoint(obj)
 
     def test_garbage_and_wrong_layout(self, tmp_path):
         path = tmp_path / "g.pt"

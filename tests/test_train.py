@@ -96,7 +96,7 @@ def test_resume_wrong_stage(stage1, data, tmp_path):
 def test_resume_truncated_checkpoint(stage1, data, tmp_path):
     cut = tmp_path / "cut.pt"
     cut.write_bytes(Path(stage1.checkpoint).read_bytes()[:200])
-    with pytest.raises(ValueError, match="--resume .* is corrupt or truncated"):
+    with pytest.raises(ValueError, match="--resume .* cannot be read: its archive is damaged"):
         train(_args("stage1", data, tmp_path, "--steps", "1", "--resume", str(cut)))
     with pytest.raises(FileNotFoundError, match="--resume checkpoint not found"):
         train(_args("stage1", data, tmp_path, "--steps", "1", "--resume", str(tmp_path / "no.pt")))

@@ -12,7 +12,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from ..io import SAVE_FORMATS, same_file
+from ..io import READ_EXTENSIONS, SAVE_FORMATS, same_file
 from .manifest import (
     DONE,
     Summary,
@@ -201,6 +201,9 @@ def run_batch(args: argparse.Namespace) -> int:
         named += [Path(p) for p in (job.input, job.output, job.depth_file) if p]
     if any(same_file(manifest, p) for p in named):
         raise UsageError(f"--manifest {manifest} is one of the photos, lists or outputs")
+    if manifest.suffix.lower() in set(SAVE_FORMATS) | set(READ_EXTENSIONS):
+        # an output or a map of this run or another, written or still to come
+        raise UsageError(f"--manifest {manifest} has an image's extension; name a .jsonl file")
     try:
         check_manifest(manifest)
     except ValueError as exc:

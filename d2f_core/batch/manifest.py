@@ -109,9 +109,14 @@ def check_manifest(path: str | os.PathLike) -> None:
     except OSError as exc:
         raise ValueError(f"--manifest {path} cannot be read: {exc.strerror or exc}") from None
     first = next((line.strip() for line in head.splitlines() if line.strip()), None)
-    # every row is written with "input" first, so a first line cut short by a kill still
-    # starts so
-    if first is not None and not first.startswith(_ROW_START):
+    if first is None:
+        return
+    try:
+        row = json.loads(first.decode("utf-8-sig"))
+    except (UnicodeDecodeError, json.JSONDecodeError):
+        row = None
+    # a row, however written; or, cut short by a kill, the start of one as written here
+    if not (isinstance(row, dict) and "input" in row) and not first.startswith(_ROW_START):
         raise ValueError(
             f"--manifest {path} exists and is not a d2f manifest (its first line is not a "
             "row); rows are never appended to another file: name a new .jsonl file"
@@ -120,7 +125,7 @@ def check_manifest(path: str | os.PathLike) -> None:
 
 def _lines(path: Path) -> Iterator[dict[str, Any]]:
     try:
-        with open(path, encoding="utf-8", errors="replace") as f:
+        with open(path, encoding="utf-8-sig", errors="replace") as f:
             for line in f:
                 try:
                     row = json.loads(line)

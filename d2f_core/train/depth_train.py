@@ -47,7 +47,12 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from ..networks import build_defocus_net, count_parameters, optimizer_state_on_cpu
+from ..networks import (
+    build_defocus_net,
+    count_parameters,
+    optimizer_state_on_cpu,
+    read_torch_file,
+)
 from .depth_data import JITTERS, DepthSample, RealDepthData, resize_array
 from .depth_losses import (
     depth_loss,
@@ -426,7 +431,15 @@ def export_checkpoint(
 
     model = D2F.from_checkpoint(base)
     config = apply_overrides(model.config.to_dict(), overrides)
-    state = torch.load(depth, map_location="cpu", weights_only=True)
+    state = read_torch_file(
+        depth, not_found="stage-0 weights not found", unreadable=f"{depth} cannot be read"
+    )
+    if not isinstance(state, dict) or "state_dict" not in state or "config" in state:
+        what = "a whole D2F checkpoint" if isinstance(state, dict) and "config" in state else ""
+        raise ValueError(
+            f"{depth} holds no stage-0 weights{f' (it is {what})' if what else ''}: give a "
+            "depth_*.pt file of d2f-train depth"
+        )
     variant = state.get("variant", config["defocus"])
     config["defocus"] = variant
     fresh = D2F(config)

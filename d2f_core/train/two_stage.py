@@ -245,7 +245,7 @@ def train(args: argparse.Namespace) -> TrainResult:
         resume = read_torch_file(
             args.resume,
             not_found="--resume checkpoint not found",
-            unreadable=f"--resume {args.resume} is corrupt or truncated",
+            unreadable=f"--resume {args.resume} cannot be read",
         )
         if resume.get("stage") != stage:
             raise ValueError(
