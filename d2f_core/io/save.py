@@ -148,14 +148,14 @@ def save_image(
         raise ValueError(f"path: {os.fspath(out)!r} is a directory")
     if not out.parent.exists():
         raise ValueError(f"path: directory {os.fspath(out.parent)!r} does not exist")
-    pixels = to_uint8(array, "array")
     limit = _SIDE_LIMITS.get(fmt)
-    if limit is not None and max(pixels.shape[:2]) > limit:
-        h, w = pixels.shape[:2]
+    if limit is not None and np.ndim(array) >= 2 and max(np.shape(array)[:2]) > limit:
+        h, w = np.shape(array)[:2]  # refused before the picture is converted
         raise ValueError(
             f"path: cannot save {out.name!r}: {fmt} holds at most {limit} px a side and the "
             f"image is {w}x{h}; save it as .png or .tif"
         )
+    pixels = to_uint8(array, "array")
     if pixels.ndim == 3 and pixels.shape[2] == 4:
         pixels = pixels[..., :3]
     img = Image.fromarray(pixels)

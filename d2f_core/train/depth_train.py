@@ -434,12 +434,13 @@ def export_checkpoint(
     state = read_torch_file(
         depth, not_found="stage-0 weights not found", unreadable=f"{depth} cannot be read"
     )
-    if not isinstance(state, dict) or "state_dict" not in state or "config" in state:
-        what = "a whole D2F checkpoint" if isinstance(state, dict) and "config" in state else ""
+    wanted = "give a depth_*.pt file of d2f-train depth"
+    if isinstance(state, dict) and "config" in state:
         raise ValueError(
-            f"{depth} holds no stage-0 weights{f' (it is {what})' if what else ''}: give a "
-            "depth_*.pt file of d2f-train depth"
+            f"{depth} holds no stage-0 weights (it is a whole D2F checkpoint): {wanted}"
         )
+    if not isinstance(state, dict) or "state_dict" not in state:
+        raise ValueError(f"{depth} holds no stage-0 weights: {wanted}")
     variant = state.get("variant", config["defocus"])
     config["defocus"] = variant
     fresh = D2F(config)
