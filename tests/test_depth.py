@@ -1141,6 +1141,48 @@ def test_pack_holds_the_photos_and_targets_training_draws(tmp_path, capsys):
     assert "no labelled training photos" in capsys.readouterr().err
 
 
+def test_frame_match_draws_photos_of_the_frames_orientation(tmp_path):
+    """``--frame-match``: a portrait frame is filled with a portrait photo, a landscape frame
+    with a landscape one, as the network reads whole photos; without it, either."""
+    from d2f_core.train import depth_pack
+
+    root, labels = tmp_path / "datasets", tmp_path / "labels"
+    (root / "photos/bsds500").mkdir(parents=True)
+    labels.mkdir()
+    for i in range(4):  # landscape photos green, portrait ones red
+        Image.fromarray(np.full((60, 80, 3), (0, 200, 0), np.uint8)).save(
+            root / f"photos/bsds500/l{i}.png"
+        )
+        Image.fromarray(np.full((80, 60, 3), (200, 0, 0), np.uint8)).save(
+            root / f"photos/bsds500/p{i}.png"
+        )
+    for photo in teachers.iter_photos(root):
+        depth = np.tile(np.linspace(200, 20, 224, dtype=np.uint8)[:, None], (1, 224))
+        np.savez(labels / f"{photo.key}.npz", fg=np.zeros((257, 257), np.uint8), depth=depth)
+
+    def red_share(data, size, n=60):
+        rng = random.Random(3)
+        return np.mean([data.sample(rng, size).image[..., 0].mean() > 0.5 for _ in range(n)])
+
+    def from_folder(share):
+        return depth_train.RealDepthData(root, labels, paste=0, synth=0, frame_match=share)
+
+    def from_pack(share):
+        return depth_pack.PackedDepthData(tmp_path / "pack", paste=0, synth=0, frame_match=share)
+
+    depth_pack.write_pack(
+        depth_train.RealDepthData(root, labels), tmp_path / "pack", side=64, target_side=32
+    )
+    for make in (from_folder, from_pack):
+        matched, plain = make(1.0), make(0.0)
+        assert red_share(matched, (48, 36)) == 1.0  # portrait frame: portrait photos
+        assert red_share(matched, (36, 48)) == 0.0  # landscape frame: landscape photos
+        assert 0.2 < red_share(plain, (48, 36)) < 0.8
+        assert 0.2 < red_share(matched, (40, 40)) < 0.8  # a square frame takes either
+        with pytest.raises(ValueError, match=r"frame_match must be a share in \[0, 1\]"):
+            make(1.5)
+
+
 def test_training_from_a_pack_on_a_time_budget(tmp_path, tiny_checkpoint, one_thread, capsys):
     """``d2f-train depth --pack``: trains from the pack alone; ``--minutes`` ends training
     when the time is spent, with the last weights and their average kept, and a resumed

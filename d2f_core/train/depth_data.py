@@ -87,6 +87,13 @@ def check_jitter(kind: str) -> str:
     return kind
 
 
+def check_share(value: float, name: str) -> float:
+    """``value`` if it is a share in [0, 1], else a ValueError naming ``name``."""
+    if not 0.0 <= value <= 1.0:
+        raise ValueError(f"{name} must be a share in [0, 1], got {value}")
+    return float(value)
+
+
 def photometric_jitter(img: np.ndarray, rng: random.Random, kind: str = "mild") -> np.ndarray:
     """A training photo (``H x W x 3`` in 0..1) with a random exposure: ``"mild"``, a gain of
     0.8-1.2 and a gamma of 0.8-1.25; ``"strong"`` adds, each at random, a white balance
@@ -111,6 +118,18 @@ def photometric_jitter(img: np.ndarray, rng: random.Random, kind: str = "mild") 
         noise = np.random.default_rng(rng.randrange(1 << 30)).normal(size=img.shape)
         img = img + rng.uniform(0.0, 0.03) * noise.astype(np.float32)
     return np.clip(img, 0, 1).astype(np.float32)
+
+
+_FRAME_TRIES = 8  # draws of a photo whose orientation matches the frame, at most
+
+
+def _same_orientation(aspect: float | None, frame: float) -> bool:
+    """Whether a photo of width/height ``aspect`` fills a frame of width/height ``frame``
+    without losing much of either side: both landscape, both portrait, or a square frame
+    (any photo; an unknown aspect counts as a match)."""
+    if aspect is None or 0.9 <= frame <= 1.1:
+        return True
+    return (aspect > 1.0) == (frame > 1.0)
 
 
 class RealDepthData:
@@ -140,6 +159,10 @@ class RealDepthData:
             silhouettes, the VOC subject, near occluders and pasted cut-outs) and the scene
             teacher's sky.
         jitter: the photometric jitter of a photo's sample (:func:`photometric_jitter`).
+        frame_match: share of the photo samples whose photo is drawn again (up to
+            :data:`_FRAME_TRIES` times) until it is landscape in a landscape frame and portrait
+            in a portrait one, as the network reads a whole photo; otherwise a portrait photo
+            in a landscape frame loses nearly half its height, its sky or its ground.
     """
 
     def __init__(
@@ -159,8 +182,11 @@ class RealDepthData:
         keep_on: str | None = None,
         scene_maps: bool = False,
         jitter: str = "mild",
+        frame_match: float = 0.0,
     ) -> None:
         self.jitter = check_jitter(jitter)
+        self.frame_match = check_share(frame_match, "frame_match")
+        self._aspects: dict[str, float] = {}
         if keep_on not in (None, "background", "plain"):
             raise ValueError(f"keep_on must be 'background', 'plain' or None, got {keep_on!r}")
         self.keep_on = keep_on
@@ -368,6 +394,25 @@ class RealDepthData:
         image = linear_to_srgb(np.clip(radiance, 0.0, 1.0)).astype(np.float32)
         return DepthSample(image, disp.astype(np.float32), relative=False)
 
+    def _draw(self, rng: random.Random) -> Photo:
+        """One training photo, drawn by :attr:`scene_weight`."""
+        if self.scene_weight == 1.0:
+            return rng.choice(self.photos)
+        return rng.choices(self.photos, cum_weights=self._cum_weights)[0]
+
+    def _aspect(self, photo: Photo) -> float:
+        """The photo's width over its height, read from its header once."""
+        aspect = self._aspects.get(photo.key)
+        if aspect is None:
+            from PIL import Image
+
+            with Image.open(photo.path) as im:
+                w, h = im.size
+                if im.getexif().get(0x0112, 1) in (5, 6, 7, 8):  # turned a quarter upright
+                    w, h = h, w
+            aspect = self._aspects[photo.key] = w / h
+        return aspect
+
     def sample(self, rng: random.Random, size: tuple[int, int] | None = None) -> DepthSample:
         """One sample of ``size`` (``(H, W)``; default :attr:`size`)."""
         size = self.size if size is None else size
@@ -377,10 +422,12 @@ class RealDepthData:
             self._weigh()
         if rng.random() < self.synth:
             return self._synth(rng, size)
-        if self.scene_weight == 1.0:
-            photo = rng.choice(self.photos)
-        else:
-            photo = rng.choices(self.photos, cum_weights=self._cum_weights)[0]
+        photo = self._draw(rng)
+        if self.frame_match and rng.random() < self.frame_match:
+            for _ in range(_FRAME_TRIES):
+                if _same_orientation(self._aspect(photo), size[1] / size[0]):
+                    break
+                photo = self._draw(rng)
         img, alpha, layout, keep, maps = self._photo(photo, rng, size)
         target = _target(layout, alpha)
         if rng.random() < self.paste:

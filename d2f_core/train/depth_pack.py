@@ -38,7 +38,7 @@ import numpy as np
 from PIL import Image
 
 from ..sizing import scaled_size
-from .depth_data import RealDepthData, check_jitter, resize_array
+from .depth_data import RealDepthData, check_jitter, check_share, resize_array
 from .heldout import is_heldout_key
 from .teachers import mask_box, read_mask, shard_arg
 
@@ -202,7 +202,8 @@ class PackedDepthData(RealDepthData):
 
     Args:
         pack: the folder of ``pack_*.npz`` shards.
-        size, paste, synth, scene_weight, standing, jitter: as for ``RealDepthData``.
+        size, paste, synth, scene_weight, standing, jitter, frame_match: as for
+            ``RealDepthData``.
     """
 
     def __init__(
@@ -214,8 +215,10 @@ class PackedDepthData(RealDepthData):
         scene_weight: float = 1.0,
         standing: float = 0.0,
         jitter: str = "mild",
+        frame_match: float = 0.0,
     ) -> None:
         self.jitter = check_jitter(jitter)
+        self.frame_match = check_share(frame_match, "frame_match")
         read = read_pack(pack)
         self.photos, self.side = read.photos, read.side
         self.masked = [p for p in self.photos if p.mask is not None]
@@ -226,6 +229,10 @@ class PackedDepthData(RealDepthData):
             raise ValueError(f"scene_weight must be positive, got {scene_weight}")
         self.scene_weight = scene_weight
         self._weigh()
+
+    def _aspect(self, photo: PackedPhoto) -> float:  # type: ignore[override]
+        h, w = photo.image.shape[:2]
+        return w / h
 
     def _load(self, photo: PackedPhoto) -> np.ndarray:  # type: ignore[override]
         return photo.image.astype(np.float32) / 255.0

@@ -165,6 +165,7 @@ def _real_data(args: argparse.Namespace) -> RealDepthData:
         keep_on=args.keep_on if args.keep is not None else None,
         scene_maps=build_defocus_net(args.variant).scene_head is not None,
         jitter=args.jitter,
+        frame_match=args.frame_match,
     )
 
 
@@ -219,6 +220,7 @@ def train_depth(args: argparse.Namespace) -> Path:
         data: RealDepthData = PackedDepthData(
             args.pack, size=(args.crop, args.crop), paste=args.paste, synth=args.synth,
             scene_weight=args.scene_weight, standing=args.standing, jitter=args.jitter,
+            frame_match=args.frame_match,
         )  # fmt: skip
         largest = max(args.sides or [args.crop])
         if largest > data.side:
@@ -492,6 +494,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--jitter", choices=JITTERS, default="mild",
         help="photometric jitter of the photos: mild (exposure) or strong (also white "
         "balance, saturation, blur and noise)",
+    )  # fmt: skip
+    p.add_argument(
+        "--frame-match", type=float, default=0.0, metavar="SHARE",
+        help="share of the photo samples drawn landscape in a landscape frame and portrait in "
+        "a portrait one, as the network reads whole photos",
     )  # fmt: skip
     p.add_argument("--synth", type=float, default=0.15)
     p.add_argument(
