@@ -149,10 +149,15 @@ class TestPrepareRender:
         assert not res.fusion_mask.any()
 
     def test_given_disparity_resized(self, model):
-        scene = model.prepare(_image(), disparity=np.full((7, 5), 0.25, np.float32))
+        scene = model.prepare(_image(), disparity=np.full((12, 16), 0.25, np.float32))
         assert scene.disparity_source == "given"
         np.testing.assert_allclose(scene.disparity_full(), 0.25, atol=1e-6)
         np.testing.assert_allclose(scene.disparity_lr.numpy(), 0.25, atol=1e-6)
+        # a map of another shape is refused, not stretched onto the 64x48 photo
+        with pytest.raises(ValueError, match=r"depth map is 48x64 .* rotated by 90 degrees"):
+            model.prepare(_image(), depth=np.full((64, 48), 0.25, np.float32))
+        with pytest.raises(ValueError, match="depth map is 48x48 but the image is 64x48"):
+            model.prepare(_image(), depth=np.full((48, 48), 0.25, np.float32))
 
     def test_zero_blur_returns_input(self, model):
         image = _image()

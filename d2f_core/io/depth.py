@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import io
 import logging
+import math
 import os
 from pathlib import Path
 from typing import Literal
@@ -352,6 +353,25 @@ def normalize_disparity(
     return np.clip((d - lo) / (hi - lo), 0.0, 1.0).astype(np.float32)
 
 
+def check_aspect(map_shape: tuple[int, ...], image_shape: tuple[int, ...], name: str) -> None:
+    """Raise ``ValueError`` when a depth map of ``(H, W)`` ``map_shape`` would be stretched onto
+    an image of ``(H, W)`` ``image_shape``: their aspect ratios differ by more than 5 % (a map
+    of another resolution and the same shape is only resized). The message says when the map
+    looks turned a quarter relative to the image. A map or an image of one pixel passes.
+    """
+    mh, mw, h, w = int(map_shape[0]), int(map_shape[1]), int(image_shape[0]), int(image_shape[1])
+    if max(mh, mw) <= 1 or max(h, w) <= 1:
+        return
+    ar_map, ar_img = mw / mh, w / h
+    if abs(math.log(ar_map / ar_img)) > 0.05:
+        hint = ""
+        if abs(math.log(ar_map * ar_img)) <= 0.05:
+            hint = " (it looks rotated by 90 degrees relative to the image)"
+        raise ValueError(
+            f"{name}: depth map is {mw}x{mh} but the image is {w}x{h}: aspect ratios differ{hint}"
+        )
+
+
 def depth_to_disparity(
     raw: np.ndarray,
     *,
@@ -403,15 +423,7 @@ def depth_to_disparity(
         h, w = int(size[0]), int(size[1])
         if h < 1 or w < 1:
             raise ValueError(f"size: expected positive (H, W), got {size}")
-        ar_map, ar_img = a.shape[1] / a.shape[0], w / h
-        if abs(np.log(ar_map / ar_img)) > 0.05 and max(a.shape) > 1 and max(h, w) > 1:
-            hint = ""
-            if abs(np.log(ar_map * ar_img)) <= 0.05:
-                hint = " (it looks rotated by 90 degrees relative to the image)"
-            raise ValueError(
-                f"{name}: depth map is {a.shape[1]}x{a.shape[0]} but the image is {w}x{h}: "
-                f"aspect ratios differ{hint}"
-            )
+        check_aspect(a.shape, (h, w), name)
     valid = np.isfinite(a)
     if kind == "depth":
         valid &= a > 0

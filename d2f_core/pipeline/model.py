@@ -17,6 +17,7 @@ from .. import rendering
 from ..depth import sources as depth_sources
 from ..depth.refine import equalize, harden_edges, snap_edges
 from ..errors import InputTypeError, whole_number
+from ..io.depth import check_aspect
 from ..io.embedded import Photo
 from ..lens import blur_px
 from ..networks import build_defocus_net, build_fusion_net, build_radiance_net, read_torch_file
@@ -298,8 +299,8 @@ class D2F(FusionStage, FocusStage, nn.Module):
                 (the photo's phone depth when it has some, else this model's defocus network),
                 ``"d2f"`` (the network), ``"embedded"``, ``"file:PATH"``,
                 ``"transformers:MODEL"``, a :class:`~d2f_core.depth.sources.DepthMap`, or a
-                ready ``H' x W'`` map in [0, 1] (1 = nearest) of any size, resized to the
-                photo.
+                ready ``H' x W'`` map in [0, 1] (1 = nearest) of any size and the photo's
+                aspect ratio (within 5 %), resized to the photo.
             disparity: a ready map, as ``depth`` (its older name).
             refine: edge-aware refinement (:meth:`refine_disparity`) of the map at the
                 rendering pass's size, the same for every source (and the network's own
@@ -308,6 +309,10 @@ class D2F(FusionStage, FocusStage, nn.Module):
         Returns:
             A :class:`Scene` on the model's device; ``scene.disparity_source`` names the
             source (``"given"`` for a bare map).
+
+        Raises:
+            ValueError: a map that is not a disparity in [0, 1], or whose aspect ratio is not
+                the photo's (it would be stretched onto it).
         """
         if disparity is not None and depth is not None:
             raise ValueError("pass the map as depth or as disparity, not both")
@@ -334,6 +339,8 @@ class D2F(FusionStage, FocusStage, nn.Module):
             source, output = "given", "disparity map"
         given = None if depth is None else rendering.disparity_tensor(depth).to(device)
         size = (int(image_t.shape[-2]), int(image_t.shape[-1]))
+        if given is not None:  # resized to the photo, never stretched onto it
+            check_aspect(tuple(given.shape[-2:]), size, "depth")
         lr_size = self.pass_size(size, given=given is not None)
         image_lr = resize(image_t, lr_size).clamp_(0, 1)  # [1,3,h,w]
         if given is None:
