@@ -442,8 +442,8 @@ def main(argv: list[str] | None = None) -> int:
         from .batch.command import run_batch
 
         return run_batch(args)
-    except UsageError as exc:
-        print(f"{PROG}: error: {exc}", file=sys.stderr)
+    except UsageError as exc:  # worded as the parser's own errors are
+        print(f"{PROG}: error: {exc} (see '{PROG} {args.command} --help')", file=sys.stderr)
         return 2
     except Exception as exc:  # expected ones name the problem; any other, one line too
         print(f"{PROG}: error: {error_message(exc)}", file=sys.stderr)

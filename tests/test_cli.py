@@ -103,7 +103,13 @@ class TestUsage:
         before = src.read_bytes()
         code, err = _run(capsys, "render", src, "-o", tmp_path / "." / "photo.png", "--blur", 5)
         assert code == 2 and "is the input photo" in err and err.count("\n") == 1
+        # refused after parsing, worded as the parser's own refusals
+        assert err.startswith("d2f: error: output ")
+        assert err.rstrip().endswith("(see 'd2f render --help')"), err
         assert src.read_bytes() == before
+        code, err = _run(capsys, "batch", tmp_path, "-o", tmp_path, "--blur", 5)
+        assert code == 2 and err.count("\n") == 1, err
+        assert err.rstrip().endswith("(see 'd2f batch --help')"), err
 
     def test_unknown_output_extension(self, tmp_path, capsys):
         img, _ = _scene()
