@@ -1,5 +1,6 @@
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -65,12 +66,34 @@ class TestKernels:
     def test_bad_arguments(self):
         with pytest.raises(ValueError, match="odd"):
             soft_disk_kernel(4)
-        with pytest.raises(ValueError, match="odd"):
+        with pytest.raises(ValueError, match="size must be >= 1, got 0"):
             hard_disk_kernel(0)
         with pytest.raises(ValueError, match="blades"):
             polygon_kernel(9, 2)
         with pytest.raises(ValueError, match="shape"):
             aperture_kernel(9, shape="square")
+
+    @pytest.mark.parametrize("bad", [float("nan"), float("inf"), 2.5, "9", True, -1])
+    def test_sizes_and_counts_are_whole_numbers(self, bad):
+        """Kernel sizes, coarse factors, schedule counts and layer counts name themselves
+        for NaN, infinity, fractions, text and bools (no OverflowError, no silent
+        truncation), and take whole floats and NumPy integers."""
+        from d2f_core.rendering import api, kernels
+
+        calls = {
+            "size": lambda v: soft_disk_kernel(v),
+            "factor": lambda v: kernels.coarse_kernel(9, v),
+            "count": lambda v: kernels.kernel_sizes(v),
+            "num_layers": lambda v: api.render_bokeh(
+                np.zeros((4, 4, 3), np.float32), np.zeros((4, 4), np.float32), 0.5, 4.0,
+                num_layers=v,
+            ),
+        }  # fmt: skip
+        for name, call in calls.items():
+            with pytest.raises(ValueError, match=f"^{name} must be"):
+                call(bad)
+        assert soft_disk_kernel(9.0).shape == soft_disk_kernel(np.int64(9)).shape == (9, 9)
+        assert len(kernels.kernel_sizes(np.int32(4))) == 4
 
 
 class TestCoarseKernel:

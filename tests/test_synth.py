@@ -67,8 +67,12 @@ class TestHelpers:
             assert abs((r**2).mean() - 0.5) < 0.01
 
     def test_aperture_samples_bad_input(self):
-        with pytest.raises(ValueError, match="n"):
+        with pytest.raises(ValueError, match="n must be >= 1, got 0"):
             aperture_samples(0)
+        for bad in (float("nan"), float("inf"), 8.5, "8"):
+            with pytest.raises(ValueError, match="n must be a whole number"):
+                aperture_samples(bad)
+        assert aperture_samples(8.0).shape == aperture_samples(np.int64(8)).shape == (8, 2)
         with pytest.raises(ValueError, match="pattern"):
             aperture_samples(8, pattern="grid")
 

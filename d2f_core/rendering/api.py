@@ -13,6 +13,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from ..errors import whole_number
 from .blur import QUALITY_PRESETS, KernelSpec, with_ones
 from .composite import composite_layers
 from .hidden import hidden_surface, input_pixels
@@ -144,8 +145,7 @@ def render(
     if kernel not in ("soft", "hard"):
         raise ValueError(f"kernel must be 'soft' or 'hard', got {kernel!r}")
     check_placement(placement)
-    if int(num_layers) != num_layers or num_layers < 1:
-        raise ValueError(f"num_layers must be a positive integer, got {num_layers!r}")
+    num_layers = whole_number(num_layers, "num_layers", 1)
     f = focus_tensor(focus, image.shape[0], image, check=not checked)
     blur = float(blur) if checked else check_blur(blur)
     focal_range = check_focal_range(focal_range)

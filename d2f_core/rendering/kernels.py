@@ -13,7 +13,7 @@ import math
 
 import torch
 
-from ..errors import InputTypeError
+from ..errors import whole_number
 
 __all__ = [
     "PAPER_GROWING_SIZES",
@@ -33,10 +33,8 @@ SOFT_PHI = 0.5
 
 
 def _check_size(size: int) -> int:
-    if isinstance(size, bool) or not isinstance(size, (int,)) and not float(size).is_integer():
-        raise InputTypeError(f"size must be an integer, got {size!r}")
-    size = int(size)
-    if size < 1 or size % 2 == 0:
+    size = whole_number(size, "size", 1)
+    if size % 2 == 0:
         raise ValueError(f"size must be a positive odd integer, got {size}")
     return size
 
@@ -175,9 +173,7 @@ def coarse_kernel(
         ``(n, n)`` with ``n = 2 ceil(r / factor + 1/2) + 1``, ``r = size // 2``; sums to 1.
     """
     size = _check_size(size)
-    if isinstance(factor, bool) or int(factor) != factor or factor < 1:
-        raise ValueError(f"factor must be a positive integer, got {factor!r}")
-    factor = int(factor)
+    factor = whole_number(factor, "factor", 1)
     dtype = dtype or torch.get_default_dtype()
     options = dict(shape=shape, blades=blades, rotation=rotation)
     if factor == 1:
@@ -273,9 +269,7 @@ def kernel_sizes(
     ``"uniform"`` uses equal steps; with no ``max_size`` the step is 4 px as in the paper's
     ablation. Sizes are non-decreasing; duplicates can occur for small ``max_size``.
     """
-    if isinstance(count, bool) or int(count) != count or count < 1:
-        raise ValueError(f"count must be a positive integer, got {count!r}")
-    count = int(count)
+    count = whole_number(count, "count", 1)
     if schedule not in ("growing", "uniform"):
         raise ValueError(f"schedule must be 'growing' or 'uniform', got {schedule!r}")
     if count == 1:

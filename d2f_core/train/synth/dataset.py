@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ...errors import whole_number
 from .lens import Scene, linear_to_srgb, render_pinhole, render_thin_lens
 from .scene import builtin_textures, describe_layers, load_textures, make_scene
 
@@ -79,8 +80,7 @@ def make_pair(
         raise ValueError(f"encoding must be 'srgb' or 'linear', got {encoding!r}")
     if not 0.0 <= subject_share <= 1.0:
         raise ValueError(f"subject_share must be in [0, 1], got {subject_share!r}")
-    if not isinstance(samples, int) or samples < 1:
-        raise ValueError(f"samples must be a positive integer, got {samples!r}")
+    samples = whole_number(samples, "samples", 1)
     rng = np.random.default_rng([int(seed), 0x5EED])  # focus/blur draws, apart from the scene's
     long_side = max(size)
     mode = "subject" if rng.random() < subject_share else "random"

@@ -12,7 +12,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ...errors import InputTypeError
+from ...errors import InputTypeError, whole_number
 
 logger = logging.getLogger(__name__)
 
@@ -94,8 +94,7 @@ def aperture_samples(n: int, *, pattern: str = "fibonacci") -> np.ndarray:
     ``fibonacci``: golden-angle spiral (even coverage for any n); ``concentric``:
     Shirley-Chiu map of a stratified square grid (n rounded down to a square, >= 1).
     """
-    if not isinstance(n, int | np.integer) or n < 1:
-        raise ValueError(f"n must be a positive integer, got {n!r}")
+    n = whole_number(n, "n", 1)
     if pattern == "fibonacci":
         i = np.arange(n) + 0.5
         r = np.sqrt(i / n)
