@@ -119,3 +119,19 @@ def test_shipped_weights_put_held_out_subjects_over_ground_in_front(shipped, one
     row = _held_out_row(shipped, "photo over ground", at_least=60, teachers=DATASETS / "teachers")
     assert row["share"] >= 0.92 and row["median_margin"] > 0.15  # 63 of 70 fails
     assert row["focused"] >= 0.7  # the automatic focus on the subject: measured 57 of 70
+
+
+def test_near_mask_is_the_dilated_mask_read_at_a_point():
+    """``near_mask`` answers as a mask dilated ``reach`` times (a cross each time) read at the
+    point, on every pixel of random masks, borders and points outside the frame included."""
+    from scipy.ndimage import binary_dilation
+
+    rng = np.random.default_rng(5)
+    for reach in (0, 1, 3):
+        for density in (0.002, 0.02):
+            mask = rng.random((23, 31)) < density
+            grown = binary_dilation(mask, iterations=reach) if reach else mask
+            for yi in range(23):
+                for xi in range(31):
+                    assert standing.near_mask(mask, xi, yi, reach) == grown[yi, xi]
+            assert standing.near_mask(mask, -5.0, 40.0, reach) == grown[22, 0]

@@ -116,14 +116,21 @@ def focuses_on(pred: np.ndarray, mask: np.ndarray) -> bool:
     """Whether the automatic focus on ``pred`` lands on the subject: the point
     :func:`~d2f_core.depth.subject.subject_in_map` picks (what the app, the CLI and the
     library focus on with no focus given) lies on ``mask`` or within 3 px of it."""
-    from scipy.ndimage import binary_dilation
-
     from ..depth.subject import subject_in_map
 
     _, (x, y) = subject_in_map(np.asarray(pred, dtype=np.float32))
+    return near_mask(mask, x, y, 3)
+
+
+def near_mask(mask: np.ndarray, x: float, y: float, reach: int) -> bool:
+    """Whether the pixel nearest ``(x, y)`` (clamped into the frame) lies on ``mask`` or
+    within ``reach`` steps of it (city-block distance, as ``reach`` cross-shaped dilations
+    reach), looking only at the pixels around it."""
     h, w = mask.shape
     xi, yi = min(max(round(x), 0), w - 1), min(max(round(y), 0), h - 1)
-    return bool(binary_dilation(mask, iterations=3)[yi, xi])
+    y0, x0 = max(yi - reach, 0), max(xi - reach, 0)
+    ys, xs = np.nonzero(mask[y0 : yi + reach + 1, x0 : xi + reach + 1])
+    return bool((np.abs(ys + y0 - yi) + np.abs(xs + x0 - xi) <= reach).any())
 
 
 def score(
