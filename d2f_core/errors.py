@@ -29,6 +29,10 @@ def whole_number(value: Any, name: str, minimum: int) -> int:
     """
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
         raise InputTypeError(f"{name} must be a whole number, got {value!r}")
+    if isinstance(value, numbers.Integral):  # exactly, however large
+        if int(value) < minimum:
+            raise ValueError(f"{name} must be >= {minimum}, got {value!r}")
+        return int(value)
     number = float(value)
     if not math.isfinite(number) or number != int(number):
         raise ValueError(f"{name} must be a whole number, got {value!r}")

@@ -1141,28 +1141,34 @@ def test_pack_holds_the_photos_and_targets_training_draws(tmp_path, capsys):
     assert "no labelled training photos" in capsys.readouterr().err
 
 
-def test_frame_match_draws_photos_of_the_frames_orientation(tmp_path):
+def test_frame_match_draws_photos_of_the_frames_orientation(tmp_path, capsys):
     """``--frame-match``: a portrait frame is filled with a portrait photo, a landscape frame
-    with a landscape one, as the network reads whole photos; without it, either."""
+    with a landscape one, as the network reads whole photos (a nearly square photo fits
+    either; a photo turned by its EXIF tag counts as it is shown); without it, any photo."""
     from d2f_core.train import depth_pack
 
     root, labels = tmp_path / "datasets", tmp_path / "labels"
-    (root / "photos/bsds500").mkdir(parents=True)
+    folder = root / "photos/bsds500"
+    folder.mkdir(parents=True)
     labels.mkdir()
-    for i in range(4):  # landscape photos green, portrait ones red
-        Image.fromarray(np.full((60, 80, 3), (0, 200, 0), np.uint8)).save(
-            root / f"photos/bsds500/l{i}.png"
-        )
-        Image.fromarray(np.full((80, 60, 3), (200, 0, 0), np.uint8)).save(
-            root / f"photos/bsds500/p{i}.png"
-        )
+    green, red, blue = (0, 200, 0), (200, 0, 0), (0, 0, 200)
+    for i in range(3):  # landscape photos green, portrait ones red
+        Image.fromarray(np.full((60, 80, 3), green, np.uint8)).save(folder / f"l{i}.png")
+        Image.fromarray(np.full((80, 60, 3), red, np.uint8)).save(folder / f"p{i}.png")
+    # stored landscape, shown portrait: EXIF orientation 6 (turned a quarter clockwise)
+    exif = Image.Exif()
+    exif[0x0112] = 6
+    Image.fromarray(np.full((60, 80, 3), red, np.uint8)).save(folder / "turned.jpg", exif=exif)
+    Image.fromarray(np.full((60, 63, 3), blue, np.uint8)).save(folder / "square.png")
     for photo in teachers.iter_photos(root):
         depth = np.tile(np.linspace(200, 20, 224, dtype=np.uint8)[:, None], (1, 224))
         np.savez(labels / f"{photo.key}.npz", fg=np.zeros((257, 257), np.uint8), depth=depth)
 
-    def red_share(data, size, n=60):
+    def shares(data, size, n=80):
+        """Shares of green, red and blue samples."""
         rng = random.Random(3)
-        return np.mean([data.sample(rng, size).image[..., 0].mean() > 0.5 for _ in range(n)])
+        first = [data.sample(rng, size).image[0, 0].argmax() for _ in range(n)]
+        return [np.mean([c == k for c in first]) for k in (1, 0, 2)]
 
     def from_folder(share):
         return depth_train.RealDepthData(root, labels, paste=0, synth=0, frame_match=share)
@@ -1175,12 +1181,21 @@ def test_frame_match_draws_photos_of_the_frames_orientation(tmp_path):
     )
     for make in (from_folder, from_pack):
         matched, plain = make(1.0), make(0.0)
-        assert red_share(matched, (48, 36)) == 1.0  # portrait frame: portrait photos
-        assert red_share(matched, (36, 48)) == 0.0  # landscape frame: landscape photos
-        assert 0.2 < red_share(plain, (48, 36)) < 0.8
-        assert 0.2 < red_share(matched, (40, 40)) < 0.8  # a square frame takes either
+        # 1 + 8 draws of a photo: one of the other orientation is left in 1 sample of 2^9
+        g, r, b = shares(matched, (48, 36))  # portrait frame: portrait or square photos
+        assert g <= 0.05 and r > 0.5 and b > 0.05, (make, g, r, b)
+        g, r, b = shares(matched, (36, 48))  # landscape frame: landscape or square photos
+        assert r <= 0.05 and g > 0.5 and b > 0.05, (make, g, r, b)
+        for data, size in ((plain, (48, 36)), (matched, (40, 40))):  # any photo
+            g, r, b = shares(data, size)
+            assert 0.2 < g < 0.65 and 0.2 < r < 0.65, (make, size, g, r, b)
         with pytest.raises(ValueError, match=r"frame_match must be a share in \[0, 1\]"):
             make(1.5)
+    # every batch a square crop: nothing to match, said so
+    argv = ["--data", str(root), "--labels", str(labels), "--out", str(tmp_path / "run"),
+            "--frame-match", "0.5", "--steps", "1"]  # fmt: skip
+    assert depth_train.main(argv) == 2
+    assert "--frame-match needs --sides" in capsys.readouterr().err
 
 
 def test_training_from_a_pack_on_a_time_budget(tmp_path, tiny_checkpoint, one_thread, capsys):

@@ -132,6 +132,10 @@ class TestLocalSources:
         assert got.disparity[:, 0].mean() < 0.05 and got.disparity[:, -1].mean() > 0.95
         with pytest.raises(ValueError, match="no phone depth"):
             ds.depth_map("embedded", image, photo=Photo(image=image, info=None))
+        # phone depth of another shape than the photo is refused, not stretched onto it
+        turned = Photo(image=image, info=None, disparity=np.ascontiguousarray(disp.T))
+        with pytest.raises(ValueError, match=r"embedded depth: depth map is 20x32 .* rotated"):
+            ds.depth_map("embedded", image, photo=turned)
         with pytest.raises(ValueError, match="no phone depth"):
             ds.depth_map("embedded", image)
 

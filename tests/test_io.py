@@ -485,3 +485,19 @@ class TestFloatToUint8:
         finally:
             tracemalloc.stop()
         assert peak < a.nbytes // 4 + 4 * io_save._BAND_ELEMENTS + (1 << 20), peak
+
+
+def test_check_aspect_known_answers():
+    """A depth map is resized onto its photo only when their shapes agree within 5 %."""
+    from d2f_core.io.depth import check_aspect
+
+    check_aspect((300, 400), (3000, 4000), "d")  # another resolution, the same shape
+    check_aspect((300, 412), (300, 400), "d")  # 3 % wider: rounding of a resized map
+    check_aspect((1, 1), (300, 400), "d")  # a single value fits any photo
+    with pytest.raises(ValueError, match=r"^d: depth map is 424x300 but the image is 400x300: "
+                       r"aspect ratios differ$"):  # fmt: skip
+        check_aspect((300, 424), (300, 400), "d")  # 6 % wider
+    with pytest.raises(ValueError, match=r"looks rotated by 90 degrees"):
+        check_aspect((400, 300), (300, 400), "d")
+    with pytest.raises(ValueError, match="a side is empty"):
+        check_aspect((0, 5), (300, 400), "d")

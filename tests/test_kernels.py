@@ -95,6 +95,19 @@ class TestKernels:
         assert soft_disk_kernel(9.0).shape == soft_disk_kernel(np.int64(9)).shape == (9, 9)
         assert len(kernels.kernel_sizes(np.int32(4))) == 4
 
+    def test_whole_numbers_beyond_a_float(self):
+        """Integers are taken exactly, however large: never rounded through a float, and
+        never an unnamed OverflowError."""
+        from d2f_core.errors import whole_number
+
+        assert whole_number(2**53 + 1, "n", 1) == 2**53 + 1
+        assert whole_number(10**400, "n", 1) == 10**400
+        assert whole_number(np.uint64(2**63 + 1), "n", 1) == 2**63 + 1
+        with pytest.raises(ValueError, match=r"n must be >= 1, got np.int8\(-5\)"):
+            whole_number(np.int8(-5), "n", 1)
+        with pytest.raises(ValueError, match="n must be a whole number, got inf"):
+            whole_number(float("inf"), "n", 1)
+
 
 class TestCoarseKernel:
     """Kernels for layers rendered at 1/2 or 1/4 resolution (cell mean, coarse convolution,

@@ -52,6 +52,7 @@ import torch
 import torch.nn.functional as F
 
 from ..errors import InputTypeError
+from ..io.depth import check_aspect
 
 __all__ = [
     "DEFAULT_SOURCE",
@@ -271,7 +272,9 @@ def depth_map(
                 "or Apple portrait); choose d2f, file:PATH or transformers:MODEL"
             )
         info = getattr(photo, "depth_info", None) or {}
-        d = _fit(np.asarray(disparity, dtype=np.float32), size)
+        disparity = np.asarray(disparity, dtype=np.float32)
+        check_aspect(disparity.shape, size, "embedded depth")
+        d = _fit(disparity, size)
         kind = info.get("source", "phone")
         return DepthMap(d, spec.name, f"{kind} phone depth", getattr(photo, "focus", None))
     if spec.kind == "file":

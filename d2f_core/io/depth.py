@@ -360,6 +360,8 @@ def check_aspect(map_shape: tuple[int, ...], image_shape: tuple[int, ...], name:
     looks turned a quarter relative to the image. A map or an image of one pixel passes.
     """
     mh, mw, h, w = int(map_shape[0]), int(map_shape[1]), int(image_shape[0]), int(image_shape[1])
+    if min(mh, mw) < 1 or min(h, w) < 1:
+        raise ValueError(f"{name}: depth map is {mw}x{mh} and the image {w}x{h}: a side is empty")
     if max(mh, mw) <= 1 or max(h, w) <= 1:
         return
     ar_map, ar_img = mw / mh, w / h

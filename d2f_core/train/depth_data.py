@@ -15,6 +15,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from ..io import load_image
+from ..io.formats import exif_orientation
 from ..networks import SCENE_MAPS
 from ..sizing import scaled_size
 from .heldout import is_heldout
@@ -125,9 +126,9 @@ _FRAME_TRIES = 8  # draws of a photo whose orientation matches the frame, at mos
 
 def _same_orientation(aspect: float | None, frame: float) -> bool:
     """Whether a photo of width/height ``aspect`` fills a frame of width/height ``frame``
-    without losing much of either side: both landscape, both portrait, or a square frame
-    (any photo; an unknown aspect counts as a match)."""
-    if aspect is None or 0.9 <= frame <= 1.1:
+    without losing much of either side: both landscape, both portrait, or either of them
+    (nearly) square, within 10 %; an unknown aspect counts as a match."""
+    if aspect is None or 0.9 <= frame <= 1.1 or 0.9 <= aspect <= 1.1:
         return True
     return (aspect > 1.0) == (frame > 1.0)
 
@@ -408,7 +409,7 @@ class RealDepthData:
 
             with Image.open(photo.path) as im:
                 w, h = im.size
-                if im.getexif().get(0x0112, 1) in (5, 6, 7, 8):  # turned a quarter upright
+                if exif_orientation(im) >= 5:  # shown turned a quarter, as load_image turns it
                     w, h = h, w
             aspect = self._aspects[photo.key] = w / h
         return aspect

@@ -205,6 +205,11 @@ def train_depth(args: argparse.Namespace) -> Path:
             "--scene-targets, --layout-teacher and --rescan-every build targets from the "
             "labels; a pack's targets were built when it was written (d2f-train depth-pack)"
         )
+    if args.frame_match and not args.sides:
+        raise ValueError(
+            "--frame-match needs --sides: without it every batch is a square --crop, which "
+            "fits a photo of either orientation"
+        )
     if args.minutes is not None and args.minutes <= 0:
         raise ValueError(f"--minutes must be positive, got {args.minutes}")
     device = torch.device(args.device)
