@@ -442,7 +442,7 @@ def _map_at_size(arr: np.ndarray, size: tuple[int, int]) -> np.ndarray:
 def check_output_name(path: Path) -> None:
     if path.suffix.lower() not in SAVE_FORMATS:
         known = " ".join(sorted(SAVE_FORMATS))
-        raise UsageError(f"output {os.fspath(path)!r}: unknown image extension (use {known})")
+        raise UsageError(f"output {os.fspath(path)!r}: unknown image extension; use one of {known}")
 
 
 _EXPECTED_ERRORS = (RenderError, ValueError, OSError, RuntimeError)

@@ -113,7 +113,7 @@ def _check(args: argparse.Namespace) -> None:
     for source in args.input:
         path = Path(source)
         if path.is_dir() and out.exists() and same_file(out, path):
-            raise UsageError("-o must differ from the input folder (outputs never replace inputs)")
+            raise UsageError("-o must differ from the input folder: outputs never replace inputs")
         if path.is_dir() and args.save_maps is not None and args.save_maps.exists():
             if same_file(args.save_maps, path):
                 raise UsageError("--save-maps must differ from the input folder")
