@@ -29,13 +29,13 @@ def whole_number(value: Any, name: str, minimum: int) -> int:
     """
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
         raise InputTypeError(f"{name} must be a whole number, got {value!r}")
-    if isinstance(value, numbers.Integral):  # exactly, however large
-        if int(value) < minimum:
-            raise ValueError(f"{name} must be >= {minimum}, got {value!r}")
-        return int(value)
-    number = float(value)
-    if not math.isfinite(number) or number != int(number):
-        raise ValueError(f"{name} must be a whole number, got {value!r}")
+    if isinstance(value, numbers.Integral):
+        number = int(value)  # exactly, however large: never through a float
+    else:
+        real = float(value)
+        if not math.isfinite(real) or real != int(real):
+            raise ValueError(f"{name} must be a whole number, got {value!r}")
+        number = int(real)
     if number < minimum:
         raise ValueError(f"{name} must be >= {minimum}, got {value!r}")
-    return int(number)
+    return number

@@ -124,11 +124,11 @@ def photometric_jitter(img: np.ndarray, rng: random.Random, kind: str = "mild") 
 _FRAME_TRIES = 8  # draws of a photo whose orientation matches the frame, at most
 
 
-def _same_orientation(aspect: float | None, frame: float) -> bool:
+def _same_orientation(aspect: float, frame: float) -> bool:
     """Whether a photo of width/height ``aspect`` fills a frame of width/height ``frame``
     without losing much of either side: both landscape, both portrait, or either of them
-    (nearly) square, within 10 %; an unknown aspect counts as a match."""
-    if aspect is None or 0.9 <= frame <= 1.1 or 0.9 <= aspect <= 1.1:
+    (nearly) square, within 10 %."""
+    if 0.9 <= frame <= 1.1 or 0.9 <= aspect <= 1.1:
         return True
     return (aspect > 1.0) == (frame > 1.0)
 
