@@ -4,6 +4,7 @@ run and the pipeline's use of the maps."""
 
 from __future__ import annotations
 
+import dataclasses
 import random
 
 import numpy as np
@@ -66,6 +67,21 @@ class TestStandSubjects:
         speck = _box(y0=20, y1=22, x0=50, x1=52)  # 4 px of 12,288: under min_area
         np.testing.assert_array_equal(stand_subjects(_ramp(), speck), _ramp())
         np.testing.assert_array_equal(stand_subjects(_ramp(), subject, lift=0.0), _ramp())
+
+    def test_the_shift_is_bounded_by_max_shift(self):
+        """A part that needs a large shift moves exactly ``max_shift``, as a whole; one that
+        needs less than the bound gets what it needs, as without one."""
+        d, subject = _ramp(), _box()
+        free = stand_subjects(d, subject, lift=0.1)
+        need = float(np.median(free[subject > 0.5] - d[subject > 0.5]))
+        assert need > 0.25  # the ring's 90th percentile and the lift, over the part's quartile
+        out = stand_subjects(d, subject, lift=0.1, max_shift=0.05)
+        np.testing.assert_allclose(out[subject > 0.5] - d[subject > 0.5], 0.05, atol=1e-6)
+        np.testing.assert_array_equal(out[subject < 0.5], d[subject < 0.5])
+        np.testing.assert_array_equal(stand_subjects(d, subject, lift=0.1, max_shift=0.9), free)
+        np.testing.assert_array_equal(stand_subjects(d, subject, lift=0.1, max_shift=0.0), d)
+        with pytest.raises(ValueError, match="max_shift must be >= 0"):
+            stand_subjects(d, subject, max_shift=float("nan"))
 
     def test_a_hesitant_subject_map_stands_nothing(self):
         hesitant = np.where(_box() > 0.5, 0.6, 0.4).astype(np.float32)  # clarity 0.2
@@ -214,6 +230,16 @@ def test_scene_variant_trains_exports_and_stands_its_subjects(tmp_path, tiny_che
     want = stand_subjects(d[0, 0].numpy(), probs[0], probs[1], lift=0.05)
     assert np.abs(want - d[0, 0].numpy()).max() > 0.01  # it stood some of them
     np.testing.assert_allclose(got[0, 0].numpy(), want, atol=1e-6)
+    # config.subject_shift bounds how far a subject moves
+    model.config.subject_shift = 0.005
+    with torch.no_grad():
+        bounded = model.predict_disparity(image, refine=False)[0, 0].numpy()
+    small = stand_subjects(d[0, 0].numpy(), probs[0], probs[1], lift=0.05, max_shift=0.005)
+    np.testing.assert_allclose(bounded, small, atol=1e-6)
+    assert np.abs(bounded - d[0, 0].numpy()).max() <= 0.005 + 1e-6
+    model.config.subject_shift = 1.0
+    with pytest.raises(ValueError, match="subject_shift must be in"):
+        dataclasses.replace(model.config, subject_shift=1.5)
     # --head-only: the scene head learns, the disparity network stays as it started
     head = depth_train.build_parser().parse_args(
         ["--data", str(root), "--labels", str(labels), "--out", str(tmp_path / "head"),

@@ -30,6 +30,7 @@ def stand_subjects(
     ring: float = 0.1,
     max_parts: int = 8,
     min_clarity: float = 0.0,
+    max_shift: float = 1.0,
 ) -> np.ndarray:
     """``disparity`` with its subjects in front of their surroundings and its sky farthest.
 
@@ -41,7 +42,9 @@ def stand_subjects(
       ``ring`` of the frame's long side wide around it. The ring leaves out the rows below
       the part's lowest row: that is the ground in front of it. A part already in front is
       left as it is, and the shift keeps the part's own relief. Its soft rim (``subject``
-      between 0.3 and 0.7) takes part of the shift.
+      between 0.3 and 0.7) takes part of the shift. No part moves more than
+      ``max_shift``: a part the map puts far behind its ring is brought that much nearer,
+      not all the way (a wrong subject then costs the scene's order little).
 
     Subjects are stood only when the subject map is clear (of its pixels above 0.1, the mean
     distance from 0.5, doubled, is at least ``min_clarity``): a hesitant map is a scene with
@@ -59,6 +62,7 @@ def stand_subjects(
         ring: the width of the ring around a part, as a fraction of the long side.
         max_parts: at most this many parts (the largest) are stood.
         min_clarity: below this clarity of ``subject``, no part is stood.
+        max_shift: the most any part is moved nearer, in disparity (1 leaves it unbounded).
 
     Returns:
         ``H x W`` float32 in [0, 1].
@@ -79,8 +83,8 @@ def stand_subjects(
             raise ValueError(f"{name} must be an H x W map of shape {d.shape}, got {m.shape}")
         if not np.isfinite(m).all():
             raise ValueError(f"{name} holds NaN or infinite values")
-    if lift < 0 or not 0 <= min_area < 1 or ring <= 0:
-        raise ValueError("lift must be >= 0, min_area in [0, 1) and ring > 0")
+    if lift < 0 or not 0 <= min_area < 1 or ring <= 0 or not max_shift >= 0:
+        raise ValueError("lift and max_shift must be >= 0, min_area in [0, 1) and ring > 0")
     out = d.copy()
     h, w = d.shape
     if sky is not None:
@@ -92,7 +96,7 @@ def stand_subjects(
     hard = s >= 0.5
     soft = s[s > 0.1]
     clarity = float(np.mean(np.abs(soft - 0.5)) * 2) if soft.size else 0.0
-    if lift <= 0 or not hard.any() or clarity < min_clarity:
+    if lift <= 0 or max_shift <= 0 or not hard.any() or clarity < min_clarity:
         return np.clip(out, 0.0, 1.0).astype(np.float32)
     parts, n = ndimage.label(hard, structure=np.ones((3, 3), bool))
     sizes = np.bincount(parts.ravel(), minlength=n + 1)[1:]
@@ -120,7 +124,7 @@ def stand_subjects(
             continue
         local = base[win]
         floor = float(np.percentile(local[around], 90)) + lift
-        need = floor - float(np.percentile(local[part], 25))
+        need = min(floor - float(np.percentile(local[part], 25)), max_shift)
         if need <= 0:
             continue
         rim = part | ((dist <= 3) & (alpha[win] > 0))

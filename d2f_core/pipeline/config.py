@@ -73,6 +73,10 @@ class D2FConfig:
             edges are snapped. 0 keeps the network's disparity as it is.
         subject_clarity: the subjects are stood only where the scene head's subject map is
             at least this clear (``min_clarity`` of :func:`~d2f_core.depth.scene.stand_subjects`).
+        subject_shift: the most a subject is moved nearer, in disparity (``max_shift`` of
+            :func:`~d2f_core.depth.scene.stand_subjects`): the head also finds "subjects" in
+            scenes with none (a shelf, a flower bed), and a small shift costs their order
+            little. 1 leaves the shift unbounded.
         spread: share of the network's map that is replaced by the same map equalised
             (:func:`d2f_core.depth.refine.equalize`, clip limit ``spread_clip``): the network
             learns the order of depths better than their spacing, and a map bunched in a
@@ -104,6 +108,7 @@ class D2FConfig:
     edge_radius: float = 0.004
     subject_lift: float = 0.05
     subject_clarity: float = 0.0
+    subject_shift: float = 1.0
     spread: float = 0.0
     spread_clip: float = 4.0
 
@@ -138,6 +143,8 @@ class D2FConfig:
             )
         if not 0 <= self.subject_lift <= 0.5:
             raise ValueError(f"config.subject_lift must be in [0, 0.5], got {self.subject_lift}")
+        if not 0 <= self.subject_shift <= 1:
+            raise ValueError(f"config.subject_shift must be in [0, 1], got {self.subject_shift}")
         if not (0 <= self.spread <= 1 and self.spread_clip >= 1):
             raise ValueError(
                 f"config.spread must be in [0, 1] and spread_clip >= 1, got {self.spread} "

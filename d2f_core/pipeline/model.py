@@ -244,6 +244,7 @@ class D2F(FusionStage, FocusStage, nn.Module):
                     m[1].float().cpu().numpy(),
                     lift=self.config.subject_lift,
                     min_clarity=self.config.subject_clarity,
+                    max_shift=self.config.subject_shift,
                 )
             )
             for d, m in zip(disparity, maps, strict=True)
