@@ -80,8 +80,27 @@ class TestStandSubjects:
         np.testing.assert_array_equal(out[subject < 0.5], d[subject < 0.5])
         np.testing.assert_array_equal(stand_subjects(d, subject, lift=0.1, max_shift=0.9), free)
         np.testing.assert_array_equal(stand_subjects(d, subject, lift=0.1, max_shift=0.0), d)
-        with pytest.raises(ValueError, match="max_shift must be >= 0"):
+        with pytest.raises(ValueError, match="max_shift and blend must be >= 0"):
             stand_subjects(d, subject, max_shift=float("nan"))
+
+    def test_blend_follows_the_subject_map(self):
+        """``blend`` moves every pixel nearer by its share of the square of the subject map:
+        a sure pixel all of it, a hesitant one (0.5) a quarter, the rest none; with no part
+        stood (``lift`` 0) nothing else changes, and a move past 1 rescales the whole map."""
+        d = _ramp()
+        subject = 0.5 * _box(y0=10, y1=30)
+        subject[50:70, 50:80] = 1.0
+        out = stand_subjects(d, subject, lift=0.0, blend=0.2)
+        np.testing.assert_allclose(out[55, 60], d[55, 60] + 0.2, atol=1e-6)
+        np.testing.assert_allclose(out[20, 60], d[20, 60] + 0.05, atol=1e-6)
+        np.testing.assert_array_equal(out[subject == 0], d[subject == 0])
+        # a blend of 0.4 takes the box's lowest row past 1 (1.08): the map is divided by it
+        high = stand_subjects(d, subject, lift=0.0, blend=0.4)
+        assert high.max() == pytest.approx(1.0)
+        np.testing.assert_allclose(high[subject == 0], d[subject == 0] / (d[69, 60] + 0.4))
+        # with a part stood too, the blend comes on top of its shift
+        both = stand_subjects(d, subject, lift=0.1, max_shift=0.05, blend=0.2)
+        np.testing.assert_allclose(both[55, 60], d[55, 60] + 0.25, atol=1e-6)
 
     def test_a_hesitant_subject_map_stands_nothing(self):
         hesitant = np.where(_box() > 0.5, 0.6, 0.4).astype(np.float32)  # clarity 0.2
@@ -269,3 +288,10 @@ def test_scene_variant_trains_exports_and_stands_its_subjects(tmp_path, tiny_che
     model.config.subject_lift = 0.0
     with torch.no_grad():
         np.testing.assert_array_equal(model.predict_disparity(image, refine=False), d.numpy())
+    # config.subject_blend alone still reads the head: the soft step and the sky, no parts
+    model.config.subject_blend = 0.1
+    with torch.no_grad():
+        blended = model.predict_disparity(image, refine=False)[0, 0].numpy()
+    want = stand_subjects(d[0, 0].numpy(), probs[0], probs[1], lift=0.0, blend=0.1)
+    np.testing.assert_allclose(blended, want, atol=1e-6)
+    assert np.abs(blended - d[0, 0].numpy()).max() > 0.01

@@ -77,6 +77,11 @@ class D2FConfig:
             :func:`~d2f_core.depth.scene.stand_subjects`): the head also finds "subjects" in
             scenes with none (a shelf, a flower bed), and a small shift costs their order
             little. 1 leaves the shift unbounded.
+        subject_blend: every pixel is moved nearer by this much times the square of the
+            scene head's subject probability (``blend`` of
+            :func:`~d2f_core.depth.scene.stand_subjects`), whether or not ``subject_lift``
+            stands its parts: the head ranks held-out subjects above their background far
+            better than the disparity does. 0 leaves the map as the parts' stand has it.
         spread: share of the network's map that is replaced by the same map equalised
             (:func:`d2f_core.depth.refine.equalize`, clip limit ``spread_clip``): the network
             learns the order of depths better than their spacing, and a map bunched in a
@@ -109,6 +114,7 @@ class D2FConfig:
     subject_lift: float = 0.05
     subject_clarity: float = 0.0
     subject_shift: float = 1.0
+    subject_blend: float = 0.0
     spread: float = 0.0
     spread_clip: float = 4.0
 
@@ -145,6 +151,8 @@ class D2FConfig:
             raise ValueError(f"config.subject_lift must be in [0, 0.5], got {self.subject_lift}")
         if not 0 <= self.subject_shift <= 1:
             raise ValueError(f"config.subject_shift must be in [0, 1], got {self.subject_shift}")
+        if not 0 <= self.subject_blend <= 1:
+            raise ValueError(f"config.subject_blend must be in [0, 1], got {self.subject_blend}")
         if not (0 <= self.spread <= 1 and self.spread_clip >= 1):
             raise ValueError(
                 f"config.spread must be in [0, 1] and spread_clip >= 1, got {self.spread} "

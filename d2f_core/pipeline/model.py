@@ -210,7 +210,9 @@ class D2F(FusionStage, FocusStage, nn.Module):
         net_size = scaled_size(tuple(source.shape[-2:]), 1.0, self.config.network_size)
         small = resize(source, net_size)
         net = self.defocus_net
-        scene = net.scene_head is not None and self.config.subject_lift > 0
+        scene = net.scene_head is not None and (
+            self.config.subject_lift > 0 or self.config.subject_blend > 0
+        )
         forward = net.forward_scene if scene else lambda x: (net(x), None)
         if self.config.flip_average:
             b = small.shape[0]
@@ -245,6 +247,7 @@ class D2F(FusionStage, FocusStage, nn.Module):
                     lift=self.config.subject_lift,
                     min_clarity=self.config.subject_clarity,
                     max_shift=self.config.subject_shift,
+                    blend=self.config.subject_blend,
                 )
             )
             for d, m in zip(disparity, maps, strict=True)
