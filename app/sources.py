@@ -35,8 +35,9 @@ CHOICES = (
 NETWORK_NOTE = (
     "Without phone depth the shipped network guesses the depth: right for one clear subject "
     "(a person, a pet, an object) and for tall subjects, posts and trunks crossing the frame; "
-    "often wrong for rooms, shelves and flower beds; about 1 in 20 subjects over water or a "
-    "floor goes behind. If the blur lands on your subject, click the subject."
+    "often wrong for rooms, shelves and flower beds, where a sofa or a table can come forward "
+    "as if it were the subject; about 1 in 30 subjects over water or a floor goes behind. If "
+    "the blur lands on your subject, click the subject."
 )
 HUB_PLACEHOLDER = "depth-anything/Depth-Anything-V2-Small-hf"
 #: Longest model id or folder name taken from a client (hub ids are at most 96 + 1 + 96).
