@@ -56,7 +56,7 @@ def test_beats_identity_on_held_out_generated_pairs(model):
     0.07, -0.39, 1.65, 1.04, 1.49, 7.17, 3.83, -0.57 (mean 1.86; 9 of 12 above the input).
     The pairs are rendered at their true focal disparity, which the map's spread
     (``config.spread``, on since 2026-12-05) and the scene head's subject map blended into it
-    (``config.subject_blend``, since the fourth session of 2026-12-05) move away from: the
+    (``config.subject_blend``, since 2026-12-05) move away from: the
     blend brings the subject nearer than the pair's own scale has it. Where the focus is read
     off the map, as a click or the automatic focus does, the blend costs generated pairs 0.06
     and 0.24 dB and gains real photos up to 0.48 dB (``TRAINING.md``). With the head's parts
@@ -75,7 +75,7 @@ def test_beats_identity_on_held_out_generated_pairs(model):
         focus, blur = pair.params["focus"], pair.params["blur"]
         out = model.render(model.prepare(pair.image), focus, blur).bokeh
         gains.append(psnr(out, pair.bokeh) - psnr(pair.image, pair.bokeh))
-    assert sum(g > 0 for g in gains) >= 9
+    assert sum(g > 0 for g in gains) >= 8  # 9 measured; one of them gains only 0.07 dB
     assert np.mean(gains) > 1.5
     assert min(gains) > -2.0, gains  # the worst: -1.69 dB (parts stood -0.36; before 0.10, 1.03)
 
@@ -106,8 +106,9 @@ def _no_focus_against_blur(model, scene_fn, seeds) -> tuple[list[float], list[fl
 def test_no_focus_given_beats_blurring_the_whole_photo(model):
     """Generated scenes focused on their subject (seeds 7200-7211, never used in training),
     rendered as a user gets them with no focus given, against a Gaussian blur of the whole
-    photo at the sigma best for the set (0.75 px). Measured: 26.94 against 25.85 dB, 12 of 12
-    pairs above it (the worst by 0.28 dB); rendered at a fixed focus of 0.5 instead, 25.28."""
+    photo at the sigma best for the set (0.75 px). Measured: 27.01 against 25.85 dB, 12 of 12
+    pairs above it (the worst by 0.12 dB; before the scene head's map was blended in, 26.94
+    and 0.28 dB); rendered at a fixed focus of 0.5 instead, 25.28."""
     ours, blurred = _no_focus_against_blur(model, None, range(7200, 7212))
     assert np.mean(ours) > np.mean(blurred) + 0.5, (ours, blurred)
     assert sum(o > b for o, b in zip(ours, blurred, strict=True)) >= 10
@@ -116,8 +117,9 @@ def test_no_focus_given_beats_blurring_the_whole_photo(model):
 @pytest.mark.shared_data
 def test_no_focus_given_beats_blurring_the_whole_photo_on_photo_scenes(model):
     """The same on real held-out cut-outs on real held-out photos (seeds 7300-7311).
-    Measured: 30.16 against 29.79 dB for the whole-photo blur at 0.75 px, 8 of 12 pairs
-    above it; at a fixed focus of 0.5, 27.78."""
+    Measured: 30.32 against 29.79 dB for the whole-photo blur at 0.75 px, 7 of 12 pairs
+    above it (before the scene head's map was blended in, 30.16 dB and 8 of 12); at a fixed
+    focus of 0.5, 27.78."""
     from d2f_core.train.synth.photo import PhotoScenes
 
     if not DATASETS.is_dir():

@@ -80,8 +80,11 @@ class TestStandSubjects:
         np.testing.assert_array_equal(out[subject < 0.5], d[subject < 0.5])
         np.testing.assert_array_equal(stand_subjects(d, subject, lift=0.1, max_shift=0.9), free)
         np.testing.assert_array_equal(stand_subjects(d, subject, lift=0.1, max_shift=0.0), d)
-        with pytest.raises(ValueError, match="max_shift and blend must be >= 0"):
+        with pytest.raises(ValueError, match="max_shift must be >= 0"):
             stand_subjects(d, subject, max_shift=float("nan"))
+        for bad in (-0.1, float("inf"), float("nan")):
+            with pytest.raises(ValueError, match="blend must be finite and >= 0"):
+                stand_subjects(d, subject, blend=bad)
 
     def test_blend_follows_the_subject_map(self):
         """``blend`` moves every pixel nearer by its share of the square of the subject map:
@@ -101,6 +104,26 @@ class TestStandSubjects:
         # with a part stood too, the blend comes on top of its shift
         both = stand_subjects(d, subject, lift=0.1, max_shift=0.05, blend=0.2)
         np.testing.assert_allclose(both[55, 60], d[55, 60] + 0.25, atol=1e-6)
+
+    def test_blend_needs_no_part_and_no_clarity_and_keeps_the_sky(self):
+        """The blend reads the subject map itself: a map under 0.5 everywhere (no part) and
+        one under ``min_clarity`` still move by it, and the sky is pulled back with it."""
+        d = _ramp()
+        faint = 0.4 * _box()  # no pixel reaches 0.5, clarity 0.2
+        out = stand_subjects(d, faint, lift=0.1, min_clarity=0.5, blend=0.5)
+        np.testing.assert_allclose(out[30, 60], d[30, 60] + 0.5 * 0.16, atol=1e-6)
+        np.testing.assert_array_equal(out[faint == 0], d[faint == 0])
+        sky = np.zeros_like(d)
+        sky[:10] = 1.0
+        both = stand_subjects(d, faint, sky, lift=0.0, blend=0.5)
+        assert both[:10].max() <= d[10:].min() + 1e-6  # the sky went to the back
+        np.testing.assert_allclose(both[30, 60], out[30, 60], atol=1e-6)
+        # nothing moved: a map above 1 is clipped, not rescaled
+        over = d.copy()
+        over[0, 0] = 1.5
+        np.testing.assert_array_equal(
+            stand_subjects(over, faint, lift=0.1, min_clarity=0.5), np.clip(over, 0, 1)
+        )
 
     def test_a_hesitant_subject_map_stands_nothing(self):
         hesitant = np.where(_box() > 0.5, 0.6, 0.4).astype(np.float32)  # clarity 0.2
@@ -255,7 +278,8 @@ def test_scene_variant_trains_exports_and_stands_its_subjects(tmp_path, tiny_che
         bounded = model.predict_disparity(image, refine=False)[0, 0].numpy()
     small = stand_subjects(d[0, 0].numpy(), probs[0], probs[1], lift=0.05, max_shift=0.005)
     np.testing.assert_allclose(bounded, small, atol=1e-6)
-    assert np.abs(bounded - d[0, 0].numpy()).max() <= 0.005 + 1e-6
+    sky_only = stand_subjects(d[0, 0].numpy(), probs[0], probs[1], lift=0.0)
+    assert np.abs(bounded - sky_only).max() <= 0.005 + 1e-6
     model.config.subject_shift = 1.0
     with pytest.raises(ValueError, match="subject_shift must be in"):
         dataclasses.replace(model.config, subject_shift=1.5)
@@ -294,4 +318,4 @@ def test_scene_variant_trains_exports_and_stands_its_subjects(tmp_path, tiny_che
         blended = model.predict_disparity(image, refine=False)[0, 0].numpy()
     want = stand_subjects(d[0, 0].numpy(), probs[0], probs[1], lift=0.0, blend=0.1)
     np.testing.assert_allclose(blended, want, atol=1e-6)
-    assert np.abs(blended - d[0, 0].numpy()).max() > 0.01
+    assert np.abs(blended - sky_only).max() > 0.01

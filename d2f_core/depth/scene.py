@@ -11,6 +11,8 @@ the scene they stand in. :func:`stand_subjects` applies the rule to the network'
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 __all__ = ["stand_subjects"]
@@ -30,7 +32,7 @@ def stand_subjects(
     ring: float = 0.1,
     max_parts: int = 8,
     min_clarity: float = 0.0,
-    max_shift: float = 1.0,
+    max_shift: float = math.inf,
     blend: float = 0.0,
 ) -> np.ndarray:
     """``disparity`` with its subjects in front of their surroundings and its sky farthest.
@@ -49,14 +51,15 @@ def stand_subjects(
     - **Blend**: every pixel is then moved nearer by ``blend`` times the square of its
       subject probability, a soft step that follows the subject map itself rather than its
       parts. The square keeps a hesitant map (0.5) to a quarter of the move of a sure one.
+      It needs no part, and ``min_clarity`` does not gate it.
 
     Subjects are stood only when the subject map is clear (of its pixels above 0.1, the mean
     distance from 0.5, doubled, is at least ``min_clarity``): a hesitant map is a scene with
     no one subject (a room, a shelf, a flower bed), where lifting its parts breaks the
     scene's own order. Stage 0's targets judge U^2-Net-p's silhouettes the same way.
 
-    The result is divided by its maximum when a shift takes it above 1, so the order of
-    every pixel is kept.
+    The result is divided by its maximum when a shift or the blend takes it above 1, so the
+    order of every pixel is kept.
 
     Args:
         disparity: ``H x W`` in [0, 1], 1 = nearest.
@@ -66,14 +69,16 @@ def stand_subjects(
         ring: the width of the ring around a part, as a fraction of the long side.
         max_parts: at most this many parts (the largest) are stood.
         min_clarity: below this clarity of ``subject``, no part is stood.
-        max_shift: the most any part is moved nearer, in disparity (1 leaves it unbounded).
+        max_shift: the most any part is moved nearer, in disparity (unbounded by default).
         blend: how far a pixel the subject map is sure of is moved nearer, in disparity.
 
     Returns:
         ``H x W`` float32 in [0, 1].
 
     Raises:
-        ValueError: maps of different shapes, not 2-D, or not finite.
+        ValueError: maps of different shapes, not 2-D, or not finite; a negative ``lift``,
+            ``max_shift`` or ``blend``, an infinite ``blend``, ``min_area`` outside [0, 1) or
+            ``ring`` not positive.
     """
     d = np.asarray(disparity, dtype=np.float32)
     s = np.asarray(subject, dtype=np.float32)
@@ -86,10 +91,10 @@ def stand_subjects(
             raise ValueError(f"{name} must be an H x W map of shape {d.shape}, got {m.shape}")
         if not np.isfinite(m).all():
             raise ValueError(f"{name} holds NaN or infinite values")
-    if lift < 0 or not 0 <= min_area < 1 or ring <= 0 or not max_shift >= 0 or not blend >= 0:
-        raise ValueError(
-            "lift, max_shift and blend must be >= 0, min_area in [0, 1) and ring > 0"
-        )
+    if lift < 0 or not 0 <= min_area < 1 or ring <= 0 or not max_shift >= 0:
+        raise ValueError("lift and max_shift must be >= 0, min_area in [0, 1) and ring > 0")
+    if not 0 <= blend < math.inf:
+        raise ValueError(f"blend must be finite and >= 0, got {blend}")
     out = d.copy()
     if sky is not None:
         a = _soft(sky)
@@ -100,12 +105,15 @@ def stand_subjects(
     hard = s >= 0.5
     soft = s[s > 0.1]
     clarity = float(np.mean(np.abs(soft - 0.5)) * 2) if soft.size else 0.0
+    moved = False
     if lift > 0 and max_shift > 0 and hard.any() and clarity >= min_clarity:
         out = out + _part_shift(out, s, hard, lift, min_area, ring, max_parts, max_shift)
+        moved = True
     if blend > 0:
         out = out + blend * np.square(np.clip(s, 0.0, 1.0))
+        moved = True
     top = float(out.max())
-    if top > 1.0:
+    if moved and top > 1.0:
         out = out / top
     return np.clip(out, 0.0, 1.0).astype(np.float32)
 

@@ -67,16 +67,18 @@ class D2FConfig:
             background. 0 keeps the map as it is.
         edge_radius: that window's radius as a fraction of the render pass's long side (at
             least 3 px).
-        subject_lift: with a ``"-scene"`` defocus network, every subject its scene head
-            finds is moved at least this much nearer than what surrounds it, and its sky
-            to the back (:func:`d2f_core.depth.scene.stand_subjects`), before the map's
-            edges are snapped. 0 keeps the network's disparity as it is.
+        subject_lift: with a ``"-scene"`` defocus network, every subject part its scene head
+            finds is moved nearer until it stands this much in front of what surrounds it
+            (by at most ``subject_shift``), and its sky to the back
+            (:func:`d2f_core.depth.scene.stand_subjects`), before the map's edges are
+            snapped. 0 stands no part; with ``subject_blend`` 0 too the head is not run and
+            the network's disparity is kept as it is.
         subject_clarity: the subjects are stood only where the scene head's subject map is
             at least this clear (``min_clarity`` of :func:`~d2f_core.depth.scene.stand_subjects`).
-        subject_shift: the most a subject is moved nearer, in disparity (``max_shift`` of
-            :func:`~d2f_core.depth.scene.stand_subjects`): the head also finds "subjects" in
-            scenes with none (a shelf, a flower bed), and a small shift costs their order
-            little. 1 leaves the shift unbounded.
+        subject_shift: the most a stood part is moved nearer, in disparity (``max_shift`` of
+            :func:`~d2f_core.depth.scene.stand_subjects`; the blend comes on top of it): the
+            head also finds "subjects" in scenes with none (a shelf, a flower bed), and a
+            small shift costs their order little. 1 leaves the shift unbounded.
         subject_blend: every pixel is moved nearer by this much times the square of the
             scene head's subject probability (``blend`` of
             :func:`~d2f_core.depth.scene.stand_subjects`), whether or not ``subject_lift``

@@ -238,6 +238,7 @@ class D2F(FusionStage, FocusStage, nn.Module):
         scene head's probabilities ``maps`` (subject, sky)."""
         from ..depth.scene import stand_subjects
 
+        shift = self.config.subject_shift if self.config.subject_shift < 1 else math.inf
         out = [
             torch.from_numpy(
                 stand_subjects(
@@ -246,7 +247,7 @@ class D2F(FusionStage, FocusStage, nn.Module):
                     m[1].float().cpu().numpy(),
                     lift=self.config.subject_lift,
                     min_clarity=self.config.subject_clarity,
-                    max_shift=self.config.subject_shift,
+                    max_shift=shift,
                     blend=self.config.subject_blend,
                 )
             )
