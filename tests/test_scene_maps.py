@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import torch
 
+from d2f_core.bench import depth_bench
 from d2f_core.bench.depth_bench import subject_auc
 from d2f_core.depth.scene import stand_subjects
 from d2f_core.io import load_image
@@ -319,3 +320,17 @@ def test_scene_variant_trains_exports_and_stands_its_subjects(tmp_path, tiny_che
     want = stand_subjects(d[0, 0].numpy(), probs[0], probs[1], lift=0.0, blend=0.1)
     np.testing.assert_allclose(blended, want, atol=1e-6)
     assert np.abs(blended - sky_only).max() > 0.01
+    # the head's maps and the stand on their own, as `d2f-bench depth --teachers` puts the
+    # network's subjects on stage 0's targets: on the network's own map, the pipeline's map
+    np.testing.assert_allclose(model.scene_maps(image)[0].numpy(), probs, atol=1e-6)
+    np.testing.assert_allclose(model.stand(d[0, 0].numpy(), *probs), blended, atol=1e-6)
+    photo = image[0].permute(1, 2, 0).numpy()
+    own = depth_bench.subject_blend_predictor(model, lambda im: d[0, 0].numpy())
+    np.testing.assert_allclose(own(photo), blended, atol=1e-5)
+    flat = depth_bench.subject_blend_predictor(model, lambda im: np.full((32, 48), 0.5))
+    assert flat(photo).shape == (32, 48) and flat(photo).max() > 0.5  # the maps are resized
+    plain = D2F.from_checkpoint(tiny_checkpoint)
+    assert plain.scene_maps(image) is None
+    assert depth_bench.subject_blend_predictor(plain, lambda im: d[0, 0].numpy()) is None
+    model.config.subject_blend = 0.0
+    assert depth_bench.subject_blend_predictor(model, lambda im: d[0, 0].numpy()) is None

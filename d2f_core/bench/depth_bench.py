@@ -365,6 +365,30 @@ def network_predictors(specs: Sequence[str] | None) -> dict[str, Predictor]:
     return {name: network_predictor(path) for name, path in weight_specs(specs).items()}
 
 
+def subject_blend_predictor(weights: Any, base: Predictor) -> Predictor | None:
+    """``base``'s map with the subjects of the network in ``weights`` (a checkpoint's path,
+    ``None`` for the shipped weights, or a :class:`~d2f_core.pipeline.D2F`) stood on it as
+    :meth:`D2F.prepare` stands them on the network's own map (:meth:`D2F.stand`, with the
+    scene head's subject and sky maps resized to ``base``'s); ``None`` for a network that
+    stands none (no scene head, or no lift and no blend). On stage 0's targets it is the
+    map the shipped recipe would give if the network learnt its targets exactly."""
+    from ..pipeline import D2F
+    from ..rendering.inputs import image_tensor
+
+    model = weights if isinstance(weights, D2F) else D2F.from_pretrained(weights)
+    cfg = model.config
+    if model.defocus_net.scene_head is None or (cfg.subject_lift <= 0 and cfg.subject_blend <= 0):
+        return None
+
+    def predict(image: np.ndarray) -> np.ndarray:
+        b = np.asarray(base(image), dtype=np.float32)
+        maps = model.scene_maps(image_tensor(image))[0].numpy()
+        subject, sky = (resize_array(m, b.shape) for m in maps)
+        return model.stand(b, np.clip(subject, 0, 1), np.clip(sky, 0, 1))
+
+    return predict
+
+
 def _remember_last(fn: Callable[[np.ndarray], Any]) -> Callable[[np.ndarray], Any]:
     """``fn`` that keeps its result for the photo it last ran on, for predictors that ask
     for the same photo's maps in turn (photos are never changed in place)."""
@@ -708,7 +732,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         default=None,
         metavar="DIR",
         help="also score the labelling teachers found here, the stage-0 targets built "
-        "from them, and the first network's map rank-averaged with each (needs .[teach])",
+        "from them, the first network's map rank-averaged with each, and the scene targets "
+        "with the first network's subjects stood on them (needs .[teach])",
     )
     p.add_argument(
         "--fit",
@@ -747,6 +772,13 @@ def main(argv: Sequence[str] | None = None) -> int:
             for key in ("layout", "targets", "scene targets"):
                 if key in found:
                     predictors[f"{net}+{key}"] = rank_mix(predictors[net], found[key])
+            # the targets with the first network's subjects stood on them, as its own map
+            # gets them: what that recipe reaches if the network learns its targets
+            if "scene targets" in found:
+                path = weight_specs(args.weights)[net]
+                blended = subject_blend_predictor(path, found["scene targets"])
+                if blended is not None:
+                    predictors[f"scene targets+{net}'s subjects"] = blended
         photos = measured_photos(args.data)
         masks = [] if args.no_masks else heldout_masks(args.datasets, args.masks)
     except (FileNotFoundError, ValueError) as exc:

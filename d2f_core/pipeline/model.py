@@ -10,6 +10,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 from torch import Tensor, nn
 
@@ -234,26 +235,52 @@ class D2F(FusionStage, FocusStage, nn.Module):
         return d
 
     def _stand(self, disparity: Tensor, maps: Tensor) -> Tensor:
-        """:func:`~d2f_core.depth.scene.stand_subjects` on each map of a batch, with the
-        scene head's probabilities ``maps`` (subject, sky)."""
+        """:meth:`stand` on each map of a batch, with the scene head's probabilities
+        ``maps`` (subject, sky)."""
+        out = []
+        for d, m in zip(disparity, maps, strict=True):
+            subject, sky = m.float().cpu().numpy()[:2]
+            out.append(torch.from_numpy(self.stand(d[0].float().cpu().numpy(), subject, sky)))
+        return torch.stack(out)[:, None].to(disparity)
+
+    def stand(self, disparity: np.ndarray, subject: np.ndarray, sky: np.ndarray) -> np.ndarray:
+        """:func:`~d2f_core.depth.scene.stand_subjects` with this model's settings
+        (``config.subject_lift``, ``subject_clarity``, ``subject_shift``, ``subject_blend``):
+        what :meth:`predict_disparity` does to the network's map with the scene head's
+        ``subject`` and ``sky`` probabilities, for any ``H x W`` map of the same shape."""
         from ..depth.scene import stand_subjects
 
         shift = self.config.subject_shift if self.config.subject_shift < 1 else math.inf
-        out = [
-            torch.from_numpy(
-                stand_subjects(
-                    d[0].float().cpu().numpy(),
-                    m[0].float().cpu().numpy(),
-                    m[1].float().cpu().numpy(),
-                    lift=self.config.subject_lift,
-                    min_clarity=self.config.subject_clarity,
-                    max_shift=shift,
-                    blend=self.config.subject_blend,
-                )
-            )
-            for d, m in zip(disparity, maps, strict=True)
-        ]
-        return torch.stack(out)[:, None].to(disparity)
+        return stand_subjects(
+            disparity,
+            subject,
+            sky,
+            lift=self.config.subject_lift,
+            min_clarity=self.config.subject_clarity,
+            max_shift=shift,
+            blend=self.config.subject_blend,
+        )
+
+    def scene_maps(self, image: Tensor) -> Tensor | None:
+        """The scene head's probabilities (subject, sky) for a photo, at the size the
+        network reads it (``config.network_size``, mirrored and averaged with
+        ``config.flip_average``, as :meth:`predict_disparity`); ``None`` for a network
+        without the head.
+
+        Shape: (B, 3, h, w) in [0, 1] -> (B, 2, hn, wn) in [0, 1].
+        """
+        net = self.defocus_net
+        if net.scene_head is None:
+            return None
+        small = resize(image, scaled_size(tuple(image.shape[-2:]), 1.0, self.config.network_size))
+        with torch.no_grad():
+            if self.config.flip_average:
+                b = small.shape[0]
+                _, maps = net.forward_scene(torch.cat([small, small.flip(-1)]))
+                maps = 0.5 * (maps[:b] + maps[b:].flip(-1))
+            else:
+                _, maps = net.forward_scene(small)
+        return torch.sigmoid(maps)
 
     def _snap(self, image: Tensor, disparity: Tensor) -> Tensor:
         if self.config.refine != "snap":
