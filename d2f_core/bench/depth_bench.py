@@ -376,8 +376,7 @@ def subject_blend_predictor(weights: Any, base: Predictor) -> Predictor | None:
     from ..rendering.inputs import image_tensor
 
     model = weights if isinstance(weights, D2F) else D2F.from_pretrained(weights)
-    cfg = model.config
-    if model.defocus_net.scene_head is None or (cfg.subject_lift <= 0 and cfg.subject_blend <= 0):
+    if not model.stands_subjects:
         return None
 
     def predict(image: np.ndarray) -> np.ndarray:

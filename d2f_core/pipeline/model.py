@@ -210,19 +210,7 @@ class D2F(FusionStage, FocusStage, nn.Module):
         source = photo if photo is not None and small_pass else image
         net_size = scaled_size(tuple(source.shape[-2:]), 1.0, self.config.network_size)
         small = resize(source, net_size)
-        net = self.defocus_net
-        scene = net.scene_head is not None and (
-            self.config.subject_lift > 0 or self.config.subject_blend > 0
-        )
-        forward = net.forward_scene if scene else lambda x: (net(x), None)
-        if self.config.flip_average:
-            b = small.shape[0]
-            both, maps = forward(torch.cat([small, small.flip(-1)]))  # [2B,1,hn,wn]
-            d = 0.5 * (both[:b] + both[b:].flip(-1))
-            if maps is not None:
-                maps = 0.5 * (maps[:b] + maps[b:].flip(-1))
-        else:
-            d, maps = forward(small)
+        d, maps = self._network_pass(small, self.stands_subjects)
         if maps is not None:
             d = self._stand(d, torch.sigmoid(maps))
         d = resize(d, size)  # [B,1,h,w]
@@ -233,6 +221,29 @@ class D2F(FusionStage, FocusStage, nn.Module):
             s = self.config.spread
             d = (1 - s) * d + s * equalize(d, self.config.spread_clip)
         return d
+
+    @property
+    def stands_subjects(self) -> bool:
+        """Whether :meth:`predict_disparity` runs the scene head and stands its subjects: a
+        ``"-scene"`` network with ``config.subject_lift`` or ``config.subject_blend`` over 0."""
+        return self.defocus_net.scene_head is not None and (
+            self.config.subject_lift > 0 or self.config.subject_blend > 0
+        )
+
+    def _network_pass(self, small: Tensor, scene: bool) -> tuple[Tensor, Tensor | None]:
+        """The defocus network on a photo at the size it reads (averaged with its mirror
+        image with ``config.flip_average``): the disparity, and with ``scene`` the scene
+        head's logits (else ``None``)."""
+        net = self.defocus_net
+        forward = net.forward_scene if scene else lambda x: (net(x), None)
+        if not self.config.flip_average:
+            return forward(small)
+        b = small.shape[0]
+        both, maps = forward(torch.cat([small, small.flip(-1)]))  # [2B,1,hn,wn]
+        d = 0.5 * (both[:b] + both[b:].flip(-1))
+        if maps is not None:
+            maps = 0.5 * (maps[:b] + maps[b:].flip(-1))
+        return d, maps
 
     def _stand(self, disparity: Tensor, maps: Tensor) -> Tensor:
         """:meth:`stand` on each map of a batch, with the scene head's probabilities
@@ -269,17 +280,11 @@ class D2F(FusionStage, FocusStage, nn.Module):
 
         Shape: (B, 3, h, w) in [0, 1] -> (B, 2, hn, wn) in [0, 1].
         """
-        net = self.defocus_net
-        if net.scene_head is None:
+        if self.defocus_net.scene_head is None:
             return None
         small = resize(image, scaled_size(tuple(image.shape[-2:]), 1.0, self.config.network_size))
         with torch.no_grad():
-            if self.config.flip_average:
-                b = small.shape[0]
-                _, maps = net.forward_scene(torch.cat([small, small.flip(-1)]))
-                maps = 0.5 * (maps[:b] + maps[b:].flip(-1))
-            else:
-                _, maps = net.forward_scene(small)
+            _, maps = self._network_pass(small, scene=True)
         return torch.sigmoid(maps)
 
     def _snap(self, image: Tensor, disparity: Tensor) -> Tensor:
