@@ -326,17 +326,11 @@ def label_maps(
     teacher smoothed by a Gaussian of 4 px at its 224-px output, rank-normalised to [0, 1]
     (1 = nearest).
     """
+    from ..depth.layout import teacher_disparity
+
     h, w = size
     fg_i = Image.fromarray(fg).resize((w, h), Image.BILINEAR)
-    from skimage.filters import gaussian
-
-    # the teacher's fine structure is texture noise on close-ups: keep its coarse layout
-    depth_m = gaussian(np.maximum(depth.astype(np.float32), 1.0), sigma=4.0, preserve_range=True)
-    disp = 1.0 / depth_m
-    order = np.argsort(np.argsort(disp.ravel(), kind="stable"), kind="stable")
-    ranked = (order / max(1, order.size - 1)).reshape(disp.shape).astype(np.float32)
-    disp_i = Image.fromarray(ranked).resize((w, h), Image.BILINEAR)
-    return np.asarray(fg_i, dtype=np.float32) / 255.0, np.array(disp_i, dtype=np.float32)
+    return np.asarray(fg_i, dtype=np.float32) / 255.0, teacher_disparity(depth, size)
 
 
 def run_label(argv: Sequence[str] | None = None) -> int:

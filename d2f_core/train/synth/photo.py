@@ -19,6 +19,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from ...depth.layout import feather
 from .lens import Layer, Scene, srgb_to_linear
 from .scene import resize_image
 
@@ -28,16 +29,6 @@ __all__ = ["Cutout", "PhotoScenes", "feather", "make_photo_scene"]
 SCENE_SOURCES = ("photos/sun_hays80", "photos/urban100", "photos/bsds500")
 #: a cut-out: sRGB float ``(h, w, 3)`` in [0, 1] and its alpha ``(h, w)`` in [0, 1]
 Cutout = tuple[np.ndarray, np.ndarray]
-
-
-def feather(alpha: np.ndarray, sigma: float) -> np.ndarray:
-    """``alpha`` softened by a Gaussian of ``sigma`` px, float32 in [0, 1] (as is for
-    ``sigma <= 0``): a hard mask's edge becomes a soft rim, as hair and fur have."""
-    if sigma <= 0:
-        return alpha.astype(np.float32)
-    from skimage.filters import gaussian
-
-    return np.clip(gaussian(alpha.astype(np.float32), sigma=sigma), 0, 1).astype(np.float32)
 
 
 def _cut_layer(
