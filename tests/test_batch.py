@@ -143,7 +143,9 @@ def test_check_manifest_tells_a_manifest_from_other_files(tmp_path):
     first write); missing and empty files are new manifests; anything else is refused."""
     from d2f_core.batch.manifest import check_manifest
 
-    row = json.dumps({k: None for k in FIELDS} | {"input": "/photos/a.jpg"})
+    row = json.dumps(
+        {k: None for k in FIELDS} | {"input": "/photos/a.jpg", "output": "a.jpg", "status": "done"}
+    )
     cases = {
         "missing.jsonl": None,
         "empty.jsonl": "",
@@ -230,7 +232,7 @@ class TestLocalEngine:
         for name in GOOD:
             row = last[os.fspath(lib / name)]
             assert row["status"] == "done" and row["error"] is None
-            assert row["output"] == os.fspath(out / _output_name(name))
+            assert row["output"] == _output_name(name)  # relative to the output folder
             assert (row["width"], row["height"], row["blur_px"]) == (128, 96, 12.0)
             assert row["bytes"] == (out / _output_name(name)).stat().st_size
             assert row["depth_source"].startswith("file:")
@@ -285,7 +287,7 @@ class TestLocalEngine:
         assert proc.returncode == -signal.SIGKILL, "the run ended before it could be killed"
 
         rows = read_rows(out / "manifest.jsonl")  # the killed run's parts, not folded yet
-        done = {r["input"] for r in rows if r["status"] == "done" and Path(r["output"]).is_file()}
+        done = {r["input"] for r in rows if r["status"] == "done" and (out / r["output"]).is_file()}
         # an output renamed into place whose row was not written yet counts as not done
         assert 1 <= len(done) < len(names)
         killed = _outputs(out)

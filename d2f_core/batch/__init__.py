@@ -10,7 +10,7 @@
 Ray is imported only by ``--engine ray`` (the optional extra ``scale``).
 """
 
-from .manifest import FIELDS, Summary, last_rows, read_rows
+from .manifest import FIELDS, Summary, last_rows, read_rows, render_settings, rows_by_output
 from .plan import Job, find_photos, plan_jobs
 from .worker import PhotoWorker, render_job
 
@@ -24,4 +24,6 @@ __all__ = [
     "plan_jobs",
     "read_rows",
     "render_job",
+    "render_settings",
+    "rows_by_output",
 ]

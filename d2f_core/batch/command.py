@@ -18,11 +18,13 @@ from .manifest import (
     Summary,
     check_manifest,
     fold_parts,
-    last_rows,
     read_rows,
+    render_settings,
+    rows_by_output,
+    settings_differences,
     worker_name,
 )
-from .plan import find_photos, plan_jobs
+from .plan import Job, find_photos, plan_jobs
 from .worker import PARTIAL_PREFIX
 
 __all__ = ["MANIFEST_NAME", "add_batch_arguments", "run_batch"]
@@ -73,10 +75,13 @@ def add_batch_arguments(parser: argparse.ArgumentParser) -> None:
         type=Path,
         metavar="FILE",
         help=f"JSON Lines record, one row per photo (default: OUT/{MANIFEST_NAME}); a rerun "
-        "skips the photos it says are done whose output exists",
+        "skips the photos it says are done with the same settings whose output is intact",
     )
     run.add_argument(
-        "--force", action="store_true", help="render every photo again, even those done"
+        "--force",
+        action="store_true",
+        help="also render again the photos the manifest says were done with other render "
+        "settings (without it such a rerun is refused); photos done with these are kept",
     )
     run.add_argument(
         "--engine",
@@ -166,6 +171,90 @@ def _show(row: dict[str, Any], here: str) -> None:
         logger.error("skipped %s", row.get("error"))
 
 
+def _intact(row: dict[str, Any], job: Job) -> bool:
+    """Whether ``job``'s output is the file ``row`` recorded: there, with its size."""
+    try:
+        size = os.stat(job.output).st_size
+    except OSError:
+        return False
+    return row.get("bytes") == size and Path(job.output).is_file()
+
+
+def _same_input(recorded: str, job: Job) -> bool:
+    """Whether a row's input names ``job``'s photo: an absolute one (manifests written
+    before) is its absolute path; a relative one, as the inputs named it from some working
+    folder, is the end of it (``lib/a.jpg`` is ``/home/me/lib/a.jpg``), so naming the inputs
+    from another folder, or absolutely, finds the same rows."""
+    path = os.path.normpath(recorded)
+    if os.path.isabs(path):
+        return path == job.input
+    parts = [p for p in Path(path).parts if p != os.pardir]
+    return bool(parts) and Path(job.input).parts[-len(parts) :] == tuple(parts)
+
+
+def _to_render(
+    jobs: list[Job],
+    latest: dict[str, dict[str, Any]],
+    settings: dict[str, Any],
+    args: argparse.Namespace,
+    out: Path,
+) -> list[Job]:
+    """The jobs a run renders, given the last manifest row of each output.
+
+    A job is done, and skipped, when its output's last row is ``done`` for the same input
+    and the output has the size the row recorded, with this run's settings. Done with other
+    settings, the run is refused (before any photo is rendered) unless ``--force``, which
+    renders those again. Done by a manifest that recorded no settings: kept, with a warning
+    (``--force`` renders them again). Everything else is rendered: no row, a failure, another
+    photo's row, an output missing or of another size.
+    """
+    from ..photo_render import UsageError
+
+    todo: set[str] = set()
+    other: list[tuple[Job, list[str]]] = []
+    unrecorded: list[Job] = []
+    repaired = 0
+    for job in jobs:
+        row = latest.get(job.rel)
+        if row is None or row["status"] != DONE or not _same_input(row["input"], job):
+            todo.add(job.rel)
+        elif not _intact(row, job):
+            repaired += 1
+            todo.add(job.rel)
+        elif row.get("settings") is None:
+            unrecorded.append(job)
+        else:
+            differences = settings_differences(row["settings"], settings, job.output)
+            if differences:
+                other.append((job, differences))
+    if other and not args.force:
+        job, differences = other[0]
+        shown = "; ".join(differences[:3]) + ("; ..." if len(differences) > 3 else "")
+        raise UsageError(
+            f"{len(other)} of {len(jobs)} photos in {out} were rendered with other settings "
+            f"({shown}, as {job.rel}); --force renders them again with these (photos done "
+            "with these are kept), or choose another -o"
+        )
+    if repaired:
+        logger.info("%d done photos whose output is missing or changed are rendered again",
+                    repaired)  # fmt: skip
+    if other:
+        logger.info("--force: %d photos done with other settings are rendered again", len(other))
+    if unrecorded and args.force:
+        logger.info("--force: %d photos done without recorded settings are rendered again",
+                    len(unrecorded))  # fmt: skip
+    elif unrecorded:
+        logger.warning(
+            "%d photos were done by a run that recorded no settings: kept as they are, "
+            "--force renders them again with these settings",
+            len(unrecorded),
+        )
+    todo |= {job.rel for job, _ in other}
+    if args.force:
+        todo |= {job.rel for job in unrecorded}
+    return [job for job in jobs if job.rel in todo]
+
+
 def run_batch(args: argparse.Namespace) -> int:
     """Run ``d2f batch``; returns the exit status (1 when a photo failed)."""
     from ..photo_render import RenderError, UsageError
@@ -191,10 +280,6 @@ def run_batch(args: argparse.Namespace) -> int:
         logger.info("skipping %s: not a photo file extension", p)
     if not jobs:
         raise RenderError(f"no photos found in {' '.join(map(str, args.input))}")
-    for job in jobs:
-        if any(same_file(job.output, p) for p in (job.input, job.depth_file) if p):
-            raise UsageError(f"output {job.output!r} would replace an input; choose another -o")
-
     manifest: Path = args.manifest or out / MANIFEST_NAME
     named = [Path(p) for p in args.input if Path(p).is_file()]  # photos and lists named
     for job in jobs:
@@ -208,21 +293,14 @@ def run_batch(args: argparse.Namespace) -> int:
         check_manifest(manifest)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
+    fold_parts(manifest)  # rows a killed run left in its parts
+    settings = render_settings(args)
+    todo = _to_render(jobs, rows_by_output(read_rows(manifest), out), settings, args, out)
+    args = argparse.Namespace(**{**vars(args), "batch_settings": settings})
     out.mkdir(parents=True, exist_ok=True)
     for folder in {Path(job.output).parent for job in jobs}:
         folder.mkdir(parents=True, exist_ok=True)
-    fold_parts(manifest)  # rows a killed run left in its parts
     _remove_stale_partials({Path(job.output).parent for job in jobs})
-    done = {} if args.force else last_rows(read_rows(manifest))
-    todo = [
-        job
-        for job in jobs
-        if not (
-            done.get(job.input, {}).get("status") == DONE
-            and done[job.input].get("output") == job.output
-            and Path(job.output).is_file()
-        )
-    ]
     summary = Summary(total=len(jobs), skipped=len(jobs) - len(todo))
     if summary.skipped:
         logger.info(

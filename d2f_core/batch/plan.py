@@ -4,12 +4,18 @@ Inputs are folders (``recursive`` descends into subfolders), globs (``photos/**/
 text or CSV files listing paths, or photo files; outputs keep each photo's path relative to
 the inputs' root (the folder, the glob's fixed prefix, or the deepest folder that holds every
 listed photo).
+
+Output names are unique, compared case-folded (so they stay unique on a case-insensitive file
+system), follow from the photos and their order alone (a rerun with the same inputs gets the
+same names), and are never the path of a photo or depth map of the run: an output whose own
+name is one is refused, a renamed one skips it.
 """
 
 from __future__ import annotations
 
 import csv
 import glob
+import itertools
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -34,12 +40,20 @@ class Job:
         output: the output's absolute path.
         rel: the output's path relative to the output folder (POSIX separators).
         depth_file: the photo's depth map from ``--depth DIR``, or ``None``.
+        given: the photo's path as the inputs named it (relative to the working folder when
+            the source was), which the manifest records; ``None`` means ``input``.
     """
 
     input: str
     output: str
     rel: str
     depth_file: str | None = None
+    given: str | None = None
+
+    @property
+    def named(self) -> str:
+        """The path the manifest records: :attr:`given`, else :attr:`input`."""
+        return self.given or self.input
 
 
 def _hidden(path: Path, root: Path) -> bool:
@@ -102,8 +116,9 @@ def find_photos(
         exclude: a folder whose files are never inputs (the output folder).
 
     Returns:
-        The root that outputs are made relative to, the photos (absolute, sorted within each
-        source, each once), and the files of folder and glob sources skipped for their
+        The root that outputs are made relative to (absolute), the photos (as the sources
+        name them: relative where the source was; sorted within each source; each file once,
+        the first naming kept), and the files of folder and glob sources skipped for their
         extension. Listed paths are kept whatever their extension or existence: a listed
         file that cannot be read becomes a failed photo, not a silent omission.
 
@@ -155,10 +170,11 @@ def find_photos(
         photos.extend(p for p in found if p.suffix.lower() in READ_EXTENSIONS)
         skipped.extend(p for p in found if p.suffix.lower() not in READ_EXTENSIONS)
         roots.append(root)
-    absolute = [Path(os.path.abspath(p)) for p in photos]
-    unique = list(dict.fromkeys(absolute))
+    unique: dict[str, Path] = {}
+    for p in photos:
+        unique.setdefault(os.path.abspath(p), p)
     root = Path(os.path.commonpath([os.path.abspath(r) for r in roots]))
-    return root, unique, skipped
+    return root, list(unique.values()), skipped
 
 
 def _depth_for(depth_dir: Path, rel_parent: Path, stem: str) -> Path | None:
@@ -169,6 +185,32 @@ def _depth_for(depth_dir: Path, rel_parent: Path, stem: str) -> Path | None:
         if found is not None:
             return found
     return None
+
+
+def _key(path: str | os.PathLike) -> str:
+    """What two paths of one file share: the real path (links resolved), case-folded, so a
+    case-insensitive file system's two spellings of one name are one key (on a case-sensitive
+    one, names differing only in case count as one too: safe, never lossy)."""
+    return os.path.normcase(os.path.realpath(path)).casefold()
+
+
+def _inode(path: str | os.PathLike) -> tuple[int, int] | None:
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return st.st_dev, st.st_ino
+
+
+def _names(stem: str, tag: str, suffix: str, ext: str):
+    """Candidate output names, in order: ``STEM<suffix>.EXT``, then with the input's
+    extension (``STEM_png<suffix>.EXT``), then numbered (``STEM_png_2<suffix>.EXT``, ...)."""
+    yield f"{stem}{suffix}{ext}"
+    base = f"{stem}_{tag}" if tag else stem
+    if tag:
+        yield f"{base}{suffix}{ext}"
+    for n in itertools.count(2):
+        yield f"{base}_{n}{suffix}{ext}"
 
 
 def plan_jobs(
@@ -182,14 +224,23 @@ def plan_jobs(
 ) -> list[Job]:
     """One :class:`Job` per photo: ``out_dir / <path relative to root> / STEM<suffix>.EXT``.
 
-    EXT is ``fmt``, else the photo's own when it can be written, else ``jpg``. Two photos that
-    would share an output (``a.jpg`` and ``a.heic``) get the input's extension in the name.
-    A depth map is looked up by the photo's stem in ``depth_dir``'s matching subfolder, then
-    in ``depth_dir`` itself.
+    EXT is ``fmt``, else the photo's own when it can be written, else ``jpg``. A depth map is
+    looked up by the photo's stem in ``depth_dir``'s matching subfolder, then in ``depth_dir``
+    itself.
+
+    Output paths are unique, compared case-folded. A photo whose name is taken by an earlier
+    photo's output (``a.jpg`` and ``a.png`` with ``fmt="jpg"``, or ``a.JPG`` and ``a.jpg``)
+    gets the input's extension in the name (``a_png_bokeh.jpg``), then a number
+    (``a_jpg_2_bokeh.jpg``), whichever is free first. Names follow from the photos and their
+    order alone, so the same inputs get the same names on every run. No output is the path of
+    a photo or depth map of the run (compared by real path, case-folded, and by file
+    identity): a renamed output skips such a name, and a photo whose own output name is one
+    is refused.
 
     Raises:
-        ValueError: ``suffix`` holds a path separator, ``fmt`` is not a writable format, or a
-            photo is not under ``root``.
+        ValueError: ``suffix`` holds a path separator, ``fmt`` is not a writable format, a
+            photo is not under ``root``, or a photo's output would be an input of the run
+            (naming both).
     """
     if "/" in suffix or os.sep in suffix:
         raise ValueError(f"suffix: must not contain a path separator, got {suffix!r}")
@@ -197,8 +248,7 @@ def plan_jobs(
         raise ValueError(f"fmt: expected one of {sorted(SAVE_FORMATS)}, got {fmt!r}")
     base = Path(os.path.abspath(root))
     out = Path(os.path.abspath(out_dir))
-    used: set[str] = set()
-    jobs = []
+    planned = []
     for photo in photos:
         src = Path(os.path.abspath(photo))
         try:
@@ -207,18 +257,54 @@ def plan_jobs(
             raise ValueError(
                 f"photos: {os.fspath(src)!r} is not under {os.fspath(base)!r}"
             ) from None
+        depth = None
+        if depth_dir is not None:
+            depth = _depth_for(Path(depth_dir), rel_parent, src.stem)
+        planned.append((photo, src, rel_parent, depth))
+    # every file the run reads, which no output may be
+    inputs = [src for _, src, _, _ in planned] + [d for *_, d in planned if d is not None]
+    banned = {_key(p): p for p in inputs}
+    inodes = {i for i in map(_inode, inputs) if i is not None}
+
+    def is_input(path: Path) -> Path | None:
+        found = banned.get(_key(path))
+        if found is None and path.exists() and _inode(path) in inodes:
+            found = path
+        return found
+
+    used: set[str] = set()
+    jobs = []
+    for photo, src, rel_parent, depth in planned:
         ext = src.suffix.lower()
         if fmt:
             ext = "." + fmt.lstrip(".").lower()
         elif ext not in SAVE_FORMATS:
             ext = ".jpg"
-        name = f"{src.stem}{suffix}{ext}"
-        if (rel_parent / name).as_posix().lower() in used:
-            name = f"{src.stem}_{src.suffix.lstrip('.').lower()}{suffix}{ext}"
-        rel = (rel_parent / name).as_posix()
-        used.add(rel.lower())
-        depth = None
-        if depth_dir is not None:
-            depth = _depth_for(Path(depth_dir), rel_parent, src.stem)
-        jobs.append(Job(os.fspath(src), os.fspath(out / rel), rel, depth and os.fspath(depth)))
+        tag = src.suffix.lstrip(".").lower()
+        for n, name in enumerate(_names(src.stem, tag, suffix, ext)):
+            rel = (rel_parent / name).as_posix()
+            if rel.casefold() in used:
+                continue
+            replaced = is_input(out / rel)
+            if replaced is None:
+                break
+            if n == 0:
+                target = os.fspath(out / rel)
+                same = os.fspath(replaced) == target
+                raise ValueError(
+                    f"the output of {os.fspath(photo)} would be {target}, which is "
+                    + ("" if same else f"{os.fspath(replaced)}, ")
+                    + "an input of this run; outputs never replace inputs: choose another -o "
+                    "or --suffix"
+                )
+        used.add(rel.casefold())
+        jobs.append(
+            Job(
+                os.fspath(src),
+                os.fspath(out / rel),
+                rel,
+                depth and os.fspath(depth),
+                given=os.fspath(photo),
+            )
+        )
     return jobs

@@ -54,13 +54,15 @@ def render_job(job: Job, args: argparse.Namespace, engine: Any) -> dict[str, Any
     :class:`d2f_core.photo_render.Engine` (the model, loaded on first use and kept). The
     output appears under its name only once it is whole; the input is only read. Never
     raises for a bad photo: the row says ``failed`` with the error's kind and one-line
-    message.
+    message. The row names the input as the inputs did (:attr:`Job.named`), the output
+    relative to the output folder, and, when done, ``args.batch_settings`` (the run's
+    :func:`~d2f_core.batch.manifest.render_settings`, set by ``d2f batch``) as ``settings``.
     """
     from .. import photo_render
     from ..lens import f_number_for
 
     start = time.perf_counter()
-    row: dict[str, Any] = {"input": job.input, "output": job.output, "status": FAILED}
+    row: dict[str, Any] = {"input": job.named, "output": job.rel, "status": FAILED}
     src, dst = Path(job.input), Path(job.output)
     options = args
     if args.save_maps is not None:  # the maps keep the inputs' layout too
@@ -89,6 +91,7 @@ def render_job(job: Job, args: argparse.Namespace, engine: Any) -> dict[str, Any
                 else f_number_for(info.blur, max(w, h))
             ),
             status=DONE,
+            settings=getattr(args, "batch_settings", None),
         )
     except Exception as exc:  # one bad photo must never stop a worker
         row.update(error_kind=type(exc).__name__, error=_one_line(src, exc))
@@ -104,8 +107,8 @@ def failed_row(job: Job, exc: BaseException, seconds: float = 0.0) -> dict[str, 
     """The row of a job that failed outside :func:`render_job` (the model would not load,
     the worker process died)."""
     return {
-        "input": job.input,
-        "output": job.output,
+        "input": job.named,
+        "output": job.rel,
         "status": FAILED,
         "error_kind": type(exc).__name__,
         "error": _one_line(Path(job.input), exc),
