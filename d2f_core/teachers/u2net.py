@@ -74,7 +74,7 @@ class ConvReLU(nn.Conv2d):
         super().__init__(in_channels, out_channels, 3, padding=dilation, dilation=dilation)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return F.relu(super().forward(x))
+        return torch.relu_(super().forward(x))  # in place: one tensor less at a time
 
 
 def _pool(x: torch.Tensor) -> torch.Tensor:
@@ -125,7 +125,7 @@ class RSU(nn.Module):
             if i > 0:
                 h = _upsample(h, skip.shape[-2:])
             h = conv(torch.cat((h, skip), dim=1))
-        return h + top
+        return h.add_(top)
 
 
 class RSU4F(nn.Module):
@@ -154,7 +154,7 @@ class RSU4F(nn.Module):
         h = skips.pop()
         for conv, skip in zip(self.decoder, reversed(skips), strict=True):
             h = conv(torch.cat((h, skip), dim=1))
-        return h + top
+        return h.add_(top)
 
 
 #: levels of the encoder's six stages (0 = RSU-4F); the decoder's five mirror the first five
