@@ -173,7 +173,8 @@ class U2NetP(nn.Module):
 
     ``forward`` takes ``N x 3 x H x W`` normalised RGB (:func:`silhouette_input`) and returns
     the fused silhouette, ``N x 1 x H x W`` probabilities in (0, 1), computed channels-last
-    (:func:`load_u2netp` stores the weights so too). ``encoder`` holds the
+    (:func:`load_u2netp` stores the weights so too). For inference: its ReLUs and residual
+    adds work in place, which autograd cannot differentiate. ``encoder`` holds the
     six encoder stages (RSU-7, 6, 5, 4, 4F, 4F), ``decoder`` the five decoder stages deepest
     first (RSU-4F, 4, 5, 6, 7), ``side`` the six side convolutions from the finest stage
     (the last decoder stage) to the coarsest (the last encoder stage), ``fuse`` the 1x1
