@@ -1,4 +1,5 @@
-"""The teachers' weight files: one ``.pt`` each in ``assets/weights/``, float16 on disk.
+"""The teachers' weight files: one ``.pt`` each in ``assets/weights/``, float16 on disk
+(float32 for a teacher whose outputs float16 would move past its port's bar).
 
 A file holds ``{"format": FORMAT, "teacher": name, "config": {...}, "state_dict": {...}}``;
 it is read with ``torch.load(weights_only=True)`` (tensors and plain containers only) and
@@ -30,12 +31,17 @@ def teacher_path(name: str) -> Path:
 
 
 def save_teacher(
-    path: str | Path, name: str, config: Mapping[str, Any], state_dict: Mapping[str, torch.Tensor]
+    path: str | Path,
+    name: str,
+    config: Mapping[str, Any],
+    state_dict: Mapping[str, torch.Tensor],
+    dtype: torch.dtype = torch.float16,
 ) -> Path:
-    """Write ``state_dict`` (floating tensors as float16) with its teacher's ``name`` and the
-    ``config`` its module is built from."""
+    """Write ``state_dict`` (floating tensors as ``dtype``: float16 unless a teacher needs
+    float32 to match its original) with its teacher's ``name`` and the ``config`` its module
+    is built from."""
     half = {
-        k: (v.detach().cpu().half() if v.is_floating_point() else v.detach().cpu()).contiguous()
+        k: (v.detach().cpu().to(dtype) if v.is_floating_point() else v.detach().cpu()).contiguous()
         for k, v in state_dict.items()
     }
     path = Path(path)
