@@ -103,7 +103,10 @@ def load_photo(
     """
     path = os.fspath(path)
     try:
-        loaded = d2f_io.load_photo(path, max_pixels=max_pixels, on_too_large="resize")
+        # the smallest side is checked from the header, before decoding
+        loaded = d2f_io.load_photo(
+            path, max_pixels=max_pixels, on_too_large="resize", min_side=min_side
+        )
     except FileNotFoundError:
         raise ValueError(f"{name}: the upload could not be found on the server.") from None
     except ValueError as err:
@@ -160,7 +163,8 @@ def load_depth_map(
     """
     path = os.fspath(path)
     try:
-        raw = d2f_io.read_depth_array(path)
+        # the map's size against the photo's from the header, before decoding
+        raw = d2f_io.read_depth_array(path, size=(size[1], size[0]))
         disparity = d2f_io.depth_to_disparity(raw, kind=kind, size=(size[1], size[0]), name=name)
     except FileNotFoundError:
         raise ValueError(f"{name}: the upload could not be found on the server.") from None

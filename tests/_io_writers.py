@@ -1,6 +1,6 @@
 """Test helpers that build image files the project must read: a Google Lens Blur JPEG with
 standard + extended XMP, an Apple-style portrait MPO, 16-bit colour PNGs with every
-scanline filter, and a PNG header that claims a huge size.
+scanline filter, a PNG header that claims a huge size, and tiled float TIFFs.
 
 Written from the format specifications so that the readers are tested against independent
 writers, not against themselves.
@@ -30,45 +30,45 @@ def _chunk(ctype: bytes, body: bytes) -> bytes:
     return struct.pack(">I", len(body)) + ctype + body + struct.pack(">I", crc)
 
 
-def _paeth(a: int, b: int, c: int) -> int:
+def _paeth(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """The PNG Paeth predictor (PNG specification, 9.4) of arrays, ties broken as written
+    there: a, then b, then c."""
     p = a + b - c
-    pa, pb, pc = abs(p - a), abs(p - b), abs(p - c)
-    if pa <= pb and pa <= pc:
-        return a
-    return b if pb <= pc else c
+    pa, pb, pc = np.abs(p - a), np.abs(p - b), np.abs(p - c)
+    return np.where((pa <= pb) & (pa <= pc), a, np.where(pb <= pc, b, c))
 
 
 def png16_bytes(array: np.ndarray, filters: list[int] | None = None, exif: bytes = b"") -> bytes:
     """Encode an HxWxC uint16 array (C = 2, 3 or 4) as a 16-bit PNG.
 
     ``filters`` gives the PNG filter type (0..4) of each row (cycled); this exercises every
-    unfilter path of the reader. Slow pure-Python filtering: keep images small.
+    unfilter path of the reader. The encoder predicts from the original bytes only (left,
+    up, upper left), so every row and filter is computed at once with NumPy: lines of a
+    100,000 pixels take milliseconds.
     """
     h, w, c = array.shape
     ctype = {2: 4, 3: 2, 4: 6}[c]
     bpp = 2 * c
-    rows = array.astype(">u2").reshape(h, w * c).view(np.uint8).reshape(h, w * bpp)
-    filters = filters or [0]
-    out = bytearray()
-    prev = np.zeros(w * bpp, np.int64)
-    for i in range(h):
-        cur = rows[i].astype(np.int64)
-        f = filters[i % len(filters)]
-        line = np.zeros_like(cur)
-        for x in range(w * bpp):
-            a = cur[x - bpp] if x >= bpp else 0
-            b = prev[x]
-            cc = prev[x - bpp] if x >= bpp else 0
-            pred = [0, a, b, (a + b) // 2, _paeth(int(a), int(b), int(cc))][f]
-            line[x] = (cur[x] - pred) & 0xFF
-        out.append(f)
-        out += line.astype(np.uint8).tobytes()
-        prev = cur
+    cur = array.astype(">u2").reshape(h, w * c).view(np.uint8).reshape(h, w * bpp)
+    cur = cur.astype(np.int64)
+    up = np.zeros_like(cur)
+    up[1:] = cur[:-1]
+    left = np.zeros_like(cur)
+    left[:, bpp:] = cur[:, :-bpp]
+    upleft = np.zeros_like(cur)
+    upleft[:, bpp:] = up[:, :-bpp]
+    predictions = np.stack(
+        [np.zeros_like(cur), left, up, (left + up) // 2, _paeth(left, up, upleft)]
+    )
+    cycle = np.asarray(filters or [0], np.int64)
+    ftype = cycle[np.arange(h) % len(cycle)]
+    lines = (cur - predictions[ftype, np.arange(h)]) & 0xFF
+    raw = np.concatenate([ftype[:, None], lines], axis=1).astype(np.uint8).tobytes()
     ihdr = struct.pack(">IIBBBBB", w, h, 16, ctype, 0, 0, 0)
     data = b"\x89PNG\r\n\x1a\n" + _chunk(b"IHDR", ihdr)
     if exif:
         data += _chunk(b"eXIf", exif[6:] if exif.startswith(b"Exif\x00\x00") else exif)
-    return data + _chunk(b"IDAT", zlib.compress(bytes(out))) + _chunk(b"IEND", b"")
+    return data + _chunk(b"IDAT", zlib.compress(raw)) + _chunk(b"IEND", b"")
 
 
 def png16_stream(
@@ -249,3 +249,80 @@ def apple_mpo(
     buf = io.BytesIO()
     main.save(buf, "MPO", save_all=True, append_images=[depth], xmp=primary_xmp, quality=95)
     return buf.getvalue()
+
+
+# --------------------------------------------------------------------------- tiled TIFF
+
+
+def tiled_float_tiff(
+    width: int,
+    height: int,
+    tile: int = 256,
+    value=lambda ty, tx: 1.0,
+    *,
+    compress: bool = True,
+) -> bytes:
+    """A little-endian TIFF of one ``height`` x ``width`` float32 page stored in square tiles
+    of ``tile`` pixels, each tile Deflate-compressed (``compress``) and filled with
+    ``value(tile_row, tile_column)``.
+
+    Tiles of equal value share one stored copy (every tile offset may point at the same
+    bytes, which TIFF allows), so a 40000 x 40000 page of one value takes a few hundred KB:
+    the size a reader must refuse from the header, before it decodes anything.
+    Written from the TIFF 6.0 specification (tags 256-339) for the readers under test.
+    """
+    across, down = -(-width // tile), -(-height // tile)
+    stored: dict[float, tuple[int, int]] = {}
+    blobs = bytearray()
+    offsets, counts = [], []
+    header_room = 8
+    for ty in range(down):
+        for tx in range(across):
+            v = float(value(ty, tx))
+            if v not in stored:
+                raw = np.full(tile * tile, v, "<f4").tobytes()
+                body = zlib.compress(raw, 9) if compress else raw
+                stored[v] = (len(blobs), len(body))
+                blobs += body
+            at, n = stored[v]
+            offsets.append(header_room + at)
+            counts.append(n)
+    n_tiles = len(offsets)
+    # the IFD follows the tile data; the two long arrays follow the IFD
+    ifd_at = header_room + len(blobs)
+    ifd_at += ifd_at % 2  # word boundary
+    entries = [
+        (256, 4, 1, width),  # ImageWidth, LONG
+        (257, 4, 1, height),  # ImageLength
+        (258, 3, 1, 32),  # BitsPerSample, SHORT
+        (259, 3, 1, 8 if compress else 1),  # Compression: Deflate (Adobe) or none
+        (262, 3, 1, 1),  # PhotometricInterpretation: BlackIsZero
+        (277, 3, 1, 1),  # SamplesPerPixel
+        (284, 3, 1, 1),  # PlanarConfiguration: chunky
+        (322, 4, 1, tile),  # TileWidth
+        (323, 4, 1, tile),  # TileLength
+        (324, 4, n_tiles, None),  # TileOffsets
+        (325, 4, n_tiles, None),  # TileByteCounts
+        (339, 3, 1, 3),  # SampleFormat: IEEE float
+    ]
+    ifd_size = 2 + 12 * len(entries) + 4
+    arrays_at = ifd_at + ifd_size
+    ifd = bytearray(struct.pack("<H", len(entries)))
+    extra = bytearray()
+    for tag, typ, count, v in entries:
+        if v is None:  # an array of LONGs stored after the IFD (or inline when it fits)
+            values = offsets if tag == 324 else counts
+            if count == 1:
+                ifd += struct.pack("<HHII", tag, typ, 1, values[0])
+                continue
+            ifd += struct.pack("<HHII", tag, typ, count, arrays_at + len(extra))
+            extra += struct.pack(f"<{count}I", *values)
+        elif typ == 3:
+            ifd += struct.pack("<HHIHH", tag, typ, count, v, 0)
+        else:
+            ifd += struct.pack("<HHII", tag, typ, count, v)
+    ifd += struct.pack("<I", 0)  # no next IFD
+    out = bytearray(b"II*\x00" + struct.pack("<I", ifd_at))
+    out += blobs
+    out += b"\x00" * (ifd_at - len(out))
+    return bytes(out + ifd + extra)

@@ -281,7 +281,7 @@ def depth_map(
         from ..io.depth import load_depth
 
         path = Path(spec.arg).expanduser()
-        if not path.is_file():
+        if not path.exists():  # a FIFO or a device: load_depth says what it is
             raise ValueError(f"depth source 'file': no such file {spec.arg!r}")
         d = load_depth(
             path, kind=file_kind, near=near, size=size, guide=image_np, zero_is_hole=zero_is_hole

@@ -44,6 +44,12 @@ def read_pfm(src: str | os.PathLike | bytes) -> np.ndarray:
     """
     data = read_source_bytes(src)
     name = "<bytes>" if isinstance(src, (bytes, bytearray, memoryview)) else os.fspath(src)
+    return _read_pfm(data, name)
+
+
+def _read_pfm(data: bytes, name: str, size: tuple[int, int] | None = None) -> np.ndarray:
+    """:func:`read_pfm` of a file's bytes; with ``size`` (the photo's (H, W)) the map's aspect
+    ratio is checked from the header, before the samples are read."""
     tokens: list[bytes] = []
     pos = 0
     while len(tokens) < 4:
@@ -74,6 +80,8 @@ def read_pfm(src: str | os.PathLike | bytes) -> np.ndarray:
             f"{name}: PFM header claims {width}x{height} = {width * height} pixels, more than "
             f"the limit of {MAX_DECODE_PIXELS}"
         )
+    if size is not None:
+        check_aspect((height, width), size, name)
     count = width * height * channels
     dtype = np.dtype("<f4" if scale < 0 else ">f4")
     if len(data) - pos < count * 4:
@@ -140,7 +148,7 @@ def _grey_channels(a: np.ndarray, name: str, levels: float | None = None) -> np.
     return a.mean(axis=2)
 
 
-def _check_npy_header(data: bytes, name: str) -> None:
+def _check_npy_header(data: bytes, name: str) -> tuple[int, ...]:
     """Refuse a ``.npy`` file from its header, before anything is allocated: a shape of more
     than :data:`~d2f_core.io.image.MAX_DECODE_PIXELS` values, or more bytes than the file
     holds (``np.load`` allocates the header's shape first, then reads)."""
@@ -169,48 +177,151 @@ def _check_npy_header(data: bytes, name: str) -> None:
             f"{name}: truncated .npy file: shape {tuple(shape)} of {dtype} needs "
             f"{count * dtype.itemsize} bytes, the file holds {have}"
         )
+    return tuple(int(n) for n in shape)
 
 
-def read_depth_array(src: str | os.PathLike | bytes) -> np.ndarray:
+def _map_sides(shape: tuple[int, ...]) -> tuple[int, int] | None:
+    """The (H, W) that an array of ``shape`` becomes as a depth map (the rules of
+    :func:`read_depth_array`: length-1 axes dropped, 3 or 4 equal channels averaged), or None
+    when it is no map (refused after reading)."""
+    kept = tuple(n for n in shape if n != 1)
+    if len(kept) == 3 and kept[2] in (3, 4):
+        kept = kept[:2]
+    return kept if len(kept) == 2 else None
+
+
+def _check_map_header(
+    sides: tuple[int, int] | None, size: tuple[int, int] | None, name: str
+) -> None:
+    """The map's (H, W) from a header against the photo's (H, W) ``size``: the aspect ratio
+    checked before any sample is decoded (:func:`check_aspect`)."""
+    if sides is not None and size is not None:
+        check_aspect(sides, size, name)
+
+
+TIFF_MAGICS = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")  # classic TIFF and BigTIFF
+#: Largest decoded TIFF page in bytes: a page of :data:`MAX_DECODE_PIXELS` float32 values.
+MAX_TIFF_PAGE_BYTES = 4 * MAX_DECODE_PIXELS
+
+
+def _tiff_header(data: bytes, name: str):
+    """``(first page, (H, W, samples, bytes decoded))`` of a TIFF from its header (tifffile
+    parses the IFD; nothing is decoded), or None when tifffile is missing or cannot parse
+    it. Raises ``ValueError`` for a page above the pixel or byte limit or a volume."""
+    try:
+        import tifffile
+    except ImportError:
+        return None
+    try:
+        page = tifffile.TiffFile(io.BytesIO(data)).pages[0]
+        h, w = int(page.imagelength), int(page.imagewidth)
+        depth, samples = int(page.imagedepth), int(page.samplesperpixel)
+        bits = int(page.bitspersample)
+    except Exception:  # noqa: BLE001 (any failure to parse: Pillow may still read it)
+        return None
+    pixels = h * w * max(depth, 1)
+    if pixels > MAX_DECODE_PIXELS:
+        raise ValueError(
+            f"{name}: TIFF page is {w}x{h}"
+            + (f"x{depth}" if depth > 1 else "")
+            + f" = {pixels} pixels, more than the limit of {MAX_DECODE_PIXELS} (refused "
+            "from its header, before decoding)"
+        )
+    nbytes = pixels * samples * -(-bits // 8)
+    if nbytes > MAX_TIFF_PAGE_BYTES:
+        raise ValueError(
+            f"{name}: TIFF page of {w}x{h} pixels with {samples} samples of {bits} bits is "
+            f"{nbytes} bytes decoded, more than the limit of {MAX_TIFF_PAGE_BYTES}"
+        )
+    if depth > 1:
+        raise ValueError(
+            f"{name}: TIFF page is a volume of {depth} slices of {w}x{h}; expected a 2-D map"
+        )
+    return page, (h, w, samples, nbytes)
+
+
+def _read_tiff(data: bytes, name: str, size: tuple[int, int] | None) -> np.ndarray:
+    """A TIFF depth map: its first page's size checked from the header (pixel and byte
+    limits, the photo's aspect), then decoded by Pillow or, for what Pillow cannot decode
+    (float pages with several samples, some tiled pages), by tifffile."""
+    header = _tiff_header(data, name)
+    if header is not None:
+        _check_map_header(_map_sides(header[1][:3]), size, name)  # (H, W, samples)
+    try:
+        im = open_pil(data, name)  # refuses a header above the pixel limit, unread
+    except ValueError:
+        if header is None:
+            raise
+        im = None
+    if im is not None:
+        with im:
+            _check_map_header((im.size[1], im.size[0]), size, name)
+            try:
+                im.load()
+                return _grey_from_pil(im, name)
+            except (OSError, SyntaxError, EOFError, ValueError) as exc:
+                if header is None:
+                    raise ValueError(f"{name}: truncated or corrupt depth image: {exc}") from exc
+    if header is None:  # tifffile is missing (it comes with scikit-image)
+        raise ValueError(f"{name}: cannot decode this TIFF (tifffile is not installed)")
+    try:
+        return header[0].asarray(maxworkers=1)
+    except MemoryError as exc:
+        raise ValueError(
+            f"{name}: not enough memory to decode the {header[1][3]}-byte TIFF page"
+        ) from exc
+    except Exception as exc:  # noqa: BLE001 (tifffile's and its codecs' own errors)
+        raise ValueError(f"{name}: cannot decode TIFF depth map: {exc}") from exc
+
+
+def read_depth_array(
+    src: str | os.PathLike | bytes, *, size: tuple[int, int] | None = None
+) -> np.ndarray:
     """Read the raw values of a depth/disparity file as HxW float64 (no normalisation).
 
     Formats: ``.npy``, ``.pfm``, TIFF (float, 16/32-bit int), PNG 8/16-bit and any grey
     image Pillow reads. Bytes sources are sniffed by content.
+
+    Every format's size is checked from its header before a sample is decoded: at most
+    :data:`~d2f_core.io.image.MAX_DECODE_PIXELS` pixels and, with ``size`` (the (H, W) of
+    the photo the map belongs to), the photo's aspect ratio (:func:`check_aspect`).
+
+    Raises:
+        FileNotFoundError: the path does not exist.
+        ValueError: not a regular file (the message says what it is), unreadable, corrupt,
+            above the limits, of another aspect ratio than ``size``, not a 2-D map.
     """
     name = "<bytes>" if isinstance(src, (bytes, bytearray, memoryview)) else os.fspath(src)
+    if size is not None and (int(size[0]) < 1 or int(size[1]) < 1):
+        raise ValueError(f"size: expected positive (H, W), got {size}")
     data = read_source_bytes(src)
+    try:
+        return _depth_values(data, name, size)
+    except MemoryError:  # within the pixel limit, but more than this process may have
+        raise ValueError(f"{name}: not enough memory to read this depth map") from None
+
+
+def _depth_values(data: bytes, name: str, size: tuple[int, int] | None) -> np.ndarray:
+    """:func:`read_depth_array` of a file's bytes."""
     if data.startswith(b"\x93NUMPY"):
-        _check_npy_header(data, name)
+        _check_map_header(_map_sides(_check_npy_header(data, name)), size, name)
         try:
             arr = np.load(io.BytesIO(data), allow_pickle=False)
         except ValueError as exc:
             raise ValueError(f"{name}: unreadable .npy file: {exc}") from exc
     elif data[:2] in (b"PF", b"Pf") and data[2:3].isspace():
-        arr = read_pfm(data if name == "<bytes>" else src)
+        arr = _read_pfm(data, name, size)
+    elif data[:4] in TIFF_MAGICS:
+        arr = _read_tiff(data, name, size)
     else:
-        arr = None
         try:
-            im = open_pil(data, name)
+            im = open_pil(data, name)  # refuses a header above the pixel limit, unread
             with im:
+                _check_map_header((im.size[1], im.size[0]), size, name)
                 im.load()
                 arr = _grey_from_pil(im, name)
-        except ValueError:
-            if data[:4] not in (b"II*\x00", b"MM\x00*"):
-                raise
         except (OSError, SyntaxError, EOFError) as exc:
-            if data[:4] not in (b"II*\x00", b"MM\x00*"):
-                raise ValueError(f"{name}: truncated or corrupt depth image: {exc}") from exc
-        if arr is None:
-            # Float TIFFs with several samples or tiles that Pillow cannot decode.
-            try:
-                import tifffile
-            except ImportError as exc:
-                msg = f"{name}: cannot decode this TIFF (tifffile is not installed)"
-                raise ValueError(msg) from exc
-            try:
-                arr = tifffile.imread(io.BytesIO(data))
-            except Exception as exc:
-                raise ValueError(f"{name}: cannot decode TIFF depth map: {exc}") from exc
+            raise ValueError(f"{name}: truncated or corrupt depth image: {exc}") from exc
     arr = np.asarray(arr)
     if arr.dtype == np.bool_ or not np.issubdtype(arr.dtype, np.number):
         raise ValueError(f"{name}: depth map has non-numeric dtype {arr.dtype}")
@@ -473,7 +584,7 @@ def load_depth(
         HxW float32 in [0, 1], 1 = nearest, at ``size`` (the image's (H, W)) when given.
     """
     name = "<bytes>" if isinstance(path, (bytes, bytearray, memoryview)) else os.fspath(path)
-    raw = read_depth_array(path)
+    raw = read_depth_array(path, size=size)  # the aspect is checked before decoding
     return depth_to_disparity(
         raw,
         kind=kind,

@@ -581,15 +581,19 @@ def load_photo(
     max_pixels: int | None = None,
     on_too_large: Literal["resize", "error"] = "resize",
     use_embedded: bool = True,
+    min_side: int | None = None,
 ) -> Photo:
     """Load a photo and, when present, its embedded phone depth and focus.
 
     A corrupt embedded depth map is logged and ignored (the photo is still usable).
-    See :func:`~d2f_core.io.image.load_image_with_info` for the other arguments.
+    See :func:`~d2f_core.io.image.load_image_with_info` for the other arguments
+    (``min_side`` applies to the photo, checked from its header before decoding).
     """
     name = source_name(src)
     data = read_source_bytes(src)
-    image, info = decode_image(data, name, max_pixels=max_pixels, on_too_large=on_too_large)
+    image, info = decode_image(
+        data, name, max_pixels=max_pixels, on_too_large=on_too_large, min_side=min_side
+    )
     photo = Photo(image=image, info=info)
     if not use_embedded:
         return photo

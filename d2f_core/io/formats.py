@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import logging
 import struct
-import zlib
 
 import numpy as np
 from PIL import Image
@@ -90,8 +89,18 @@ def strip_orientation(exif: bytes | Image.Exif | None) -> bytes | None:
 
 # --------------------------------------------------------------------------- 16-bit PNG
 
-#: Bytes inflated at a time: the inflater never hands out more than this in one piece.
-_INFLATE_STEP = 1 << 20
+#: Most bytes one byte of a Deflate stream can inflate to (RFC 1951: a 258-byte match in
+#: about 2 bits; 1032:1 overall).
+DEFLATE_MAX_RATIO = 1032
+
+#: libpng's default limit on a side (``png_set_user_limits``): a wider or taller 16-bit PNG is
+#: read by Pillow at 8 bits per channel instead (libpng would refuse its header).
+LIBPNG_MAX_SIDE = 1_000_000
+
+# libpng's warnings (image data past the last row, a known-bad sRGB profile) come through the
+# "imagecodecs" logger; with no handler anywhere Python would print them bare on stderr, next
+# to the CLI's one-line messages. They still reach any handler an application installs.
+logging.getLogger("imagecodecs").addHandler(logging.NullHandler())
 
 
 def _png_chunks(data: bytes):
@@ -134,118 +143,81 @@ def png16_header(data: bytes) -> tuple[int, int, int, bool] | None:
     return w, h, channels, bool(interlace)
 
 
-def _paeth(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
-    p = a + b - c
-    pa, pb, pc = np.abs(p - a), np.abs(p - b), np.abs(p - c)
-    return np.where((pa <= pb) & (pa <= pc), a, np.where(pb <= pc, b, c))
-
-
-def _png_unfilter(rows: np.ndarray, h: int, w: int, bpp: int) -> np.ndarray:
-    """Undo PNG scanline filters in place. ``rows``: (h, 1 + w * bpp) uint8, the filter type
-    byte then the filtered bytes of each scanline. Returns the (h, w, bpp) uint8 view of
-    ``rows`` that holds the pixels' bytes.
-
-    Average and Paeth depend on the left, upper and upper-left pixels, so rows cannot be
-    decoded independently; sweeping anti-diagonals decodes every pixel whose neighbours are
-    done in one vectorised step (h + w steps instead of h * w). Each byte is read as filtered
-    before it is written as decoded, so no second copy of the image is made.
-    """
-    ftype = rows[:, 0].copy()
-    if (ftype > 4).any():
-        raise ValueError("corrupt PNG filter type")
-    pix = rows[:, 1:].reshape(h, w, bpp)  # a view: the decode writes into ``rows``
-    if not ((ftype == 3) | (ftype == 4)).any():
-        for i in range(h):
-            if ftype[i] == 1:
-                pix[i] = np.cumsum(pix[i], axis=0, dtype=np.uint8)  # wraps modulo 256
-            elif ftype[i] == 2 and i > 0:
-                pix[i] += pix[i - 1]
-        return pix
-    ft = ftype.astype(np.int16)
-    for t in range(h + w - 1):
-        i = np.arange(max(0, t - w + 1), min(h - 1, t) + 1)
-        j = t - i
-        left, up = j > 0, i > 0
-        a = pix[i, np.maximum(j - 1, 0)].astype(np.int16)
-        a[~left] = 0
-        b = pix[np.maximum(i - 1, 0), j].astype(np.int16)
-        b[~up] = 0
-        c = pix[np.maximum(i - 1, 0), np.maximum(j - 1, 0)].astype(np.int16)
-        c[~(left & up)] = 0
-        f = ft[i][:, None]
-        pred = np.where(f == 1, a, np.where(f == 2, b, np.where(f == 3, (a + b) >> 1, 0)))
-        paeth_rows = f[:, 0] == 4
-        if paeth_rows.any():
-            pred[paeth_rows] = _paeth(a[paeth_rows], b[paeth_rows], c[paeth_rows])
-        pix[i, j] = (pix[i, j] + pred) & 0xFF
-    return pix
-
-
-def _inflate_bounded(chunks, limit: int) -> np.ndarray:
-    """The zlib stream spread over ``chunks``, inflated into at most ``limit`` bytes.
-
-    The work and the memory never exceed what ``limit`` allows, whatever the stream claims:
-    it is inflated a piece at a time (:data:`_INFLATE_STEP`), and one byte past ``limit``
-    is refused as a corrupt file.
-    """
-    inflater = zlib.decompressobj()
-    out = bytearray()
+def _png_codec():
+    """imagecodecs' libpng decoder, or None when the package is missing (logged once)."""
+    global _codec_missing_logged
     try:
-        for body in chunks:
-            pending = body
-            while pending and not inflater.eof:
-                step = min(_INFLATE_STEP, limit + 1 - len(out))
-                out += inflater.decompress(pending, step)
-                if len(out) > limit:
-                    raise ValueError(
-                        f"corrupt PNG image data: it inflates to more than the {limit} bytes "
-                        "that its header's size needs"
-                    )
-                pending = inflater.unconsumed_tail
-            if inflater.eof:
-                break
-    except zlib.error as exc:
-        raise ValueError(f"corrupt PNG image data: {exc}") from exc
-    if not inflater.eof:
-        raise ValueError("truncated PNG image data (compressed stream ends early)")
-    return np.frombuffer(out, np.uint8)
+        from imagecodecs import png_decode
+    except ImportError:
+        if not _codec_missing_logged:
+            logger.warning("imagecodecs is not installed: 16-bit PNGs are read at 8 bits")
+            _codec_missing_logged = True
+        return None
+    return png_decode
+
+
+_codec_missing_logged = False
 
 
 def decode_png16(data: bytes) -> tuple[np.ndarray, bytes | None] | None:
     """Decode a non-interlaced 16-bit colour PNG (RGB, RGBA, grey+alpha) at full precision.
 
     Pillow reduces these to 8 bits. Returns (HxWxC uint16, eXIf bytes or None), or None when
-    the file is not of this kind (the caller then uses Pillow).
+    the file is not of this kind or the decoder cannot take it (the caller then uses
+    Pillow, at 8 bits): an interlaced file, a side over :data:`LIBPNG_MAX_SIDE`, no
+    imagecodecs.
 
-    The image data is inflated with a bound: the rows that the header's size needs (its
-    filter bytes included) and not one byte more, so the cost follows the header, never what
-    the compressed stream claims; more data is refused as a corrupt file. The memory is the
-    inflated rows (decoded in place) and the returned array.
+    libpng (through imagecodecs) decodes it in C, a row at a time: the time follows the
+    pixel count whatever the shape and the filters, and the memory is the returned array
+    (sized from the header, which the caller has checked against its pixel limits) and a
+    row or two; a header that claims more than its compressed data can hold is refused
+    before that array exists. libpng checks every chunk's CRC; image data past the header's
+    rows is ignored.
+    A transparency (tRNS) chunk becomes an alpha channel.
     """
     header = png16_header(data)
     if header is None:
         return None
     w, h, channels, interlace = header
+    if w <= 0 or h <= 0:
+        raise ValueError(f"PNG image has no pixels ({w}x{h})")
     if interlace:
         logger.info("interlaced 16-bit PNG: decoded by Pillow at 8-bit precision")
         return None
-    if w <= 0 or h <= 0:
-        raise ValueError(f"PNG image has no pixels ({w}x{h})")
-    bpp = channels * 2
-    needed = h * (w * bpp + 1)
-    idat = []
-    exif = None
-    for ctype, body in _png_chunks(data):
-        if ctype == b"IDAT":
-            idat.append(body)
-        elif ctype == b"eXIf" and exif is None:
-            exif = bytes(body)
-    raw = _inflate_bounded(idat, needed)
-    if raw.size < needed:
-        raise ValueError(f"truncated PNG image data ({raw.size} of {needed} bytes)")
-    pix = _png_unfilter(raw.reshape(h, w * bpp + 1), h, w, bpp)
-    arr = pix.view(">u2").astype(np.uint16)  # (h, w, channels), big-endian samples
-    del pix, raw
+    if max(w, h) > LIBPNG_MAX_SIDE:
+        logger.info(
+            "16-bit PNG of %dx%d: a side over %d pixels, decoded by Pillow at 8-bit precision",
+            w, h, LIBPNG_MAX_SIDE,
+        )  # fmt: skip
+        return None
+    png_decode = _png_codec()
+    if png_decode is None:
+        return None
+    exif, compressed = None, 0
+    try:
+        for ctype, body in _png_chunks(data):
+            if ctype == b"IDAT":
+                compressed += len(body)
+            elif ctype == b"eXIf" and exif is None:
+                exif = bytes(body)
+    except (ValueError, struct.error):
+        pass  # a truncated file: libpng says where
+    needed = h * (1 + w * channels * 2)  # the filter byte and the samples of each row
+    if needed > DEFLATE_MAX_RATIO * compressed + 64:
+        # checked before libpng allocates the header's image: a small file that claims a
+        # large one is refused without its memory
+        raise ValueError(
+            f"truncated PNG image data: {compressed} compressed bytes cannot hold the "
+            f"{needed} bytes of a {w}x{h} image"
+        )
+    try:
+        arr = png_decode(data)
+    except MemoryError:
+        raise
+    except Exception as exc:  # noqa: BLE001 (imagecodecs.PngError is a RuntimeError)
+        raise ValueError(f"truncated or corrupt PNG image data: {exc}") from None
+    if arr.dtype != np.uint16 or arr.ndim != 3 or arr.shape[:2] != (h, w):
+        raise ValueError(f"corrupt PNG: decoded as {arr.shape} {arr.dtype}, header says {w}x{h}")
     if exif is not None and not exif.startswith(b"Exif\x00\x00"):
         exif = b"Exif\x00\x00" + exif
     return arr, exif

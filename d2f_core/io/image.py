@@ -123,8 +123,8 @@ def read_source_bytes(src: ImageSource, max_bytes: int = MAX_FILE_BYTES) -> byte
 
     Raises:
         FileNotFoundError: the path does not exist.
-        ValueError: a directory, not a regular file, larger than ``max_bytes``, empty or
-            unreadable.
+        ValueError: a directory, a FIFO, a device or a socket (the message says which),
+            larger than ``max_bytes``, empty or unreadable.
     """
     name = source_name(src)
     if isinstance(src, (bytes, bytearray, memoryview)):
@@ -140,11 +140,22 @@ def read_source_bytes(src: ImageSource, max_bytes: int = MAX_FILE_BYTES) -> byte
     return data
 
 
+def _kind_of_file(mode: int) -> str:
+    """What a file that is not a regular file is, for messages."""
+    if stat.S_ISFIFO(mode):
+        return "a FIFO (named pipe)"
+    if stat.S_ISCHR(mode) or stat.S_ISBLK(mode):
+        return "a device"
+    if stat.S_ISSOCK(mode):
+        return "a socket"
+    return "a special file"
+
+
 def _check_regular(st: os.stat_result, name: str, max_bytes: int) -> None:
     if stat.S_ISDIR(st.st_mode):
         raise ValueError(f"{name}: is a directory, not an image file")
     if not stat.S_ISREG(st.st_mode):
-        raise ValueError(f"{name}: not a regular file (a device, pipe or socket)")
+        raise ValueError(f"{name}: is {_kind_of_file(st.st_mode)}, not a regular file")
     if st.st_size > max_bytes:
         raise ValueError(f"{name}: {st.st_size} bytes, more than the limit of {max_bytes}")
 
@@ -387,7 +398,14 @@ def resize_float(array: np.ndarray, size: tuple[int, int], resample: str = "lanc
 # --------------------------------------------------------------------------- loading
 
 
-def _check_limits(max_pixels: int | None, on_too_large: str) -> None:
+def _check_limits(max_pixels: int | None, on_too_large: str, min_side: int | None = None) -> None:
+    if min_side is not None:
+        if isinstance(min_side, bool) or not isinstance(min_side, (int, np.integer)):
+            raise InputTypeError(
+                f"min_side: expected an int or None, got {type(min_side).__name__}"
+            )
+        if min_side < 1:
+            raise ValueError(f"min_side: must be >= 1, got {min_side}")
     if max_pixels is not None:
         if isinstance(max_pixels, bool) or not isinstance(max_pixels, (int, np.integer)):
             kind = type(max_pixels).__name__
@@ -404,9 +422,21 @@ def decode_image(
     *,
     max_pixels: int | None = None,
     on_too_large: Literal["resize", "error"] = "resize",
+    min_side: int | None = None,
 ) -> tuple[np.ndarray, ImageInfo]:
     """Decode image bytes (see ``load_image_with_info``); ``name`` is used in messages."""
-    _check_limits(max_pixels, on_too_large)
+    _check_limits(max_pixels, on_too_large, min_side)
+    try:
+        return _decode_image(data, name, max_pixels, on_too_large, min_side)
+    except MemoryError:  # within the pixel limit, but more than this process may have
+        raise ValueError(
+            f"{name}: not enough memory to decode this image; pass max_pixels"
+        ) from None
+
+
+def _decode_image(
+    data: bytes, name: str, max_pixels: int | None, on_too_large: str, min_side: int | None
+) -> tuple[np.ndarray, ImageInfo]:
     info = ImageInfo(name=name)
     conv = info.conversions
     im = open_pil(data, name)
@@ -418,6 +448,12 @@ def decode_image(
     info.orientation = orientation
     upright = (w, h) if orientation < 5 else (h, w)
     info.original_size = (upright[1], upright[0])
+    if min_side is not None and min(w, h) < min_side:
+        # from the header, before any pixel is decoded
+        raise ValueError(
+            f"{name}: image is only {upright[0]}x{upright[1]} pixels; at least {min_side} "
+            "pixels per side are needed"
+        )
     target = None
     if max_pixels is not None and w * h > max_pixels:
         if on_too_large == "error":
@@ -442,6 +478,9 @@ def decode_image(
             rgb = _png16_to_float_rgb(arr16, conv)
             icc = im.info.get("icc_profile") or None
         else:
+            if png16_size is not None:  # interlaced, a side over libpng's limit, no codec
+                info.bit_depth = 16
+                conv.append("16-bit PNG read at 8 bits per channel (see the log for why)")
             if target is not None and im.format in ("JPEG", "MPO"):
                 # DCT-domain downscale: decoding a 48 MP JPEG at 1/4 is ~10x cheaper.
                 im.draft(im.mode, target)
@@ -497,6 +536,7 @@ def load_image_with_info(
     *,
     max_pixels: int | None = None,
     on_too_large: Literal["resize", "error"] = "resize",
+    min_side: int | None = None,
 ) -> tuple[np.ndarray, ImageInfo]:
     """Load a photo as an upright RGB float array, with what was learned and done.
 
@@ -505,6 +545,8 @@ def load_image_with_info(
         max_pixels: cap on H * W of the result; None = no cap.
         on_too_large: ``"resize"`` shrinks (aspect kept, logged) an image above the cap,
             ``"error"`` raises ``ValueError`` instead.
+        min_side: refuse an image with a side shorter than this many pixels; None = any.
+            Like the pixel caps, it is checked from the file's header, before decoding.
 
     Returns:
         (image, info): image is HxWx3 float32 in [0, 1], upright (EXIF orientation applied),
@@ -512,12 +554,14 @@ def load_image_with_info(
 
     Raises:
         FileNotFoundError: the path does not exist.
-        ValueError: empty, truncated, corrupt, unsupported or oversized input; HEIC without
-            pillow-heif. The message starts with the file name.
+        ValueError: empty, truncated, corrupt, unsupported, oversized or too small input;
+            HEIC without pillow-heif. The message starts with the file name.
     """
     name = source_name(src)
     data = read_source_bytes(src)
-    return decode_image(data, name, max_pixels=max_pixels, on_too_large=on_too_large)
+    return decode_image(
+        data, name, max_pixels=max_pixels, on_too_large=on_too_large, min_side=min_side
+    )
 
 
 def load_image(
@@ -525,9 +569,12 @@ def load_image(
     *,
     max_pixels: int | None = None,
     on_too_large: Literal["resize", "error"] = "resize",
+    min_side: int | None = None,
 ) -> np.ndarray:
     """Load a photo as an upright HxWx3 float32 array in [0, 1].
 
     See :func:`load_image_with_info` for arguments and errors.
     """
-    return load_image_with_info(src, max_pixels=max_pixels, on_too_large=on_too_large)[0]
+    return load_image_with_info(
+        src, max_pixels=max_pixels, on_too_large=on_too_large, min_side=min_side
+    )[0]
