@@ -233,24 +233,74 @@ class TestPeers:
         assert far[:, 16:20].all() and not far[:, 20:].any() and not (near & far).any()
 
     def test_run_peers_reports_every_category(self, tmp_path):
-        from d2f_core.bench.peers import CATEGORIES, format_table, run_peers, summary
+        from d2f_core.bench.peers import (
+            CATEGORIES,
+            DEFAULT_METHODS,
+            by_group,
+            format_groups,
+            format_table,
+            run_peers,
+            summary,
+        )
 
         cases = load_cases([(40, 56)], [11, 12], [0.12], samples=16, cache=tmp_path)
-        result = run_peers(cases, repeat=1, blender=False)
-        assert "Blender Defocus skipped" in result["notes"][0]
+        cases += load_cases([(40, 56)], [11], k_px=[3.0], samples=16, cache=tmp_path)
+        result = run_peers(cases, repeat=1, methods=DEFAULT_METHODS + ("Blender Defocus",))
+        if "Blender Defocus" not in {r["method"] for r in result["rows"]}:
+            assert "Blender Defocus skipped" in result["notes"][0]
         table = summary(result["rows"])
-        assert set(table) == {
-            "d2f renderer",
-            "d2f renderer, no hidden surface",
-            "d2f pipeline",
-            "d2f pipeline, no hidden surface",
-            "gather",
-        }
-        assert table["d2f renderer"]["time ratio"] == pytest.approx(1.0)
+        assert set(DEFAULT_METHODS) <= set(table)
+        assert table["paper, FFT"]["time ratio"] == pytest.approx(1.0)  # the baseline
         for entry in table.values():
             assert entry["all"] is not None and 5 < entry["all"] < 100
             assert {name for name, _, _ in CATEGORIES} <= set(entry)
-        assert format_table(table).count("\n") == 6
+        assert format_table(table).count("\n") == len(table) + 1
+        by_k = by_group(result["rows"], "blur")
+        assert list(by_k["d2f"]) == [3.0, 6.72]  # sorted; 0.12 x 56 px
+        assert by_k["d2f"][6.72]["cases"] == 2 and by_k["d2f"][3.0]["cases"] == 1
+        # a group's figure is the mean over its cases
+        rows = [r for r in result["rows"] if r["method"] == "gather" and r["blur"] == 6.72]
+        assert by_k["gather"][6.72]["psnr"] == pytest.approx(np.mean([r["psnr"] for r in rows]))
+        assert by_k["gather"][6.72]["psnr_edges"] == pytest.approx(
+            np.mean([r["psnr_edges"] for r in rows])
+        )
+        lines = format_groups(by_k, "blur").splitlines()
+        assert lines[0].startswith("| K (px) | cases | d2f |") and len(lines) == 4
+        assert set(by_group(result["rows"], "category")["d2f"]) <= {
+            "occlusion",
+            "thin",
+            "highlights",
+            "mixed",
+        }
+
+    def test_scene_category(self):
+        from d2f_core.bench.peers import scene_category
+
+        none, some = np.zeros((8, 8), bool), np.eye(8, dtype=bool)
+        assert scene_category(none, none) == "occlusion"
+        assert scene_category(some, none) == "thin"
+        assert scene_category(none, some) == "highlights"
+        assert scene_category(some, some) == "mixed"
+
+    def test_load_cases_k_in_px_shares_the_cache(self, tmp_path):
+        by_frac = load_cases([(40, 56)], [11], [0.25], samples=8, cache=tmp_path)
+        files = sorted(tmp_path.glob("*.npz"))
+        by_px = load_cases([(40, 56)], [11], k_px=[14.0], samples=8, cache=tmp_path)
+        assert sorted(tmp_path.glob("*.npz")) == files  # 0.25 x 56 = 14 px: read, not made
+        assert by_px[0].key == by_frac[0].key and by_px[0].blur == 14.0
+        np.testing.assert_array_equal(by_px[0].target, by_frac[0].target)
+        with pytest.raises(ValueError, match="at least one K"):
+            load_cases([(40, 56)], [11], samples=8)
+        with pytest.raises(ValueError, match="finite and > 0"):
+            load_cases([(40, 56)], [11], k_px=[0.0], samples=8)
+
+    def test_peers_cli_refuses_unknown_method(self, capsys):
+        from d2f_core.bench.peers import main as peers_main
+
+        with pytest.raises(SystemExit) as exc:
+            peers_main(["--methods", "nope", "--k-px", "4"])
+        assert exc.value.code == 2
+        assert "unknown method 'nope'" in capsys.readouterr().err
 
     def test_blender_peer_when_installed(self):
         """Blender's Defocus node as the bench runs it: pixels in = pixels out where nothing

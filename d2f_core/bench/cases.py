@@ -129,11 +129,11 @@ def focus_for(scene, mode: str) -> float:
 
 
 def _make_case(
-    size: tuple[int, int], seed: int, k_frac: float, mode: str, samples: int, cache: Path | None
+    size: tuple[int, int], seed: int, blur: float, mode: str, samples: int, cache: Path | None
 ) -> Case:
     from ..train.synth import linear_to_srgb, make_scene, render_pinhole, render_thin_lens
 
-    blur = round(k_frac * size[1], 2)
+    blur = round(blur, 2)
     key = f"s{seed}_{size[0]}x{size[1]}_k{blur:g}_{mode}_n{samples}_v{CACHE_VERSION}"
     path = None if cache is None else cache / f"{key}.npz"
     if path is not None and path.is_file():
@@ -185,24 +185,31 @@ def _make_case(
 def load_cases(
     sizes: Sequence[tuple[int, int]],
     seeds: Sequence[int],
-    k_fracs: Sequence[float],
+    k_fracs: Sequence[float] = (),
     *,
     samples: int = 256,
     cache: str | Path | None = None,
+    k_px: Sequence[float] = (),
 ) -> list[Case]:
     """Generated scenes with thin-lens ground truth, cached as ``.npz`` under ``cache``.
 
     Even seeds focus on the main subject, odd seeds on the farthest object (so nearer objects
-    blur over a sharp region). ``K = k_frac * width``.
+    blur over a sharp region). ``K = k_frac * width`` for each of ``k_fracs``, then
+    ``K = k`` px for each of ``k_px`` (the same K by either way shares its cache file).
     """
+    if not k_fracs and not k_px:
+        raise ValueError("load_cases needs at least one K: k_fracs or k_px")
+    if any(not (math.isfinite(k) and k > 0) for k in (*k_fracs, *k_px)):
+        raise ValueError(f"K must be finite and > 0, got {list(k_fracs)} {list(k_px)}")
     cache_path = None if cache is None else Path(cache)
     cases = []
     for size in sizes:
+        blurs = [k * size[1] for k in k_fracs] + [float(k) for k in k_px]
         for seed in seeds:
             mode = "subject" if seed % 2 == 0 else "far"
-            for k_frac in k_fracs:
+            for blur in blurs:
                 t0 = time.perf_counter()
-                case = _make_case(tuple(size), seed, k_frac, mode, samples, cache_path)
+                case = _make_case(tuple(size), seed, blur, mode, samples, cache_path)
                 case.bands = {
                     "edges": edge_band(case.disparity, case.blur),
                     "lights": light_band(case.lights, case.blur),

@@ -12,20 +12,31 @@ the pinhole photo and the exact disparity, and is scored by PSNR:
 * on thin structures (the scenes' fences and striped blobs, grown by ``K / 4``);
 * around HDR highlights (grown by ``K / 2``).
 
+The same rows are also broken down by ``K`` (``--k-px`` gives it in px) and by what the
+scene holds (:func:`scene_category`: plain occlusion, thin structures, highlights, or both),
+overall and in the depth-edge band of ``d2f-bench accuracy`` (disparity jumps grown by
+``clamp(K / 4, 2, 24)`` px).
+
 Methods:
 
+* ``d2f``: :func:`rendering.adaptive.render_adaptive` at the photo's size with the default
+  budget (``"balanced"``), the settings ``D2F.render`` picks for a pass at the photo's size;
 * ``d2f renderer``: :func:`rendering.render` at the photo's size, default options;
 * ``d2f pipeline``: ``D2F.prepare(photo, disparity=...)`` and ``D2F.render`` with the shipped
   weights, as the app and the CLI run with a given map;
 * ``gather``: a depth-aware per-pixel gather of the "scatter-as-gather" kind, written here:
   each pixel averages the neighbours whose own CoC disc reaches it, each weighted by the
   inverse of its disc's area (no occlusion model);
+* ``paper`` and ``paper, FFT``: the paper's configuration of ``d2f-bench accuracy``
+  (|defocus| order, 15 layers stretched to ``K``, full resolution; direct convolution, or
+  FFT, the time baseline);
 * ``Blender Defocus``: Blender's compositor Defocus node (circular bokeh, no z-buffer: the
   Z input is the CoC radius, 1 = ``z_scale`` px), run headless when ``blender`` is on
   ``PATH``; skipped with a note otherwise.
 
-Times are medians of interleaved rounds, reported as ratios against ``d2f renderer`` in the
-same run; nothing here asserts a time.
+Times are medians of interleaved rounds, reported as ratios against ``paper, FFT`` (or, when
+it is not run, the first method) in the same run, with the load average of each case beside
+them; nothing here asserts a time.
 """
 
 from __future__ import annotations
@@ -34,6 +45,7 @@ import argparse
 import json
 import logging
 import math
+import os
 import shutil
 import statistics
 import subprocess
@@ -47,10 +59,21 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..rendering import render
+from ..rendering import adaptive, render
+from .accuracy import PAPER_OPTIONS
 from .cases import Case, dilate, jump_pixels, load_cases, masked_metrics, reach_px
 
-__all__ = ["CATEGORIES", "edge_sides", "gather_render", "main", "run_peers", "thin_band"]
+__all__ = [
+    "CATEGORIES",
+    "SCENE_CATEGORIES",
+    "by_group",
+    "edge_sides",
+    "gather_render",
+    "main",
+    "run_peers",
+    "scene_category",
+    "thin_band",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -65,6 +88,26 @@ CATEGORIES: tuple[tuple[str, str | None, str | None], ...] = (
     ("highlights", "lights", None),
 )
 EDGE_PX = 6
+#: What a scene holds, :func:`scene_category`'s answers.
+SCENE_CATEGORIES: tuple[str, ...] = ("occlusion", "thin", "highlights", "mixed")
+#: Layer kinds of the generator that count as thin structures (as :func:`thin_band`).
+THIN_KINDS = ("fence", "stripes")
+#: The method whose time the others are divided by, when it is run.
+BASELINE = "paper, FFT"
+#: Every method the bench knows, in its order (``--methods`` picks some).
+METHODS: tuple[str, ...] = (
+    "d2f",
+    "d2f, no hidden surface",
+    "d2f renderer",
+    "d2f renderer, no hidden surface",
+    "d2f pipeline",
+    "d2f pipeline, no hidden surface",
+    "gather",
+    "paper",
+    BASELINE,
+    "Blender Defocus",
+)
+DEFAULT_METHODS: tuple[str, ...] = tuple(m for m in METHODS if m != "Blender Defocus")
 
 
 def gather_render(image: torch.Tensor, disparity: torch.Tensor, focus: float, blur: float):
@@ -113,16 +156,21 @@ def edge_sides(disparity: np.ndarray, width: int = EDGE_PX, jump: float = 0.02):
     return band & near, band & ~near
 
 
-def thin_band(case: Case) -> np.ndarray:
-    """Where the scene's thin structures are (fence and striped layers), grown by ``K / 4``;
-    rebuilt from the case's seed (scenes are deterministic)."""
+def _scene_of(case: Case):
+    """The case's scene, rebuilt from its seed (scenes are deterministic)."""
     from ..train.synth import make_scene
 
-    scene = make_scene(case.size, seed=case.seed, margin=math.ceil(case.blur / 2) + 2)
+    return make_scene(case.size, seed=case.seed, margin=math.ceil(case.blur / 2) + 2)
+
+
+def thin_band(case: Case, scene=None) -> np.ndarray:
+    """Where the scene's thin structures are (fence and striped layers), grown by ``K / 4``;
+    ``scene`` is the case's (rebuilt from its seed when not given)."""
+    scene = _scene_of(case) if scene is None else scene
     h, w = case.size
     mask = np.zeros((h, w), bool)
     for layer in scene.layers:
-        if layer.kind not in ("fence", "stripes"):
+        if layer.kind not in THIN_KINDS:
             continue
         lh, lw = layer.shape
         y0, x0 = max(0, layer.top), max(0, layer.left)
@@ -132,6 +180,16 @@ def thin_band(case: Case) -> np.ndarray:
         crop = layer.alpha[y0 - layer.top : y1 - layer.top, x0 - layer.left : x1 - layer.left]
         mask[y0:y1, x0:x1] |= crop > 0.5
     return dilate(mask, reach_px(case.blur, 4, 24))
+
+
+def scene_category(thin: np.ndarray, lights: np.ndarray) -> str:
+    """What a scene holds besides its occluding objects: ``"mixed"`` (thin structures and
+    HDR lights in view), ``"thin"``, ``"highlights"`` or ``"occlusion"`` (neither), from the
+    case's thin-structure band and its lights (``(H, W)`` bool)."""
+    has_thin, has_lights = bool(thin.any()), bool(lights.any())
+    if has_thin and has_lights:
+        return "mixed"
+    return "thin" if has_thin else "highlights" if has_lights else "occlusion"
 
 
 _BLENDER_SCRIPT = """
@@ -199,15 +257,28 @@ def blender_render(image: np.ndarray, disparity: np.ndarray, focus: float, blur:
             return np.asarray(im.convert("RGB"), dtype=np.float32) / 255.0
 
 
-def _methods(weights: str | Path | None, with_blender: bool) -> dict[str, Callable]:
-    from ..pipeline import D2F
+def _methods(
+    weights: str | Path | None, names: Sequence[str], with_blender: bool
+) -> dict[str, Callable]:
+    unknown = [n for n in names if n not in METHODS]
+    if unknown:
+        raise ValueError(f"unknown method {unknown[0]!r}; the methods are {list(METHODS)}")
+    model = None
+    if any(n.startswith("d2f pipeline") for n in names):
+        from ..pipeline import D2F
 
-    model = D2F.from_pretrained(weights)
+        model = D2F.from_pretrained(weights)
 
-    def renderer(case: Case, hidden: bool = True) -> np.ndarray:
-        img, disp = case.tensors()
-        out = render(img, disp, case.focus, case.blur, hidden=hidden)
+    def hwc(out: torch.Tensor) -> np.ndarray:
         return out[0].permute(1, 2, 0).numpy()
+
+    def ours(case: Case, hidden: bool = True) -> np.ndarray:
+        img, disp = case.tensors()
+        return hwc(adaptive.render_adaptive(img, disp, case.focus, case.blur, hidden=hidden)[0])
+
+    def renderer(case: Case, hidden: bool = True, **options) -> np.ndarray:
+        img, disp = case.tensors()
+        return hwc(render(img, disp, case.focus, case.blur, hidden=hidden, **options))
 
     def pipeline(case: Case, hidden: bool = True) -> np.ndarray:
         scene = model.prepare(case.image, disparity=case.disparity)
@@ -215,18 +286,21 @@ def _methods(weights: str | Path | None, with_blender: bool) -> dict[str, Callab
 
     def gather(case: Case) -> np.ndarray:
         img, disp = case.tensors()
-        return gather_render(img, disp, case.focus, case.blur)[0].permute(1, 2, 0).numpy()
+        return hwc(gather_render(img, disp, case.focus, case.blur))
 
-    methods = {
+    every = {
+        "d2f": ours,
+        "d2f, no hidden surface": lambda c: ours(c, hidden=False),
         "d2f renderer": renderer,
         "d2f renderer, no hidden surface": lambda c: renderer(c, hidden=False),
         "d2f pipeline": pipeline,
         "d2f pipeline, no hidden surface": lambda c: pipeline(c, hidden=False),
         "gather": gather,
+        "paper": lambda c: renderer(c, **PAPER_OPTIONS),
+        BASELINE: lambda c: renderer(c, **(PAPER_OPTIONS | {"method": "fft"})),
+        "Blender Defocus": lambda c: blender_render(c.image, c.disparity, c.focus, c.blur),
     }
-    if with_blender:
-        methods["Blender Defocus"] = lambda c: blender_render(c.image, c.disparity, c.focus, c.blur)
-    return methods
+    return {n: every[n] for n in names if n != "Blender Defocus" or with_blender}
 
 
 def run_peers(
@@ -235,21 +309,33 @@ def run_peers(
     weights: str | Path | None = None,
     repeat: int = 3,
     blender: bool | None = None,
+    methods: Sequence[str] | None = None,
 ) -> dict[str, Any]:
-    """Score and time every method on every case; returns rows and notes."""
-    with_blender = blender_available() is not None if blender is None else blender
-    notes = [] if with_blender else ["Blender Defocus skipped: blender is not on PATH"]
-    methods = _methods(weights, with_blender)
+    """Score and time every method (``methods``, default :data:`DEFAULT_METHODS` and Blender
+    when it is on ``PATH``) on every case; returns rows and notes."""
+    if methods is None:
+        methods = DEFAULT_METHODS + (("Blender Defocus",) if blender is not False else ())
+    with_blender = "Blender Defocus" in methods and (
+        blender_available() is not None if blender is None else blender
+    )
+    notes = []
+    if "Blender Defocus" in methods and not with_blender:
+        notes.append("Blender Defocus skipped: blender is not on PATH")
+    methods = _methods(weights, methods, with_blender)
     rows = []
     with torch.no_grad():
         for case in cases:
             near, far = edge_sides(case.disparity)
+            lights = case.bands.get("lights", np.zeros(case.size, bool))
+            thin = thin_band(case)
             bands = {
+                "edges": case.bands.get("edges", np.zeros(case.size, bool)),
                 "edge_near": near,
                 "edge_far": far,
-                "thin": thin_band(case),
-                "lights": case.bands.get("lights", np.zeros(case.size, bool)),
+                "thin": thin,
+                "lights": lights,
             }
+            category = scene_category(thin, lights)
             outputs = {name: fn(case) for name, fn in methods.items()}  # also the warm-up
             times: dict[str, list[float]] = {name: [] for name in methods}
             for _ in range(repeat):
@@ -259,22 +345,35 @@ def run_peers(
                     t0 = time.perf_counter()
                     fn(case)
                     times[name].append(1000.0 * (time.perf_counter() - t0))
+            load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
             for name, out in outputs.items():
                 metrics = masked_metrics(out, case.target, bands)
                 rows.append(
                     {"method": name, "case": case.key, "mode": case.mode, "blur": case.blur,
-                     "size": f"{case.size[0]}x{case.size[1]}", "ms": statistics.median(times[name])}
+                     "size": f"{case.size[0]}x{case.size[1]}", "category": category,
+                     "ms": statistics.median(times[name]) if times[name] else None,
+                     "load": load}
                     | metrics
                 )  # fmt: skip
             logger.info("peers: %s done", case.key)
     return {"rows": rows, "notes": notes}
 
 
+def _baseline(rows: Sequence[dict[str, Any]]) -> str:
+    methods = list(dict.fromkeys(r["method"] for r in rows))
+    return BASELINE if BASELINE in methods else methods[0]
+
+
+def _ratios(mine: Sequence[dict[str, Any]], base: dict[str, float]) -> list[float]:
+    return [r["ms"] / base[r["case"]] for r in mine if r["ms"] is not None and base.get(r["case"])]
+
+
 def summary(rows: Sequence[dict[str, Any]]) -> dict[str, dict[str, float | None]]:
     """Mean PSNR per method and category (:data:`CATEGORIES`) and the time ratio against
-    ``d2f renderer`` (mean over cases of the per-case ratio)."""
+    the baseline (``paper, FFT`` when run, else the first method; mean over cases of the
+    per-case ratio)."""
     methods = list(dict.fromkeys(r["method"] for r in rows))
-    base = {r["case"]: r["ms"] for r in rows if r["method"] == "d2f renderer"}
+    base = {r["case"]: r["ms"] for r in rows if r["method"] == _baseline(rows)}
     out: dict[str, dict[str, float | None]] = {}
     for m in methods:
         mine = [r for r in rows if r["method"] == m]
@@ -284,10 +383,60 @@ def summary(rows: Sequence[dict[str, Any]]) -> dict[str, dict[str, float | None]
             vals = [r[key] for r in mine if (mode is None or r["mode"] == mode)]
             vals = [v for v in vals if v is not None]
             entry[name] = float(np.mean(vals)) if vals else None
-        ratios = [r["ms"] / base[r["case"]] for r in mine if base.get(r["case"])]
+        ratios = _ratios(mine, base)
         entry["time ratio"] = float(np.mean(ratios)) if ratios else None
         out[m] = entry
     return out
+
+
+def by_group(rows: Sequence[dict[str, Any]], key: str) -> dict[str, dict[Any, dict[str, Any]]]:
+    """Per method and value of ``key`` (``"blur"``, ``"category"``...): the number of cases,
+    mean PSNR overall and in the edge band, and the mean time ratio against the baseline."""
+    base = {r["case"]: r["ms"] for r in rows if r["method"] == _baseline(rows)}
+    out: dict[str, dict[Any, dict[str, Any]]] = {}
+    for r in rows:
+        out.setdefault(r["method"], {}).setdefault(r[key], []).append(r)
+    for method, groups in out.items():
+        for value, mine in groups.items():
+            edges = [r["psnr_edges"] for r in mine if r.get("psnr_edges") is not None]
+            ratios = _ratios(mine, base)
+            groups[value] = {
+                "cases": len(mine),
+                "psnr": float(np.mean([r["psnr"] for r in mine])),
+                "psnr_edges": float(np.mean(edges)) if edges else None,
+                "time ratio": float(np.mean(ratios)) if ratios else None,
+            }
+        out[method] = dict(sorted(groups.items(), key=lambda kv: _order(key, kv[0])))
+    return out
+
+
+def _order(key: str, value: Any):
+    if key == "category" and value in SCENE_CATEGORIES:
+        return (0, SCENE_CATEGORIES.index(value))
+    return (1, value)
+
+
+def format_groups(groups: dict[str, dict[Any, dict[str, Any]]], key: str) -> str:
+    """:func:`by_group` as a markdown table: one row per value of ``key``, each method's
+    PSNR / edge-band PSNR in a column."""
+    methods = list(groups)
+    values = list(dict.fromkeys(v for g in groups.values() for v in g))
+    label = "K (px)" if key == "blur" else key
+    lines = [f"| {label} | cases | " + " | ".join(methods) + " |"]
+    lines.append("|" + " --- |" * (len(methods) + 2))
+    for v in values:
+        n = max(groups[m].get(v, {}).get("cases", 0) for m in methods)
+        cells = []
+        for m in methods:
+            e = groups[m].get(v)
+            if e is None:
+                cells.append("-")
+                continue
+            edge = "-" if e["psnr_edges"] is None else f"{e['psnr_edges']:.2f}"
+            cells.append(f"{e['psnr']:.2f} / {edge}")
+        shown = f"{v:g}" if isinstance(v, float) else str(v)
+        lines.append(f"| {shown} | {n} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
 
 
 def format_table(table: dict[str, dict[str, float | None]]) -> str:
@@ -306,8 +455,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="d2f-bench peers", description=__doc__.split("\n\n")[0])
     p.add_argument("--sizes", nargs="+", default=["384x576"], help="HxW of the scenes")
     p.add_argument("--seeds", nargs="+", type=int, default=[11, 12, 13, 14])
-    p.add_argument("--k-fracs", nargs="+", type=float, default=[0.02, 0.06, 0.1],
-                   help="K as a fraction of the width")  # fmt: skip
+    p.add_argument("--k-fracs", nargs="+", type=float, default=None,
+                   help="K as a fraction of the width (default 0.02 0.06 0.1)")  # fmt: skip
+    p.add_argument("--k-px", nargs="+", type=float, default=[], help="K in px (also)")
     p.add_argument("--samples", type=int, default=128, help="aperture samples of the truth")
     p.add_argument("--cache", default="runs/acc_cache", help="ground-truth cache folder")
     p.add_argument("--weights", default=None, help="D2F checkpoint of 'd2f pipeline'")
@@ -315,22 +465,48 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--no-blender", action="store_true", help="skip Blender even if present")
     p.add_argument("--json", default=None, help="write rows and the table here")
+    p.add_argument("--methods", nargs="+", default=None, metavar="NAME",
+                   help=f"methods to run (default all but Blender's, which --no-blender "
+                        f"also leaves out): {', '.join(repr(m) for m in METHODS)}")  # fmt: skip
     args = p.parse_args(argv)
+    bad = [m for m in args.methods or () if m not in METHODS]
+    if bad:
+        p.error(f"unknown method {bad[0]!r}; the methods are {', '.join(map(repr, METHODS))}")
+    if args.repeat < 0:
+        p.error(f"--repeat must be >= 0, got {args.repeat}")
+    k_fracs = args.k_fracs if args.k_fracs is not None else [] if args.k_px else [0.02, 0.06, 0.1]
     torch.set_num_threads(args.threads)
-    sizes = [tuple(int(v) for v in s.lower().split("x")) for s in args.sizes]
-    cases = load_cases(sizes, args.seeds, args.k_fracs, samples=args.samples, cache=args.cache)
-    result = run_peers(
-        cases, weights=args.weights, repeat=args.repeat, blender=False if args.no_blender else None
-    )
-    table = summary(result["rows"])
+    try:
+        sizes = [tuple(int(v) for v in s.lower().split("x")) for s in args.sizes]
+        cases = load_cases(
+            sizes, args.seeds, k_fracs, samples=args.samples, cache=args.cache, k_px=args.k_px
+        )
+    except ValueError as exc:
+        p.error(str(exc))
+    methods = args.methods
+    if methods is None:
+        methods = DEFAULT_METHODS + (() if args.no_blender else ("Blender Defocus",))
+    load_start = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    result = run_peers(cases, weights=args.weights, repeat=args.repeat, methods=methods)
+    load_end = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    rows = result["rows"]
+    table = summary(rows)
+    ks = [f"{k:g} x width" for k in k_fracs] + [f"{k:g} px" for k in args.k_px]
     print(
         f"d2f-bench peers: {len(cases)} generated scenes ({', '.join(args.sizes)}), "
-        f"K = {', '.join(f'{k:g}' for k in args.k_fracs)} x width, PSNR (dB) against the "
-        f"thin-lens truth, {args.threads} torch threads"
+        f"K = {', '.join(ks)}, PSNR (dB) against the thin-lens truth, {args.threads} torch "
+        f"threads, times against {_baseline(rows)!r}, load average {load_start:.2f} at the "
+        f"start, {load_end:.2f} at the end"
     )
     print(format_table(table))
+    groups = {key: by_group(rows, key) for key in ("blur", "category")}
+    for key, title in (("blur", "by K"), ("category", "by what the scene holds")):
+        print(f"\nPSNR / edge-band PSNR (dB), {title}:")
+        print(format_groups(groups[key], key))
     for note in result["notes"]:
         print(note)
     if args.json:
-        Path(args.json).write_text(json.dumps({"table": table} | result, indent=1))
+        report = {"table": table, "by_k": groups["blur"], "by_category": groups["category"]}
+        report["load_average"] = [load_start, load_end]
+        Path(args.json).write_text(json.dumps(report | result, indent=1, default=str))
     return 0
