@@ -307,18 +307,27 @@ def build_demo(
                     )
                     # nothing to save before the first full render
                     download = gr.DownloadButton("Download", elem_id="download", interactive=False)
+                # which photo the page shows (its session's token, set by the load): every
+                # render event sends it, and one sent for the photo before is dropped
+                photo_id = gr.Textbox("", visible="hidden", interactive=False, elem_id="photo_id")
 
         options = [blades, rotation, highlight, fusion, view, quality]
         shown = [result, compare, legend, info]
 
         def load_ui(*values):
             # a large photo's first look, then its full render (an API client gets the last)
-            panel = None
+            first = True
             for outputs in logic.load_steps(*values):
-                # a Lens Blur file: the panel shows the embedded original the app renders
-                # from (set once)
-                panel = logic.photo_panel(outputs[0]) if panel is None else gr.skip()
-                yield (*holding_download(outputs), panel)
+                # set with the first picture (with the session and the focus): a Lens Blur
+                # file's embedded original in the photo panel, the thin lens the photo is
+                # rendered with, and the photo's id; later pictures leave them
+                page = (gr.skip(),) * 3
+                if first:
+                    cleared = outputs[0] is None
+                    thin_lens = gr.skip() if cleared else 0.0
+                    page = (logic.photo_panel(outputs[0]), thin_lens, logic.photo_id(outputs[0]))
+                first = False
+                yield (*holding_download(outputs), *page)
 
         def render_full_ui(*values):
             return holding_download(logic.render_full(*values))
@@ -350,8 +359,9 @@ def build_demo(
                 hub_model,
                 blur_on,
             ],  # fmt: skip
-            # the photo last: the API's outputs before it keep their places
-            "outputs": [session, focus, *shown, download, photo],
+            # the photo, the focal range and the photo's id last: the API's outputs before
+            # them keep their places
+            "outputs": [session, focus, *shown, download, photo, focal_range, photo_id],
             # raw upload payloads: decoding errors are reported by the app, not by Gradio
             "preprocess": False,
             "show_progress_on": [result, compare],
@@ -383,17 +393,6 @@ def build_demo(
             "queue": False,
         }
         loading.success(**note_io)
-        # a new photo is rendered with the thin lens (a click sets its subject's range): the
-        # slider says so (its change then finds that render and does nothing)
-        thin_lens_io = {
-            "fn": lambda: 0.0,
-            "inputs": None,
-            "outputs": [focal_range],
-            "show_progress": "hidden",
-            "api_visibility": "private",
-            "queue": False,
-        }
-        loading.success(**thin_lens_io)
         # a failed upload: the photo panel shows the loaded photo again (or nothing), and the
         # status line keeps the error after the toast is gone
         loading.failure(
@@ -419,10 +418,10 @@ def build_demo(
             example_load = examples.load_input_event.then(api_visibility="private", **load_io)
             example_load.success(logic.download, [session, fmt], [download], **chained)
             example_load.success(**note_io)
-            example_load.success(**thin_lens_io)
 
-        # blur_on last: the API's inputs before it keep their places
-        render_inputs = [session, focus, blur, *options, blur_on, focal_range]
+        # blur_on, the focal range and the photo's id last: the API's inputs before them keep
+        # their places (an API client may leave the id out)
+        render_inputs = [session, focus, blur, *options, blur_on, focal_range, photo_id]
         # renders run side by side and reach the page in their own order: after each one,
         # the page's picture is brought in line with its controls (RenderEvents.settle: a
         # full render sent again, or, rarely, rendered)
@@ -441,11 +440,13 @@ def build_demo(
         def settled(event: Any) -> None:
             event.then(**settle_io).success(**download_io, **chained)
 
-        # .change only (never .input as well: two concurrent runs break the image); .change
-        # also follows values set by click-to-focus, whose preview is then skipped
+        # .input only: the user's own moves of a slider, each followed by a release (never
+        # .change as well: two concurrent runs break the image). A value set by an event (the
+        # load's focus and thin lens, a click's focus and range) is rendered by that event
+        # in full: a preview of it would stay on screen with no release to follow.
         for slider in (focus, blur, rotation, focal_range):
             # a preview also disables Download until the full render is there to save
-            previewed = slider.change(
+            previewed = slider.input(
                 logic.render_preview,
                 render_inputs,
                 [*shown, download],
@@ -488,7 +489,7 @@ def build_demo(
 
         clicked = photo.select(
             on_select,
-            [session, blur, *options, blur_on],
+            [session, blur, *options, blur_on, photo_id],
             [focus, focal_range, *shown, download],
             api_visibility="private",
             show_progress_on=[result, compare],

@@ -32,6 +32,10 @@ from d2f_core.lens import LENS_FOCAL_MM, MAX_BLUR_PX, NEAREST_M, SENSOR_WIDTH_MM
 from d2f_core.rendering.kernels import PAPER_GROWING_SIZES
 
 MAX_DEFOCUS_COC = max(PAPER_GROWING_SIZES)
+#: The outputs of a preview or of :meth:`RenderEvents.settle` that leave the page as it is.
+SKIP5 = (*SKIP4, gr.skip())
+#: The outputs of a click that leave the page as it is (the sliders and the picture).
+SKIP6 = (gr.skip(), gr.skip(), *SKIP4)
 
 _LEGENDS = {
     "Disparity": ("viridis", "0 far", "1 near", "Disparity (network map or your upload)"),
@@ -52,7 +56,18 @@ _LEGENDS = {
 
 class RenderEvents:
     """The render events of a :class:`~app.handlers.RefocusApp`: the views, the preview
-    while a slider moves, the full render and the click to focus."""
+    while a slider moves, the full render and the click to focus.
+
+    Each render event gets the page's ``photo_id`` (its hidden box, set by the load to
+    :attr:`Session.token`) as its last input, and is dropped (every output skipped) when the
+    page sent it for another photo than the session's: Gradio hands an event the session
+    its tab holds when the event runs, which is the next photo's once that one is loaded.
+    """
+
+    @staticmethod
+    def photo_id(session: Session | None) -> str:
+        """What the page's ``photo_id`` box holds once ``session`` is loaded ("" for none)."""
+        return session.token if isinstance(session, Session) and not session.closed else ""
 
     def _session_dir(self, session: Session, name: str) -> Path:
         with session.lock:  # never made again for a session being closed
@@ -293,7 +308,7 @@ class RenderEvents:
         looked = first_look and wants_first_look(session.size)
         if looked:
             outputs = self._render_first_look(session, params, view, scene)
-            yield (*outputs[:3], outputs[3] + note)
+            yield outputs if outputs is SKIP4 else (*outputs[:3], outputs[3] + note)
         yield self._render_full(session, params, view, scene, newest=not looked, note=note)
 
     def _render_first_look(
@@ -304,7 +319,7 @@ class RenderEvents:
 
         It holds ``params`` as the full render's (being rendered): a preview of the same
         values (the focus slider set by the load) is skipped. Returns ``(result, compare,
-        legend, info)``.
+        legend, info)``, or skips when the photo was replaced or another value set meanwhile.
         """
         with session.lock:
             session.full_seq += 1
@@ -312,12 +327,14 @@ class RenderEvents:
             session.ask(params)
         result, bokeh, ms = self._render_small(scene, params, FIRST_LOOK_MAX_SIDE)
         with session.lock:
+            if session.closed or not session.still_wanted(params):
+                return SKIP4  # the photo was replaced, or another value was set meanwhile
             self._store_views(session, result, bokeh)
         w, h = bokeh.shape[1], bokeh.shape[0]
         info = self._info(session, params, "first look", ms, f"{w}x{h}, full resolution follows")
         return (*self.view_outputs(session, view), info)
 
-    @reported
+    @reported(dropped=SKIP4)
     def render_full(
         self,
         session: Session | None,
@@ -331,6 +348,7 @@ class RenderEvents:
         quality: Any = "balanced",
         blur_on: Any = True,
         focal_range: Any = 0.0,
+        photo_id: Any = None,
     ) -> tuple:
         """Full-resolution render (slider released, option changed).
 
@@ -341,13 +359,17 @@ class RenderEvents:
 
         Without a photo loaded in the session (a slider released on an empty page, an API
         call before ``/load`` or from another session) the event is refused with a message;
-        the previews of a drag before that stay silent.
+        the previews of a drag before that stay silent. ``photo_id``: the page's (see
+        :class:`RenderEvents`); an event sent for another photo, or whose photo the tab
+        replaced while it ran, is dropped.
 
         Returns:
-            ``(result, compare, legend, info)``.
+            ``(result, compare, legend, info)``, or skips.
         """
         if session is None:
             raise user_error(NO_PHOTO)
+        if not session.shown_by(photo_id):
+            return SKIP4
         params = RenderParams.from_inputs(
             focus, f_number, blades, rotation, highlight_boost, fusion, quality, blur_on,
             focal_range, size=session.size,
@@ -359,7 +381,7 @@ class RenderEvents:
                 return SKIP4  # already rendered (or being rendered) at full resolution
         return self._render_full(session, params, view)
 
-    @reported
+    @reported(dropped=SKIP5)
     def render_preview(
         self,
         session: Session | None,
@@ -373,6 +395,7 @@ class RenderEvents:
         quality: Any = "balanced",
         blur_on: Any = True,
         focal_range: Any = 0.0,
+        photo_id: Any = None,
     ) -> tuple:
         """Reduced-resolution render while a slider moves.
 
@@ -380,13 +403,14 @@ class RenderEvents:
         a full render started while this preview ran: a preview must never replace the full
         result that the release of the slider asked for. While a preview is shown the
         download button is disabled (it would save another picture than the one on screen);
-        the full render that follows enables it again.
+        the full render that follows enables it again. A preview sent for another photo
+        than the session's (``photo_id``) is dropped too.
 
         Returns:
             ``(result, compare, legend, info, download)``.
         """
-        if session is None:
-            return (*SKIP4, gr.skip())
+        if session is None or not session.shown_by(photo_id):
+            return SKIP5
         params = RenderParams.from_inputs(
             focus, f_number, blades, rotation, highlight_boost, fusion, quality, blur_on,
             focal_range, size=session.size,
@@ -396,13 +420,13 @@ class RenderEvents:
             session.ask(params)
             session.last_preview = params
             if params == session.full_params:
-                return (*SKIP4, gr.skip())
+                return SKIP5
             seq = session.full_seq
         result, bokeh, ms = self._render_small(session.scene, params, PREVIEW_MAX_SIDE)
         with session.lock:
             stale = not session.still_wanted(params)
             if session.full_seq != seq or params == session.full_params or session.closed or stale:
-                return (*SKIP4, gr.skip())
+                return SKIP5
             self._store_views(session, result, bokeh)
             # the views no longer hold the full render: releasing at its params renders again
             session.full_params = None
@@ -410,12 +434,14 @@ class RenderEvents:
         info = self._info(session, params, "preview", ms, extra)
         return (*self.view_outputs(session, view), info, gr.update(**DOWNLOAD_WAIT))
 
-    @reported
+    @reported(dropped=SKIP5)
     def settle(self, session: Session | None, *page: Any) -> tuple:
         """Bring the page's picture in line with its controls, after a preview or a full
         render has reached it. ``page``: the controls' values when this event starts, as
         :meth:`render_full` takes them after the session (focus, f-number, blades, rotation,
-        highlight boost, fusion, view, quality, blur on, focal range), then the status line.
+        highlight boost, fusion, view, quality, blur on, focal range, and optionally the
+        page's photo id: a page that shows another photo is left alone), then the status
+        line.
 
         Renders run side by side (the ``"model"`` group's concurrency) and reach the server
         and the page in their own time, so two orders go wrong without this step:
@@ -441,12 +467,16 @@ class RenderEvents:
             written for that render already), one rendered disables it until its file is
             written, as every full render does.
         """
-        skip = (*SKIP4, gr.skip())
+        skip = SKIP5
         if session is None or session.closed:
             return skip
-        if len(page) != 11:
-            raise user_error(f"settle takes 10 control values and the status line, got {page!r}")
-        *controls, shown_info = page
+        if len(page) not in (11, 12):
+            raise user_error(
+                f"settle takes 10 control values, the photo id and the status line, got {page!r}"
+            )
+        controls, shown_info = list(page[:10]), page[-1]
+        if len(page) == 12 and not session.shown_by(page[10]):
+            return skip
         view = controls.pop(6)
         try:
             params = RenderParams.from_inputs(*controls, size=session.size)
@@ -476,7 +506,7 @@ class RenderEvents:
         *_, last = self.click_steps(*args, first_look=False, **kwargs)
         return last
 
-    @reported
+    @reported(dropped=SKIP6)
     def click_steps(
         self,
         session: Session | None,
@@ -489,6 +519,7 @@ class RenderEvents:
         view: str = "Bokeh",
         quality: Any = "balanced",
         blur_on: Any = True,
+        photo_id: Any = None,
         *,
         first_look: bool = True,
     ) -> Iterator[tuple]:
@@ -501,6 +532,11 @@ class RenderEvents:
         size (:meth:`_render_first_look`), then at full resolution, unless another value was
         set in between; else the full render only.
 
+        A click on another photo than the session's (``photo_id``: the page's; the tab has
+        loaded a photo since) is dropped, and so is one whose photo the tab replaced while it
+        ran, the sliders' new values with its pictures: the next photo's page is never set
+        to values found on this one.
+
         Yields:
             ``(focus, focal_range, result, compare, legend, info)``; the focus slider moves to
             ``focus``, the position (0 = nearest, 1 = farthest) of the clicked point's
@@ -509,7 +545,10 @@ class RenderEvents:
         """
         if session is None:
             gr.Warning("Upload a photo first.")
-            yield (gr.skip(), gr.skip(), *SKIP4)
+            yield SKIP6
+            return
+        if not session.shown_by(photo_id):
+            yield SKIP6
             return
         session.touch()
         try:
@@ -532,6 +571,9 @@ class RenderEvents:
         clicked = f" | focused on the click at ({xs:.0f}, {ys:.0f}) in {ms_focus:.0f} ms"
         steps = self._render_shown(session, params, view, session.scene, clicked, first_look)
         for outputs in steps:
+            if outputs is SKIP4 and session.closed:  # the photo was replaced meanwhile
+                yield SKIP6
+                return
             yield (focus, span, *outputs)
             focus, span = gr.skip(), gr.skip()  # set by the first picture
 

@@ -13,6 +13,7 @@ import logging
 import shutil
 import threading
 import time
+import uuid
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -92,6 +93,9 @@ class Session:
         closed: True once :meth:`close` ran.
         closed_message: what an event on the closed session tells its user (None: the
             usual :data:`~app.reporting.CLOSED_MESSAGE`).
+        token: this photo's name on the page (its hidden ``photo_id`` box): every render
+            event sends the one the page held when the event started, and an event started
+            for another photo than the session's is dropped (:meth:`shown_by`).
     """
 
     key: str
@@ -124,6 +128,7 @@ class Session:
     files_written: int = 0
     on_close: Callable[[Session], None] | None = field(default=None, repr=False)
     busy: int = 0
+    token: str = field(default_factory=lambda: uuid.uuid4().hex)
     lock: threading.RLock = field(default_factory=threading.RLock, repr=False)
 
     @property
@@ -159,6 +164,13 @@ class Session:
         """Whether no render of other params was asked for since ``params`` (call with
         :attr:`lock` held, where the render's picture is stored)."""
         return self.wanted is None or self.wanted == params
+
+    def shown_by(self, photo_id: Any) -> bool:
+        """Whether an event that the page sent with ``photo_id`` (its ``photo_id`` box) was
+        started for this photo. Gradio gives an event the session its tab holds when the
+        event runs, which may be a photo uploaded after the event started; ``None`` or ``""``
+        (an API client or a call from Python, which name no photo) is taken as this one."""
+        return photo_id in (None, "") or str(photo_id) == self.token
 
     def touch(self) -> None:
         """Mark the session used now (idle sessions are closed); raise if it is closed."""
@@ -279,16 +291,41 @@ def _refusal(name: str, err: Exception, held: list[Session]) -> Exception:
     return user_error(f"Something went wrong ({type(err).__name__}); please retry.")
 
 
+class _Dropped(Exception):
+    """An event whose photo was replaced while it ran: its outputs are dropped."""
+
+
+def _left_behind(owner: Any, held: list[Session], open_at_start: list[Session]) -> bool:
+    """Whether a session among ``held`` was left behind by its page: closed while the event
+    ran (only its own tab does that, by a new upload or by closing: idle sessions and those
+    closed to make room are never in use), or closed before by the tab's new upload
+    (``owner``, the :class:`SessionRegistry`, has a live session of the same tab)."""
+    for session in held:
+        if not session.closed:
+            continue
+        if any(session is s for s in open_at_start):
+            return True
+        if isinstance(owner, SessionRegistry) and owner.replaced(session):
+            return True
+    return False
+
+
 @contextlib.contextmanager
-def _reporting(name: str, args: tuple) -> Iterator[None]:
+def _reporting(name: str, args: tuple, dropping: bool = False) -> Iterator[None]:
     """The body of :func:`reported`: the sessions among ``args`` held (not idle) while the
-    event ``name`` runs, and its exceptions turned into what the user sees."""
+    event ``name`` runs, and its exceptions turned into what the user sees. With
+    ``dropping``, an event whose photo the page has left (:func:`_left_behind`) raises
+    :class:`_Dropped` instead."""
     held = [a for a in args if isinstance(a, Session)]
+    open_at_start = [s for s in held if not s.closed]
     for session in held:
         session.hold()
     try:
         yield
     except Exception as err:
+        if dropping and _left_behind(args[0] if args else None, held, open_at_start):
+            log.info("%s dropped: its photo was replaced (%s)", name, type(err).__name__)
+            raise _Dropped from None
         refusal = _refusal(name, err, held)
         if refusal is err:
             raise
@@ -298,27 +335,40 @@ def _reporting(name: str, args: tuple) -> Iterator[None]:
             session.let_go()
 
 
-def reported(fn: Callable) -> Callable:
+def reported(fn: Callable | None = None, *, dropped: tuple | None = None) -> Callable:
     """Turn bad-input exceptions into ``gr.Error`` and anything else into a short one.
 
     A refused event (bad input, a closed session) logs one line naming the reason; only an
     unexpected failure logs its traceback. A generator (an event that shows a first
     picture, then the final one) is reported the same way while it runs.
+
+    ``@reported(dropped=outputs)``: an event whose session its page has left (the tab
+    uploaded another photo meanwhile, or was closed) returns (or yields) ``outputs``, its
+    skips, instead of a message about a photo the page no longer shows.
     """
+    if fn is None:
+        return functools.partial(reported, dropped=dropped)
+    dropping = dropped is not None
 
     if inspect.isgeneratorfunction(fn):
 
         @functools.wraps(fn)
         def steps(*args, **kwargs):
-            with _reporting(fn.__name__, args):
-                yield from fn(*args, **kwargs)
+            try:
+                with _reporting(fn.__name__, args, dropping):
+                    yield from fn(*args, **kwargs)
+            except _Dropped:
+                yield dropped
 
         return steps
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
-        with _reporting(fn.__name__, args):
-            return fn(*args, **kwargs)
+        try:
+            with _reporting(fn.__name__, args, dropping):
+                return fn(*args, **kwargs)
+        except _Dropped:
+            return dropped
 
     return wrapper
 
@@ -332,6 +382,14 @@ class SessionRegistry:
         """Sessions open now (a photo loaded, not closed)."""
         with self._sessions_lock:
             return len(self._sessions)
+
+    def replaced(self, session: Session) -> bool:
+        """Whether ``session`` is closed and the tab that loaded it has a photo open now
+        (it uploaded another one: the page has left this one)."""
+        if not session.closed or session.owner is None:
+            return False
+        with self._sessions_lock:
+            return any(s.owner == session.owner for s in self._sessions.values())
 
     def _forget(self, session: Session) -> None:
         with self._sessions_lock:

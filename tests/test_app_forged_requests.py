@@ -24,7 +24,9 @@ KIND = "disparity (bright = near)"
 #: The inputs of /load after the photo and the depth map (depth_kind ... blur_on): focus
 #: 0.5 (near 0, far 1), f/2.8.
 REST = [KIND, 0.5, 2.8, 0, 0.0, True, True, "Bokeh", "balanced", "auto", "", True]
-RENDER = [0.5, 2.8, 0, 0.0, True, True, "Bokeh", "balanced", True, 0.0]
+#: The inputs of the renders: focus ... blur_on, the focal range, and the page's photo id
+#: ("": none named, as from an API client).
+RENDER = [0.5, 2.8, 0, 0.0, True, True, "Bokeh", "balanced", True, 0.0, ""]
 
 
 def file_data(path: str, name: str = "photo.jpg") -> dict:

@@ -1051,13 +1051,16 @@ class TestBuildDemo:
         by_elem = {c["props"].get("elem_id"): c["id"] for c in config["components"]}
         for name in ("focus", "blur", "rotation"):
             sid = by_elem[name]
-            events = {t[1] for d in config["dependencies"] for t in d["targets"] if t[0] == sid}
-            assert events == {"change", "release"}, name  # never .input next to .change
+            renders = [d for d in config["dependencies"] if by_elem["result"] in d["outputs"]]
+            events = {t[1] for d in renders for t in d["targets"] if t[0] == sid}
+            # the user's moves only (a value set by an event is rendered by it), and never
+            # .change next to .input
+            assert events == {"input", "release"}, name
             for d in config["dependencies"]:
                 events = {t[1] for t in d["targets"] if t[0] == sid}
                 if events:
                     assert d["trigger_mode"] == "always_last"
-                if "change" in events:  # the drag's previews: no overlay, no timer
+                if "input" in events:  # the drag's previews: no overlay, no timer
                     assert d["show_progress"] == "hidden"
                 if "release" in events:  # the full render: its running time on the result
                     assert d["show_progress"] == "minimal"
@@ -1080,6 +1083,21 @@ class TestBuildDemo:
                         if t[0] == by_elem["input"]}  # fmt: skip
         # an upload fires .change twice in Gradio 6; the app listens to .upload instead
         assert photo_events == {"upload", "clear", "select"}
+
+    def test_render_events_name_their_photo(self, config):
+        """The load sets the page's photo id (and the thin lens it renders with) with its
+        first picture; every event that renders sends it back, so that one sent for the
+        photo before is dropped (tests/test_app_sessions_order.py)."""
+        by_elem = {c["props"].get("elem_id"): c["id"] for c in config["components"]}
+        loads = [d for d in config["dependencies"] if d["api_name"] == "load"]
+        assert len(loads) == 1
+        assert loads[0]["outputs"][-2:] == [by_elem["focal_range"], by_elem["photo_id"]]
+        renders = [d for d in config["dependencies"]
+                   if by_elem["result"] in d["outputs"] and d["api_name"] != "view"
+                   and d["trigger_after"] is None and d["api_name"] != "load"]  # fmt: skip
+        assert len(renders) >= 10  # 4 previews, 4 releases, the options, the click
+        for d in renders:
+            assert d["inputs"][-1] == by_elem["photo_id"], d["api_name"]
 
     def test_slow_events_show_progress(self, config):
         """An upload (decode, prepare, render: seconds at 12 MP) and a click (focus and a

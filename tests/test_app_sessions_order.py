@@ -12,6 +12,7 @@ from PIL import Image
 
 from app.cache import SceneCache
 from app.handlers import RefocusApp
+from app.render_events import SKIP6
 from app.reporting import SKIP4
 
 APERTURE = 0.5
@@ -260,3 +261,119 @@ class TestRoomForANewPhoto:
         assert not a.closed
         a.let_go()
         assert logic.load(*args)[0] is not None and a.closed
+
+
+class Tab:
+    """The request Gradio gives a browser tab's events (its session hash)."""
+
+    session_hash = "tab-1"
+
+
+class PausedRender:
+    """The model, whose next full render waits until :attr:`go` is set once :meth:`pause`
+    is called."""
+
+    def __init__(self, model) -> None:
+        self.model = model
+        self.paused = False
+        self.started = threading.Event()
+        self.go = threading.Event()
+
+    def __getattr__(self, name):
+        return getattr(self.model, name)
+
+    def pause(self) -> None:
+        self.paused = True
+
+    def render(self, scene, focus, blur, **options):
+        if self.paused and "max_side" not in options:
+            self.paused = False
+            self.started.set()
+            assert self.go.wait(60)
+        return self.model.render(scene, focus, blur, **options)
+
+
+class TestEventsOfThePhotoBefore:
+    """A tab that uploads photo B while events of photo A are on their way: none of them
+    shows A's picture or sets A's values on B's page, and none tells the user that a photo
+    was closed. Gradio hands an event the session its tab holds when the event runs: B's,
+    once B's load has set it, A's (closed) while B is being loaded."""
+
+    @pytest.fixture
+    def two_photos(self, tiny_model, tmp_path, scene_factory):
+        model = PausedRender(tiny_model)
+        logic = RefocusApp(model, SceneCache(256 << 20), download_root=tmp_path / "dl")
+        a = scene_factory(320, 240, seed=1, stem="a")
+        b = scene_factory(360, 240, seed=2, stem="b")
+
+        def load(scene, replacing):
+            return logic.load(str(scene.photo), None, "disparity", replacing, 0.5, APERTURE,
+                              request=Tab())[0]  # fmt: skip
+
+        yield logic, model, load, a, b
+        model.go.set()  # a failed test leaves no thread waiting
+
+    def test_events_sent_for_the_photo_before_are_dropped(self, two_photos):
+        logic, _, load, a_photo, b_photo = two_photos
+        a = load(a_photo, None)
+        a_id = logic.photo_id(a)
+        b = load(b_photo, a)
+        assert a.closed and logic.photo_id(b) not in ("", a_id)
+        shown, full = b.last_full_info, b.last_full_params
+        # sent from A's page, run with B's session
+        assert logic.render_preview(b, 0.2, APERTURE, photo_id=a_id) == SETTLED
+        assert logic.render_full(b, 0.2, APERTURE, photo_id=a_id) == SKIP4
+        assert logic.click(b, [10, 10], APERTURE, photo_id=a_id) == SKIP6
+        assert logic.settle(b, *page(0.2), a_id, shown) == SETTLED
+        assert b.last_full_info == shown and b.full_params == full == b.last_full_params
+        # B's own events render
+        out = logic.render_full(b, 0.2, APERTURE, photo_id=logic.photo_id(b))
+        assert out[3].startswith("360x240 px | focus 0.200 (")
+        assert logic.render_preview(b, 0.3, APERTURE, photo_id=logic.photo_id(b))[3].startswith(
+            "360x240 px | focus 0.300 ("
+        )
+
+    def test_a_click_whose_photo_is_replaced_while_it_renders(self, two_photos):
+        # the click's full render of A is running when B's upload replaces A: neither its
+        # picture nor the focus and range it found reach the page
+        logic, model, load, a_photo, b_photo = two_photos
+        a = load(a_photo, None)
+        model.pause()
+        thread, out = render_in_thread(logic.click, a, [40, 30], APERTURE)
+        assert model.started.wait(60)
+        b = load(b_photo, a)
+        model.go.set()
+        thread.join(60)
+        assert out["value"] == SKIP6
+        assert not b.closed and b.last_full_params.focal_range == 0.0
+
+    def test_a_preview_whose_photo_is_replaced_while_it_renders(self, two_photos):
+        logic, model, load, a_photo, b_photo = two_photos
+        a = load(a_photo, None)
+        model.pause()
+        thread, out = render_in_thread(logic.render_full, a, 0.3, APERTURE)
+        assert model.started.wait(60)
+        load(b_photo, a)
+        model.go.set()
+        thread.join(60)
+        assert out["value"] == SKIP4
+
+    def test_events_that_reach_the_closed_photo_are_silent(self, two_photos):
+        # B is being loaded (A closed, the tab's state still A's): A's events are dropped,
+        # with no message that the photo was closed to free memory
+        logic, _, load, a_photo, b_photo = two_photos
+        a = load(a_photo, None)
+        load(b_photo, a)
+        assert logic.render_full(a, 0.3, APERTURE) == SKIP4
+        assert logic.render_preview(a, 0.3, APERTURE) == SETTLED
+        assert logic.click(a, [10, 10], APERTURE) == SKIP6
+        assert logic.settle(a, *page(0.3), "") == SETTLED
+
+    def test_a_photo_closed_while_idle_still_says_so(self, two_photos):
+        logic, _, load, a_photo, _ = two_photos
+        a = load(a_photo, None)
+        a.close()  # idle, or closed to make room: no other photo in its tab
+        with pytest.raises(gr.Error, match="upload it again"):
+            logic.render_full(a, 0.3, APERTURE)
+        with pytest.raises(gr.Error, match="upload it again"):
+            logic.click(a, [10, 10], APERTURE)
