@@ -438,6 +438,8 @@ def build_demo(
         download_io = {"fn": logic.download, "inputs": [session, fmt, info], "outputs": [download]}
 
         def settled(event: Any) -> None:
+            # the one download of each preview, full render or option: after settle, so that
+            # it hands out the file of the picture that stays on the page
             event.then(**settle_io).success(**download_io, **chained)
 
         # .input only: the user's own moves of a slider, each followed by a release (never
@@ -464,7 +466,6 @@ def build_demo(
                 **heavy,
                 **timed,
             )
-            released.success(**download_io, **chained)
             settled(released)
         optioned = gr.on(
             [blades.change, highlight.change, fusion.change, quality.change, blur_on.change],
@@ -476,7 +477,6 @@ def build_demo(
             **heavy,
             **timed,
         )
-        optioned.success(**download_io, **chained)
         settled(optioned)
         gr.on([blur.change, blur_on.change], trigger_mode="always_last", **note_io)
 

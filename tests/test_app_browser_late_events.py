@@ -15,7 +15,9 @@ click put it, and no event of the slider would follow.
 
 from __future__ import annotations
 
+import json
 import time
+import urllib.request
 
 import pytest
 from _browser import TIMEOUT_MS, click_photo_at, open_app
@@ -160,3 +162,90 @@ def test_upload_after_a_click_ends_on_the_new_photo(
     rounds = len(DELAYS_S)
     assert not failures, f"{len(failures)} of {rounds} rounds failed:\n" + "\n".join(failures)
     assert server.log.read_text().count("Traceback") == 0
+
+
+def _queued_events(page, config: dict) -> list[dict]:
+    """Start recording the events the page sends to the server's queue; returns the list
+    they are appended to, each as its dependency in the page's ``config`` (``api_name``,
+    ``inputs``, ``outputs``)."""
+    dependencies = {d["id"]: d for d in config["dependencies"]}
+    sent: list[dict] = []
+
+    def record(request) -> None:
+        if request.method == "POST" and "/queue/join" in request.url:
+            sent.append(dependencies[json.loads(request.post_data)["fn_index"]])
+
+    page.on("request", record)
+    return sent
+
+
+def _quiet(page, sent: list, quiet_s: float = 2.0, limit_s: float = 30.0) -> None:
+    """Wait until the page has sent no event for ``quiet_s`` (chained events included)."""
+    end = time.monotonic() + limit_s
+    count, since = len(sent), time.monotonic()
+    while time.monotonic() < end:
+        page.wait_for_timeout(200)
+        if len(sent) != count:
+            count, since = len(sent), time.monotonic()
+        elif time.monotonic() - since >= quiet_s:
+            return
+    raise AssertionError(f"the page kept sending events for {limit_s} s: {sent}")
+
+
+def test_a_release_renders_and_downloads_once(app_server, chromium_launch_options, scene_factory):
+    """A slider's release runs one full render and one download (the one after the step
+    that brings the page in line): the download ran twice, the second handing out the file
+    the first had written. The aperture's reset button sends a release with no move of the
+    slider before it, so nothing else is sent."""
+    from playwright.sync_api import sync_playwright
+
+    scene = scene_factory(640, 480, seed=7, stem="once")
+    server = app_server()
+    with urllib.request.urlopen(server.url + "/config", timeout=10) as r:
+        config = json.load(r)
+    ids = {c["props"].get("elem_id"): c["id"] for c in config["components"]}
+    errors: list[str] = []
+    with sync_playwright() as p:
+        browser = p.chromium.launch(**chromium_launch_options)
+        try:
+            page = open_app(browser, server.url, errors=errors)
+            sent = _queued_events(page, config)
+            page.set_input_files("#input input[type=file]", str(scene.photo))
+            box = page.locator("#blur input[data-testid=number-input]")
+            page.wait_for_function(
+                """() => (document.querySelector('#info textarea')?.value ?? '')
+                    .includes('full render') && !document.querySelector('#download').disabled""",
+                timeout=TIMEOUT_MS,
+            )
+            box.fill("8")
+            box.press("Enter")
+            page.wait_for_function(
+                """() => (document.querySelector('#info textarea')?.value ?? '')
+                    .includes('f/8, ')""",
+                timeout=TIMEOUT_MS,
+            )
+            box.blur()  # its release (of f/8, rendered already) is sent now, not below
+            _quiet(page, sent)
+            sent.clear()
+            page.locator("#blur button[data-testid=reset-button]").click()
+            page.wait_for_function(
+                """() => (document.querySelector('#info textarea')?.value ?? '')
+                    .includes('f/1.4, ') && !document.querySelector('#download').disabled""",
+                timeout=TIMEOUT_MS,
+            )
+            _quiet(page, sent)
+            status = page.locator("#info textarea").input_value()
+            label = page.locator("button#download, #download button").first.inner_text()
+        finally:
+            browser.close()
+    assert not errors, errors
+    assert "f/1.4, " in status and "| full render" in status, status
+    downloads = [d for d in sent if d["outputs"] == [ids["download"]] and ids["format"] in
+                 d["inputs"]]  # fmt: skip
+    renders = [d for d in sent if ids["result"] in d["outputs"] and d["api_name"].startswith(
+               "render")]  # fmt: skip
+    previews = [d for d in sent if d["api_name"].startswith("preview")]
+    names = ", ".join(d["api_name"] for d in sent)
+    assert len(downloads) == 1, names
+    assert len(renders) == 1 and not previews, names
+    assert "(640x480)" in label

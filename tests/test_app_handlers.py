@@ -1099,6 +1099,24 @@ class TestBuildDemo:
         for d in renders:
             assert d["inputs"][-1] == by_elem["photo_id"], d["api_name"]
 
+    def test_one_download_after_each_release(self, config):
+        """A release or an option runs the download once: after the step that brings the
+        page in line (it ran right after the render as well, and again after that step,
+        handing out the same file)."""
+        by_elem = {c["props"].get("elem_id"): c["id"] for c in config["components"]}
+        deps = config["dependencies"]
+
+        def chain(dep_id: int) -> list[dict]:
+            after = [d for d in deps if d["trigger_after"] == dep_id]
+            return [x for d in after for x in [d, *chain(d["id"])]]
+
+        releases = [d for d in deps if any(t[1] == "release" for t in d["targets"])]
+        options = [d for d in deps if d["api_name"] == "render"]
+        assert len(releases) == 4 and len(options) == 1
+        for d in releases + options:
+            downloads = [x for x in chain(d["id"]) if x["outputs"] == [by_elem["download"]]]
+            assert len(downloads) == 1, d["api_name"]
+
     def test_slow_events_show_progress(self, config):
         """An upload (decode, prepare, render: seconds at 12 MP) and a click (focus and a
         full render) show a spinner over the result; nothing else covers it."""
