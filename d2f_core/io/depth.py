@@ -23,6 +23,9 @@ from .image import MAX_DECODE_PIXELS, open_pil, read_source_bytes, resize_float
 from .save import atomic_write, to_uint8
 
 logger = logging.getLogger(__name__)
+# tifffile reports a malformed file through its logger, then raises or goes on; with no
+# handler anywhere Python would print those lines bare on stderr, beside the CLI's one line
+logging.getLogger("tifffile").addHandler(logging.NullHandler())
 
 DEPTH_EXTENSIONS = frozenset({".png", ".npy", ".pfm", ".tif", ".tiff", ".jpg", ".jpeg", ".webp"})
 # Robust range: measured on the Kinect sample, 0.17% of its pixels are bogus 1-7 cm readings;
@@ -202,6 +205,8 @@ def _check_map_header(
 TIFF_MAGICS = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")  # classic TIFF and BigTIFF
 #: Largest decoded TIFF page in bytes: a page of :data:`MAX_DECODE_PIXELS` float32 values.
 MAX_TIFF_PAGE_BYTES = 4 * MAX_DECODE_PIXELS
+#: Largest tile of a smaller page: 1024 x 1024 float32 values.
+MAX_TIFF_TILE_BYTES = 4 << 20
 
 
 def _tiff_header(data: bytes, name: str):
@@ -217,6 +222,8 @@ def _tiff_header(data: bytes, name: str):
         h, w = int(page.imagelength), int(page.imagewidth)
         depth, samples = int(page.imagedepth), int(page.samplesperpixel)
         bits = int(page.bitspersample)
+        tile = (int(page.tilelength), int(page.tilewidth), int(page.tiledepth or 1))
+        tile = tile if page.is_tiled else None
     except Exception:  # noqa: BLE001 (any failure to parse: Pillow may still read it)
         return None
     pixels = h * w * max(depth, 1)
@@ -237,6 +244,14 @@ def _tiff_header(data: bytes, name: str):
         raise ValueError(
             f"{name}: TIFF page is a volume of {depth} slices of {w}x{h}; expected a 2-D map"
         )
+    if tile is not None:
+        # a decoder holds a whole tile: one far larger than the page costs its memory
+        tile_bytes = tile[0] * tile[1] * tile[2] * samples * -(-bits // 8)
+        if tile_bytes > max(nbytes, MAX_TIFF_TILE_BYTES):
+            raise ValueError(
+                f"{name}: TIFF tiles of {tile[1]}x{tile[0]} pixels ({tile_bytes} bytes) are "
+                f"larger than the {w}x{h} page they tile"
+            )
     return page, (h, w, samples, nbytes)
 
 
