@@ -136,7 +136,8 @@ def test_near_side_on_a_kernel_size():
     # A near rectangle whose CoC is exactly the last kernel's, (0.95 - 0.1) * 80 = 68 px: its
     # layer coordinate is 13.5 in float32, 13.4999990 one float32 step nearer the focus and
     # 13.4999999 in float64. Layer 14, the more blurred of the two either side, draws it in
-    # every case, so the hidden surface and the render must not depend on which.
+    # every case, so the hidden surface and the render must not depend on which ("nearest"
+    # placement: the one that puts a pixel half a layer from its CoC's place).
     h, w = 96, 128
     image = torch.rand(1, 3, h, w, generator=torch.Generator().manual_seed(0))
     near = torch.tensor(0.95)
@@ -153,11 +154,12 @@ def test_near_side_on_a_kernel_size():
     ]
     surfaces, renders = [], []
     for img, d in inputs:
-        plan = rendering.layer_plan(d, torch.tensor(0.1, dtype=d.dtype).view(1, 1, 1, 1), 80.0)
+        f = torch.tensor(0.1, dtype=d.dtype).view(1, 1, 1, 1)
+        plan = rendering.layer_plan(d, f, 80.0, placement="nearest")
         assert abs(float(plan.coord.max()) - 13.5) < 1e-5
         x = torch.cat([torch.ones_like(img[:, :1]), img], dim=1)
         surfaces.append(rendering.hidden_surface(rendering.hidden.input_pixels(x, False), plan))
-        renders.append(rendering.render(img, d, 0.1, 80.0).double())
+        renders.append(rendering.render(img, d, 0.1, 80.0, placement="nearest").double())
     # the near side's CoC radius is 34 px: cells of 8 px, the frame's edges within reach
     assert [(s.grid, s.box) for s in surfaces] == [(8, (0, 96, 0, 128))] * 3
     for other in renders[1:]:

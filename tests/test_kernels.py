@@ -8,6 +8,7 @@ from d2f_core.rendering.kernels import (
     PAPER_GROWING_SIZES,
     aperture_kernel,
     coarse_kernel,
+    effective_diameter,
     hard_disk_kernel,
     kernel_sizes,
     polygon_kernel,
@@ -196,3 +197,33 @@ class TestSchedules:
             kernel_sizes(15, schedule="log")
         with pytest.raises(ValueError, match="count"):
             kernel_sizes(0)
+
+
+class TestEffectiveDiameter:
+    def test_a_pixel_integrated_disc_draws_its_own_diameter(self):
+        # a disc of diameter D, each pixel weighted by the disc's area over it (16x16
+        # supersampled): its second moment is that of the disc plus a pixel's, and the
+        # diameter read back from it is D (at 3 px it reads 2.82: the pixel's share is
+        # exactly 1 / 12 only for a smooth spread)
+        for diameter in (6.0, 11.0, 24.0):
+            n = 2 * int(diameter / 2 + 2) + 1
+            sub = 16
+            fine = (torch.arange(n * sub, dtype=torch.float64) + 0.5) / sub - n / 2
+            inside = (fine[:, None] ** 2 + fine[None, :] ** 2) <= (diameter / 2) ** 2
+            k = inside.double().view(n, sub, n, sub).mean(dim=(1, 3))
+            k = k / k.sum()
+            x = torch.arange(n, dtype=torch.float64) - n // 2
+            var = float((k * x[None, :] ** 2).sum())
+            assert 4 * math.sqrt(var - 1 / 12) == pytest.approx(diameter, abs=0.05)
+
+    def test_known_kernels(self):
+        assert effective_diameter(1) == 0.0
+        # the paper's soft disk reaches past its radius, most for small kernels
+        soft = [effective_diameter(s) for s in (3, 5, 7, 11, 69)]
+        assert soft == pytest.approx([2.97, 4.98, 6.74, 10.44, 68.02], abs=0.01)
+        assert all(a < b for a, b in zip(soft, soft[1:], strict=False))
+        # a hard disk of radius r draws nearly 2 r; an inscribed hexagon less than its disk
+        assert effective_diameter(69, "hard") == pytest.approx(68.0, abs=0.2)
+        assert effective_diameter(33, "soft", 6) < effective_diameter(33, "soft")
+        with pytest.raises(ValueError, match="odd"):
+            effective_diameter(4)

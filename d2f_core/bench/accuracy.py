@@ -288,14 +288,15 @@ def calibrate(
     sizes: Sequence[tuple[int, int]],
     seeds: Sequence[int],
     k_fracs: Sequence[float],
+    placements: Sequence[str] = PLACEMENTS,
 ) -> dict[str, Any]:
     """Worst-case PSNR of every :data:`adaptive.CANDIDATES` entry against the exact
     15-layer reference, per largest-CoC bin of :data:`adaptive.COC_BINS`.
 
     Scenes are generated (pinhole view and exact disparity); three focal planes per scene
-    (main subject, farthest object, nearest object), each with both layer placements
-    (``rendering.layer_plan``; the candidate against the reference of the same placement). No
-    ground truth is needed.
+    (main subject, farthest object, nearest object), each with every layer placement of
+    ``placements`` (``rendering.layer_plan``; the candidate against the reference of the same
+    placement). No ground truth is needed.
     """
     from ..train.synth import linear_to_srgb, make_scene, render_pinhole
 
@@ -314,7 +315,7 @@ def calibrate(
                 d = torch.from_numpy(disp)[None, None].contiguous()
                 orders = [float(lay.order) for lay in scene.layers]
                 for focus in (scene.subject, min(orders[1:] or orders), max(orders)):
-                    for k_frac, placement in itertools.product(k_fracs, PLACEMENTS):
+                    for k_frac, placement in itertools.product(k_fracs, placements):
                         blur = k_frac * size[1]
                         max_coc = blur * float((d - focus).abs().max())
                         kw = {"placement": placement}
@@ -494,6 +495,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--calibrate", action="store_true", help="measure the adaptive picker's table and exit"
     )
+    parser.add_argument(
+        "--placements",
+        nargs="+",
+        choices=PLACEMENTS,
+        default=list(PLACEMENTS),
+        help="layer placements --calibrate measures (default: all)",
+    )
     parser.add_argument("-v", "--verbose", action="store_true")
     argv = list(argv) if argv is not None else None
     if argv and argv[0] == "--":
@@ -527,7 +535,7 @@ def main(argv: list[str] | None = None) -> int:
         cal_sizes = args.sizes or ((256, 384), (512, 768))
         cal_seeds = args.seeds or (201, 202, 203, 204, 205, 206)
         cal_k = args.k_fracs or (0.01, 0.02, 0.04, 0.07, 0.1, 0.15, 0.2)
-        result = calibrate(cal_sizes, cal_seeds, cal_k) | {"meta": meta}
+        result = calibrate(cal_sizes, cal_seeds, cal_k, args.placements) | {"meta": meta}
         (out_dir / "calibration.json").write_text(json.dumps(result, indent=1))
         print(f"wrote {out_dir / 'calibration.json'}")
         for key, row in result["table"].items():

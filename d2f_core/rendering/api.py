@@ -77,7 +77,7 @@ def render(
     quality: str = "balanced",
     gamma: float = GAMMA,
     full_frame: bool = False,
-    placement: str = "nearest",
+    placement: str = "blend",
     behind: bool = False,
     front_size: float = 0.0,
     hidden: bool = True,
@@ -102,8 +102,8 @@ def render(
         quality: ``"exact"``, ``"high"``, ``"balanced"`` or ``"fast"``: how large a kernel
             must be before it is applied at 1/2 or 1/4 resolution.
         full_frame: disable the per-layer support boxes and empty-layer skipping (reference).
-        placement: ``"nearest"`` or ``"paper"``: which layer a pixel between two layers goes
-            to (depth order; see :func:`layer_plan`).
+        placement: ``"blend"`` (default), ``"nearest"`` or ``"paper"``: how a pixel whose CoC
+            lies between two kernel sizes is drawn (depth order; see :func:`layer_plan`).
         behind: also return what the layers at and behind the focal plane make of each
             pixel (depth order): their share of the result and their own colour. A step
             that puts the photo's sharp pixels back where they are in focus must replace
@@ -259,6 +259,8 @@ def _render(
                 gamma=gamma,
                 placement=placement,
                 extremes=disparity_range,
+                kernel=kernel,
+                blades=int(blades),
             )
             weights = None
             if highlight_boost:

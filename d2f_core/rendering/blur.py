@@ -15,7 +15,7 @@ import torch.nn.functional as F
 
 from .inputs import tracks_grad
 from .kernels import coarse_kernel
-from .plan import TILE, LayerPlan, layer_mask, mask_reach
+from .plan import TILE, LayerPlan
 
 DIRECT_MAX_SIZE = 11
 # Largest kernel (px) whose coarse-grid version is fitted (kernels.coarse_kernel) rather than
@@ -225,13 +225,13 @@ def layer_input(
     x: torch.Tensor,
     coord: torch.Tensor,
     centre: int,
-    gamma: float,
+    mask_of,
     box: tuple[int, int, int, int],
     pads: tuple[int, int, int, int],
     grad: bool,
 ) -> torch.Tensor:
     """The premultiplied layer ``[M, M x]`` inside ``box``, zero-padded by ``pads``
-    (top, bottom, left, right).
+    (top, bottom, left, right); ``M = mask_of(coord, centre, grad)`` (``LayerPlan.mask``).
 
     Without gradients ``x`` is ``[1, x]`` (a leading channel of ones, see :func:`with_ones`),
     so the layer is one product.
@@ -240,7 +240,7 @@ def layer_input(
     (``(B, C, ...)`` for ``[1, x]``).
     """
     y0, y1, x0, x1 = box
-    mask = layer_mask(coord[..., y0:y1, x0:x1], centre, gamma, grad)
+    mask = mask_of(coord[..., y0:y1, x0:x1], centre, grad)
     xs = x[..., y0:y1, x0:x1]
     if grad:
         z = torch.cat([mask, mask * xs], dim=1)
@@ -255,7 +255,7 @@ def layer_input_rows(
     x: torch.Tensor,
     coord: torch.Tensor,
     centre: int,
-    gamma: float,
+    mask_of,
     box: tuple[int, int, int, int],
     factor: int,
 ):
@@ -264,10 +264,11 @@ def layer_input_rows(
     of cells).
 
     Returns ``rows(r0, r1, out=None)``: rows ``r0:r1`` of the (pooled) layer, written into
-    ``out`` when given. Only the mask is computed at once.
+    ``out`` when given. Only the mask (``mask_of(coord, centre, False)``, ``LayerPlan.mask``)
+    is computed at once.
     """
     y0, y1, x0, x1 = box
-    mask = layer_mask(coord[..., y0:y1, x0:x1], centre, gamma, False)
+    mask = mask_of(coord[..., y0:y1, x0:x1], centre, False)
     xs = x[..., y0:y1, x0:x1]
 
     def rows(r0: int, r1: int, out: torch.Tensor | None = None) -> torch.Tensor:
@@ -430,7 +431,7 @@ def support_boxes(plan: LayerPlan, height: int, width: int) -> dict[int, tuple[i
     coord = plan.coord.detach().reshape(height, width)
     dev = coord.device
     down, across = -(-height // TILE), -(-width // TILE)
-    reach = 1.0 + mask_reach(plan.gamma)
+    reach = plan.reach
     centres = np.array([centre for centre, _ in plan.order], dtype=np.float64)
     # Bin b > 0 holds coordinates in ((b - 1) / _BINS, b / _BINS], b < 0 in [b / _BINS,
     # (b + 1) / _BINS), and bin 0 holds 0 alone: an in-focus pixel is on neither side.

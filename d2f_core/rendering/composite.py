@@ -162,18 +162,18 @@ def composite_layers(
         if factor == 1:
             blank = False
             if size <= 1:
-                z = layer_input(x, coord, centre, plan.gamma, box, (0, 0, 0, 0), grad)
+                z = layer_input(x, coord, centre, plan.mask, box, (0, 0, 0, 0), grad)
                 acc = blend_part(acc, z, box[0], box[2], grad)
             elif direct and not grad:
-                rows = layer_input_rows(x, coord, centre, plan.gamma, box, 1)
+                rows = layer_input_rows(x, coord, centre, plan.mask, box, 1)
                 out, oy0, ox0 = direct_stacked(rows, x, c + 1, box, k, (height, width))
                 blend_stacked(acc, out, oy0, ox0)
             elif direct:
                 pads, oy0, ox0 = direct_pads(box, r, height, width)
-                z = layer_input(x, coord, centre, plan.gamma, box, pads, grad)
+                z = layer_input(x, coord, centre, plan.mask, box, pads, grad)
                 acc = blend_part(acc, direct_conv(z, k), oy0, ox0, grad)
             else:
-                z = layer_input(x, coord, centre, plan.gamma, box, (0, 0, 0, 0), grad)
+                z = layer_input(x, coord, centre, plan.mask, box, (0, 0, 0, 0), grad)
                 acc = blend_part(acc, fft_conv(z, spec, size, 1), box[0] - r, box[2] - r, grad)
             continue
         # coarse layer: the box snapped to the coarse grid; the premultiplied layer is pooled,
@@ -192,14 +192,14 @@ def composite_layers(
         # the mean: one pass less per layer
         gain = 1.0 if grad else 1.0 / factor**2
         if grad or bh or bw:
-            z = layer_input(x, coord, centre, plan.gamma, (y0, y1, x0, x1), (0, bh, 0, bw), grad)
+            z = layer_input(x, coord, centre, plan.mask, (y0, y1, x0, x1), (0, bh, 0, bw), grad)
 
             def rows(r0, r1, out=None, z=z, factor=factor):
                 span = slice(r0 * factor, r1 * factor)
                 return pool_grid(z[..., span, :], factor, out=out, mean=grad)
 
         else:  # product and pooling in one: no full-resolution layer is built
-            rows = layer_input_rows(x, coord, centre, plan.gamma, (y0, y1, x0, x1), factor)
+            rows = layer_input_rows(x, coord, centre, plan.mask, (y0, y1, x0, x1), factor)
         if direct and not grad:
             k = kernel_tensor(spec, size, factor, dev, dtype, gain)
             out, oy0, ox0 = direct_stacked(rows, x, c + 1, cbox, k, (lh, lw))

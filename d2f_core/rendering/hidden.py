@@ -237,12 +237,13 @@ def hidden_surface(
         # the layer that draws each near pixel: of the two either side of its coordinate, the
         # more blurred one in front of the focal plane (ceil) and the sharper one behind it
         # (floor of |coord|; a CoC on a kernel size sits half-way between two layers:
-        # rounding would go either way); the largest of them, from the extremes
+        # rounding would go either way), or with the blend masks (which draw a pixel with
+        # both) the more blurred one on both sides; the largest of them, from the extremes
         most, least = float(ahead.max()), float(ahead.min())
         if most > 0:
             top = max(top, math.ceil(most))
         if least <= 0:
-            top = max(top, math.floor(-least))
+            top = max(top, math.ceil(-least) if plan.blend else math.floor(-least))
         cells = _cell_max(near.to(coord.dtype), cell)
         grid[..., y0 // cell : y0 // cell + cells.shape[-2], :] = cells
     if top < 0:

@@ -14,7 +14,7 @@ import torch
 from ..errors import InputTypeError
 
 #: Layer placements of the depth order (:func:`layer_plan`), the default first.
-PLACEMENTS = ("nearest", "paper")
+PLACEMENTS = ("blend", "nearest", "paper")
 
 
 def check_tensor(name: str, x: torch.Tensor, channels: int | None) -> tuple[float, float]:

@@ -1,6 +1,7 @@
 """The layer plan and masks of D2F's layered rendering ``f_l``: each pixel's CoC placed
 between two kernel sizes, with the soft masks
-``M_l = 0.5 + 0.5 tanh(gamma (1/(L-1) - |D - l/(L-1)|))`` (``gamma = 100``).
+``M_l = 0.5 + 0.5 tanh(gamma (1/(L-1) - |D - l/(L-1)|))`` (``gamma = 100``), or with
+``placement="blend"`` the masks that draw a pixel with both kernels around its CoC.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ import torch
 import torch.nn.functional as F
 
 from .inputs import ROW_BAND, check_placement, row_bands, tracks_grad
-from .kernels import kernel_sizes
+from .kernels import effective_diameter, kernel_sizes
 
 GAMMA = 100.0
 # Mask values below this are treated as empty when finding a layer's support.
@@ -36,15 +37,31 @@ class LayerPlan:
     ``coord`` is the per-pixel layer coordinate (layer ``j`` is centred on ``coord == j``),
     ``order`` lists ``(centre, kernel size)`` back to front, ``gamma`` is the mask sharpness in
     layer units, ``signed`` says whether a layer only takes pixels on its side of focus.
+    ``blend`` (``placement="blend"``): the layers' masks are :func:`blend_mask`, not the
+    soft :func:`layer_mask` (``gamma`` is then unused).
     """
 
     coord: torch.Tensor  # [B,1,H,W]
     order: list[tuple[int, int]]
     gamma: float
     signed: bool
+    blend: bool = False
 
     def __post_init__(self) -> None:
         self._sides: dict[int, torch.Tensor] = {}
+
+    def mask(self, coord: torch.Tensor, centre: int, grad: bool = True) -> torch.Tensor:
+        """Layer ``centre``'s mask at the layer coordinates ``coord`` (a part of
+        :meth:`side_coord`'s), :func:`blend_mask` or :func:`layer_mask` as the plan's."""
+        if self.blend:
+            return blend_mask(coord, centre, grad)
+        return layer_mask(coord, centre, self.gamma, grad)
+
+    @property
+    def reach(self) -> float:
+        """How far (layer units) from its centre a layer's mask holds pixels: 1 for
+        :func:`blend_mask`, a little more for the soft masks (:func:`mask_reach`)."""
+        return 1.0 if self.blend else 1.0 + mask_reach(self.gamma)
 
     def side_coord(self, centre: int) -> torch.Tensor:
         """``coord`` with the pixels on the other side of focus pushed out of reach.
@@ -110,12 +127,23 @@ def layer_plan(
     schedule: str = "growing",
     gamma: float = GAMMA,
     max_size: float = 69.0,
-    placement: str = "nearest",
+    placement: str = "blend",
     extremes: tuple[float, float] | None = None,
+    kernel: str = "soft",
+    blades: int = 0,
 ) -> LayerPlan:
     """Assign pixels to layers (back-to-front compositing order).
 
     ``placement`` (depth order only) says where a pixel goes between two layers:
+
+    * ``"blend"`` (default): layer ``j`` sits at the CoC its kernel draws
+      (:func:`~d2f_core.rendering.kernels.effective_diameter` of the ``kernel`` and
+      ``blades`` the render uses), and a pixel whose CoC lies between two layers is drawn
+      by both (:func:`blend_mask`): by the one composited first in full and by the other over
+      it in proportion to where its CoC lies between them, so that where the pixel's
+      neighbours share its depth it is blurred by the two kernels mixed linearly, a kernel
+      of its own CoC. A small blur is drawn with the CoC it has, not with the nearest of
+      kernels 2 and 4 px apart that each reach a pixel further than their size says.
 
     * ``"nearest"``: layer ``j`` sits at the CoC its kernel draws (``size - 1`` px across) and
       pixels move half a layer toward the side the overlapping soft masks hide, so every pixel
@@ -159,19 +187,30 @@ def layer_plan(
         coc = signed.abs() * blur
     max_coc = float(coc.detach().max()) if coc.numel() else 0.0
     # A kernel of s px (radius s // 2) draws a disc s - 1 px across, which is where layer j
-    # sits with "nearest" placement (the 1-px kernel at CoC 0). The schedule is in absolute px
-    # (the paper's sizes up to 69 px, stretched only for larger CoCs), cut after the first
-    # kernel that covers the scene's largest CoC: a small blur needs few layers, and a largest
-    # CoC of at most 1 px none.
-    nearest = placement == "nearest"
+    # sits with "nearest" placement (the 1-px kernel at CoC 0); with "blend" at the CoC the
+    # kernel draws (effective_diameter). The schedule is in absolute px (the paper's sizes up
+    # to 69 px, stretched only for larger CoCs), cut after the first kernel that covers the
+    # scene's largest CoC: a small blur needs few layers, and a largest CoC of at most 1 px
+    # none.
+    nearest = placement != "paper"
     full = kernel_sizes(num_layers, max_size=max(max_coc + nearest, max_size), schedule=schedule)
+    if placement == "blend":
+
+        def drawn(size: int) -> float:
+            return effective_diameter(size, kernel, int(blades))
+
+    else:
+
+        def drawn(size: int) -> float:
+            return float(size - nearest)
+
     sizes = []
     for size in _unique_sizes(full):
         sizes.append(size)
-        if size - nearest >= max_coc or max_coc <= 1:
+        if drawn(size) >= max_coc or max_coc <= 1:
             break
-    knots = [float(s - nearest) for s in sizes]
-    half = nearest and len(sizes) > 1
+    knots = [drawn(s) for s in sizes]
+    half = placement == "nearest" and len(sizes) > 1
     if banded:
         # by bands of rows: a dozen elementwise passes over a band that stays in cache, not
         # over frames of fresh memory (0.39 s of a 12 MP render)
@@ -183,7 +222,7 @@ def layer_plan(
         coord = _plan_coord(signed, coc, knots, half)
     n = len(sizes)
     layers = [(j, sizes[abs(j)]) for j in range(-(n - 1), n)]
-    return LayerPlan(coord, layers, gamma / 14.0, True)
+    return LayerPlan(coord, layers, gamma / 14.0, True, placement == "blend")
 
 
 def _plan_coord(
@@ -216,6 +255,28 @@ def layer_mask(coord: torch.Tensor, centre: int, gamma: float, grad: bool = True
         )
     t = coord - centre
     return F.threshold_(t.abs_().mul_(-2 * gamma).add_(2 * gamma).sigmoid_(), _MASK_TINY, 0.0)
+
+
+def blend_mask(coord: torch.Tensor, centre: int, grad: bool = True) -> torch.Tensor:
+    """The ``"blend"`` placement's layer mask: ``clamp(t + 1, 0, 1)`` for ``t = coord -
+    centre < 1``, else 0 (``coord`` in layer units, already side-gated).
+
+    Layers composite in increasing ``coord``. A pixel at ``coord = j + t`` (``0 <= t < 1``)
+    is in layer ``j`` in full and in layer ``j + 1`` by ``t``; where its neighbours share its
+    depth, ``j + 1`` (over ``j``) hides ``t`` of ``j``: the pixel shows ``(1 - t) K_j + t
+    K_{j + 1}``, the kernels mixed in proportion to where the CoC lies between theirs (the
+    plan puts ``coord`` on that scale). A pixel on a layer's centre is in that layer alone.
+    Where the pixel stands alone in front of another depth (a highlight on a far wall), both
+    layers show it: it weighs ``1 + t`` there (the soft masks of the other placements put such
+    a pixel in both of its layers in full, so it weighs 2).
+    """
+    if grad:
+        t = coord - centre
+        m = torch.where(t < 1, (t + 1).clamp(0, 1), torch.zeros_like(t))
+        return F.threshold(m, _MASK_TINY, 0.0)
+    m = (coord - centre).add_(1)
+    m.masked_fill_(m >= 2, 0.0)
+    return F.threshold_(m.clamp_(0, 1), _MASK_TINY, 0.0)
 
 
 def mask_reach(gamma: float) -> float:

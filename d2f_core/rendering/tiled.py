@@ -27,7 +27,7 @@ from .blur import (
 from .composite import blend_part, overlap_slices
 from .hidden import hidden_surface, upsample_window
 from .inputs import ROW_BAND
-from .plan import FAR, LayerPlan, layer_mask, mask_reach
+from .plan import FAR, LayerPlan
 from .threads import ThreadChoice
 
 # large frames: tiles and bands
@@ -100,10 +100,10 @@ def _fill_layer(image, weights, ys, xs, m: torch.Tensor, out: torch.Tensor) -> N
         torch.mul(image[0, :, ys, xs], out[4:5], out=out[1:4])
 
 
-def _tile_mask(ct: torch.Tensor, centre: int, gamma: float, gate: int) -> torch.Tensor:
-    """Soft mask of layer ``centre`` for coordinates ``ct`` (in place on a copy), zero on
-    the other side of focus when ``gate`` (+1 or -1) is set."""
-    m = layer_mask(ct, centre, gamma, False)
+def _tile_mask(ct: torch.Tensor, centre: int, mask_of, gate: int) -> torch.Tensor:
+    """Mask of layer ``centre`` for coordinates ``ct`` (``mask_of``: ``LayerPlan.mask``; in
+    place on a copy), zero on the other side of focus when ``gate`` (+1 or -1) is set."""
+    m = mask_of(ct, centre, False)
     if gate > 0:
         m.masked_fill_(ct <= 0, 0.0)
     elif gate < 0:
@@ -225,7 +225,7 @@ class _HalfSource:
             self.pc, self.px = torch.cat(pc), torch.cat(px, dim=1)
             self.cy, self.cx = torch.cat(cy), torch.cat(cx)
 
-    def add_mixed(self, grid, centre, gamma, gate, hit, box, factor):
+    def add_mixed(self, grid, centre, mask_of, gate, hit, box, factor):
         """Add the mixed cells of the hit tiles (``hit``, tiles of :data:`_TT` px) to the
         summed cells of ``grid`` ``(chans, h, w)``, whose cells of ``factor`` px start at
         frame px ``box = (y0, x0)``."""
@@ -236,7 +236,7 @@ class _HalfSource:
         idx = torch.nonzero(hit.flatten()[tile]).flatten()
         if not idx.numel():
             return
-        m = _tile_mask(self.pc[idx], centre, gamma, gate)
+        m = _tile_mask(self.pc[idx], centre, mask_of, gate)
         part = (self.px[:, idx] * m).sum(-1).mul_(0.25).to(grid.dtype)
         gy = (self.cy[idx] * 2 - box[0]) // factor
         gx = (self.cx[idx] * 2 - box[1]) // factor
@@ -397,7 +397,7 @@ def render_tiled(
     lo = ctiles.extreme(torch.amin)
     ctiles.refill(-FAR)
     hi = ctiles.extreme(torch.amax)
-    reach = 1.0 + mask_reach(plan.gamma)
+    reach = plan.reach
 
     layer_rows = functools.partial(_fill_layer, image, weights)
 
@@ -483,14 +483,14 @@ def render_tiled(
         # depth edge pixel by pixel), summed into its grid
         for ya, yb, xa, xb in _hit_boxes(hit, ty0, ty1, tx0, tx1, t):
             sy, sx = slice(ya // 2, yb // 2), slice(xa // 2, xb // 2)
-            m = _tile_mask(half.c[sy, sx], centre, plan.gamma, g)
+            m = _tile_mask(half.c[sy, sx], centre, plan.mask, g)
             gy, gx = (ya - ty0 * t) // factor, (xa - tx0 * t) // factor
             dest = grid[:, gy : gy + (yb - ya) // factor, gx : gx + (xb - xa) // factor]
             if factor == 2:
                 torch.mul(half.x[:, sy, sx], m, out=dest)
             else:
                 pool_product(half.x[:, sy, sx], m, factor // 2, out=dest, mean=False)
-        half.add_mixed(grid, centre, plan.gamma, g, hit, (ty0 * t, tx0 * t), factor)
+        half.add_mixed(grid, centre, plan.mask, g, hit, (ty0 * t, tx0 * t), factor)
         gh, gw = hp // factor, wp // factor
         # each grid cell sums (factor / 2)**2 cell means: the kernel carries 1 / cells**2
         cells = factor // 2
@@ -587,7 +587,7 @@ def render_tiled(
                     if out is None:
                         out = image.new_empty(1, chans, r1 - r0, xb - xa)
                     ys = slice(ya + r0, ya + r1)
-                    m = _tile_mask(coord[0, ys, xa:xb], centre, plan.gamma, g)
+                    m = _tile_mask(coord[0, ys, xa:xb], centre, plan.mask, g)
                     layer_rows(ys, slice(xa, xb), m, out[0])
                     return out
 
