@@ -266,21 +266,22 @@ def _disc(out: np.ndarray, color, cx: int = 60, cy: int = 80) -> dict[str, float
 def test_blown_highlights_make_discs_without_colour_shift(model, color):
     """A 7x7 saturated highlight on a dark far background, focus on the foreground, K = 40.
 
-    Measured (white and orange alike): render_bokeh disc diameter 39.6 px (0.99 K), aspect
+    Measured (white and orange alike): render_bokeh disc diameter 40.2 px (1.00 K), aspect
     1.000, radial 90 %->10 % edge 7 px, chromaticity error 0.0000; pipeline 36.1 px, aspect
     1.000, edge 7 px, chroma 0.0000. A Gaussian smear of the same FWHM has a 28 px edge.
-    The HDR boost raises the disc plateau 2.8x (0.101 vs 0.036 for white). Six blades:
-    diameter 39.8 px, aspect 1.051 (a hexagon is wider across its corners; the blend of the
-    45 and 39 px hexagons that draws a 40 px CoC; "nearest" placement, the 39 px hexagon
-    alone: 34.9 px, 1.121), the same as the exact-quality render; coarse kernels sampled on
-    the half-resolution grid rounded the corners off to 1.057 ("nearest").
+    The HDR boost (a lone spot's, render_bokeh has no radiance map) raises the disc plateau
+    6.5x (0.235 vs 0.036 for white). Six blades: diameter 40.4 px, aspect 1.103 (a hexagon
+    is wider across its corners; the blend of the 45 and 39 px hexagons that draws a 40 px
+    CoC; "nearest" placement, the 39 px hexagon alone: 34.9 px, 1.121), the same as the
+    exact-quality render; coarse kernels sampled on the half-resolution grid rounded the
+    corners off to 1.057 ("nearest").
     """
     img = _highlight_scene(color)
     disp = np.zeros(img.shape[:2], np.float32)
     full = _disc(render_bokeh(img, disp, 1.0, 40.0), color)
     pipe = _disc(pipeline(model, img, disp, 1.0, 40.0), color)
     for d in (full, pipe):
-        assert 0.85 * 40 <= d["diameter"] <= 1.0 * 40
+        assert 0.85 * 40 <= d["diameter"] <= 1.05 * 40
         assert 0.95 <= d["aspect"] <= 1.05
         assert d["edge"] <= 10  # a disc, not a smear
         assert d["chroma"] < 0.01  # no colour shift
@@ -288,7 +289,7 @@ def test_blown_highlights_make_discs_without_colour_shift(model, color):
     assert full["plateau"] > 2.0 * flat["plateau"]
     hexagon = _disc(render_bokeh(img, disp, 1.0, 40.0, blades=6), color)
     exact = _disc(render_bokeh(img, disp, 1.0, 40.0, blades=6, quality="exact"), color)
-    assert 0.8 * 40 <= hexagon["diameter"] <= 40 and hexagon["aspect"] >= 1.04
+    assert 0.8 * 40 <= hexagon["diameter"] <= 1.05 * 40 and hexagon["aspect"] >= 1.1
     assert abs(hexagon["aspect"] - exact["aspect"]) <= 0.01
 
 

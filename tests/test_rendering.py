@@ -225,12 +225,17 @@ class TestHighlights:
         img = torch.full((1, 3, 61, 61), 0.1)
         img[..., 29:32, 29:32] = 1.0
         disp = torch.ones(1, 1, 61, 61)
-        on = render(img, disp, 0.0, 23.0, highlight_boost=True, quality="exact")
+        ones = torch.ones_like(disp)  # a radiance map: the paper's boost
+        on = render(img, disp, 0.0, 23.0, highlight_boost=True, quality="exact", radiance=ones)
         off = render(img, disp, 0.0, 23.0, highlight_boost=False, quality="exact")
+        own = render(img, disp, 0.0, 23.0, quality="exact")
         disc = (slice(None), slice(None), slice(24, 37), slice(24, 37))
         # a 3x3 highlight in a 23-px disc (~415 px): with weight 3 the disc mean is
-        # (0.1 * 406 + 3 * 9) / (406 + 27) = 0.156, without (0.1 * 406 + 9) / 415 = 0.120
+        # (0.1 * 406 + 3 * 9) / (406 + 27) = 0.156, without (0.1 * 406 + 9) / 415 = 0.120;
+        # with no radiance map a lone spot: 9 of the 400 px around it are saturated, weight
+        # 3 + 9 (1 - 9 / 400)^4 = 11.22, (0.1 * 406 + 11.22 * 9) / (406 + 101) = 0.279
         assert on[disc].mean().item() == pytest.approx(0.156, abs=0.006)
+        assert own[disc].mean().item() == pytest.approx(0.279, abs=0.006)
         assert off[disc].mean().item() == pytest.approx(0.120, abs=0.006)
         # still a disc: the boost changes brightness, not the extent
         assert on[..., 30, :5].max() < 0.11 and on[..., 30, -5:].max() < 0.11
@@ -253,6 +258,60 @@ class TestHighlights:
         near = torch.tensor([0.2, 0.995, 0.4]).view(1, 3, 1, 1)
         assert hdr_boost(near, r0).item() == pytest.approx(3.0 * 0.995**5, rel=1e-6)
         assert hdr_boost(near, r0, beta=2.5).item() == pytest.approx(3.0 * 0.995**2.5, rel=1e-6)
+
+    def test_a_lone_saturated_spot_weighs_more(self):
+        # one saturated pixel: 1/16 of its 4-px cell, 1/400 of the 5 x 5 cells around it; a
+        # saturated 24 x 24 block fills every such square around its middle
+        from d2f_core.rendering.radiance import SPOT_ALPHA
+
+        img = torch.full((2, 3, 40, 48), 0.3)
+        img[0, :, 17, 21] = 1.0
+        img[1, :, 8:32, 12:36] = 1.0
+        img[1, 1, 8:32, 12:36] = 0.995  # the brightest channel decides
+        plain = hdr_boost(img, None)
+        spot = hdr_boost(img, None, spot=SPOT_ALPHA)
+        lone = 3.0 + (SPOT_ALPHA - 3.0) * (1 - 1 / 400) ** 4
+        assert float(spot[0, 0, 17, 21]) == pytest.approx(lone, rel=1e-5)
+        assert float(plain[0, 0, 17, 21]) == pytest.approx(3.0)
+        assert float(spot[1, 0, 20, 24]) == pytest.approx(3.0, rel=1e-6)  # a wide highlight
+        edge = float(spot[1, 0, 8, 12])  # its corner: a quarter of the square around it
+        assert 3.0 < edge < lone
+        # unsaturated pixels keep their weight; the boost never falls under the paper's
+        unsaturated = img.amax(dim=1, keepdim=True) < 0.99
+        assert bool((spot[unsaturated] == 1).all()) and bool((spot >= plain - 1e-6).all())
+        # with gradients (dense) the same numbers; per channel, the same share
+        src = img.clone().requires_grad_()
+        with torch.enable_grad():
+            dense = hdr_boost(src, None, spot=SPOT_ALPHA)
+        assert dense.requires_grad
+        torch.testing.assert_close(dense.detach(), spot)
+        per = hdr_boost(img, None, spot=SPOT_ALPHA, per_channel=True)
+        assert float(per[0, 0, 17, 21]) == pytest.approx(lone, rel=1e-5)
+        with pytest.raises(ValueError, match="spot"):
+            hdr_boost(img, None, spot=-1.0)
+
+    def test_render_boosts_lone_spots_only_without_a_radiance_map(self):
+        # a small lamp on a far dark wall, focus near: without a radiance map the render
+        # weighs it as hdr_boost's spot weight does, and its disc is brighter than with the
+        # paper's boost, which a radiance map (here ones) keeps
+        from d2f_core.rendering.radiance import SPOT_ALPHA
+
+        img = torch.full((1, 3, 64, 64), 0.05)
+        img[..., 31:33, 31:33] = 1.0
+        disp = torch.zeros(1, 1, 64, 64)
+        own = render(img, disp, 1.0, 16.0, quality="exact")
+        spot = hdr_boost(img, None, spot=SPOT_ALPHA)
+        weighed = render(
+            img, disp, 1.0, 16.0, quality="exact", radiance=spot, highlight_boost=False
+        )
+        torch.testing.assert_close(own, weighed)
+        mapped = render(img, disp, 1.0, 16.0, quality="exact", radiance=torch.ones_like(disp))
+        paper = render(
+            img, disp, 1.0, 16.0, quality="exact", radiance=hdr_boost(img, None),
+            highlight_boost=False,
+        )  # fmt: skip
+        torch.testing.assert_close(mapped, paper)
+        assert float(own[0, 0, 32, 36]) > 1.5 * float(mapped[0, 0, 32, 36])
 
 
 class TestBands:

@@ -29,7 +29,7 @@ from .inputs import (
     tracks_grad,
 )
 from .plan import GAMMA, layer_plan
-from .radiance import HDR_THRESHOLD, hdr_boost
+from .radiance import HDR_THRESHOLD, SPOT_ALPHA, hdr_boost
 from .schedule import check_focal_range, fold_focal_range
 from .threads import ThreadChoice
 from .tiled import render_tiled
@@ -97,7 +97,9 @@ def render(
         schedule: ``"growing"`` (paper) or ``"uniform"`` kernel-size schedule.
         kernel: ``"soft"`` (paper's tanh disk) or ``"hard"`` disk aperture.
         blades: aperture blades (0 = round), ``rotation`` in degrees.
-        highlight_boost: apply the HDR boost (alpha 3, beta 5) to saturated pixels.
+        highlight_boost: apply the HDR boost (alpha 3, beta 5) to saturated pixels; with no
+            ``radiance``, a saturated spot with few saturated pixels around it weighs up to
+            :data:`~d2f_core.rendering.radiance.SPOT_ALPHA` (``hdr_boost``'s ``spot``).
         method: ``"fft"`` or ``"direct"`` convolution for kernels above 7 px.
         quality: ``"exact"``, ``"high"``, ``"balanced"`` or ``"fast"``: how large a kernel
             must be before it is applied at 1/2 or 1/4 resolution.
@@ -265,7 +267,10 @@ def _render(
             weights = None
             if highlight_boost:
                 if radiance is not None or image_max >= HDR_THRESHOLD:
-                    weights = hdr_boost(image, radiance)
+                    # with no radiance map, a lone saturated spot weighs more (a lamp, a
+                    # glint); a radiance map's own boost stays the paper's
+                    spot = SPOT_ALPHA if radiance is None else None
+                    weights = hdr_boost(image, radiance, spot=spot)
             elif radiance is not None:
                 weights = radiance
             # a floor keeps the normalisation defined where every weight is 0 (e.g. pure red)
