@@ -33,6 +33,7 @@ from .inputs import check_focus_blur
 from .plan import layer_plan
 
 __all__ = [
+    "BLEND_CALIBRATION",
     "BUDGETS",
     "CALIBRATION",
     "CANDIDATES",
@@ -59,10 +60,9 @@ COC_BINS: tuple[float, ...] = (4.0, 8.0, 16.0, 32.0, 64.0, 128.0)
 
 #: Worst-case PSNR (dB) against the exact 15-layer reference, per largest-CoC bin (one value
 #: per bin of :data:`COC_BINS` plus the open bin; ``None`` = not measured), depth order, soft
-#: disk, growing schedule, any layer placement. The minimum over these runs of
+#: disk, growing schedule, placement "nearest" or "paper". The minimum over these runs of
 #: ``d2f-bench accuracy --calibrate`` (:func:`d2f_core.bench.accuracy.calibrate`; three focal
-#: planes per scene, the placements "nearest" and "paper", and each run again with
-#: ``--placements blend``):
+#: planes per scene, both placements):
 #: ``--sizes 512x768 --seeds 207 208 --k-fracs 0.02 0.05 0.1 0.17``,
 #: ``--sizes 256x384 --seeds 201 202 --k-fracs 0.005 0.01 0.03 0.3``,
 #: ``--sizes 256x384 --seeds 201 202 203 --k-fracs 0.015 0.02 0.06 0.12`` and
@@ -70,26 +70,51 @@ COC_BINS: tuple[float, ...] = (4.0, 8.0, 16.0, 32.0, 64.0, 128.0)
 #: ``--sizes 96x144 128x192 --seeds 211 212 213 214 --k-fracs 0.02 0.05 0.1 0.2 0.4`` and
 #: ``--sizes 96x144 128x192 --seeds 211 212 213 214 --k-fracs 0.7 1.0 1.4`` (CoCs of 100-200 px
 #: on a small frame: the open bin's worst cases).
-#: Reduced resolution costs 36-53 dB ("blend" places a pixel in two layers, often one of
-#: them on a coarser grid: its worst cases are the lowest, 41.5 dB for "balanced"); fewer
-#: layers cost far more (15-35 dB).
+#: Reduced resolution costs 41-53 dB; fewer layers cost far more (18-35 dB).
 CALIBRATION: dict[tuple[int, str], tuple[float | None, ...]] = {
-    (5, "exact"): (20.5, 18.2, 21.6, 20.3, 22.1, 17.2, 15.8),
-    (5, "high"): (20.5, 18.2, 21.6, 20.3, 22.1, 17.3, 15.8),
-    (5, "balanced"): (20.5, 18.2, 21.6, 20.3, 22.1, 17.3, 15.9),
-    (5, "fast"): (20.5, 18.2, 21.6, 20.3, 22.1, 17.4, 15.9),
-    (7, "exact"): (24.2, 27.2, 21.8, 25.2, 25.8, 16.8, 15.3),
-    (7, "high"): (24.2, 27.2, 21.8, 25.2, 25.8, 16.8, 15.3),
-    (7, "balanced"): (24.2, 27.2, 21.8, 25.2, 25.8, 16.8, 15.3),
-    (7, "fast"): (24.2, 27.2, 21.8, 25.2, 25.8, 16.8, 15.4),
-    (9, "exact"): (24.2, 28.6, 24.7, 25.3, 25.8, 22.8, 18.8),
-    (9, "high"): (24.2, 28.6, 24.7, 25.3, 25.8, 22.7, 18.8),
-    (9, "balanced"): (24.2, 28.6, 24.7, 25.3, 25.8, 22.7, 18.8),
-    (9, "fast"): (24.2, 28.6, 24.7, 25.3, 25.8, 22.6, 18.8),
-    (11, "exact"): (31.2, 25.9, 29.9, 29.2, 30.7, 21.3, 18.3),
-    (11, "high"): (31.2, 25.9, 29.9, 29.3, 30.7, 21.3, 18.3),
-    (11, "balanced"): (31.2, 25.9, 29.9, 29.3, 30.7, 21.3, 18.3),
-    (11, "fast"): (31.2, 25.9, 30.3, 29.0, 30.5, 21.3, 18.3),
+    (5, "exact"): (20.9, 18.2, 21.6, 22.2, 22.1, 25.0, 25.1),
+    (5, "high"): (20.9, 18.2, 21.6, 22.2, 22.1, 25.0, 25.1),
+    (5, "balanced"): (20.9, 18.2, 21.6, 22.2, 22.1, 25.0, 25.2),
+    (5, "fast"): (20.9, 18.2, 21.6, 22.2, 22.1, 25.2, 25.2),
+    (7, "exact"): (25.4, 27.2, 21.8, 25.3, 29.1, 27.4, 26.5),
+    (7, "high"): (25.4, 27.2, 21.8, 25.3, 29.1, 27.4, 26.6),
+    (7, "balanced"): (25.4, 27.2, 21.8, 25.3, 29.1, 27.4, 26.6),
+    (7, "fast"): (25.4, 27.2, 21.8, 25.3, 29.0, 27.4, 26.8),
+    (9, "exact"): (25.4, 28.6, 24.7, 26.2, 31.0, 32.5, 32.4),
+    (9, "high"): (25.4, 28.6, 24.7, 26.2, 31.0, 32.4, 32.4),
+    (9, "balanced"): (25.4, 28.6, 24.7, 26.2, 31.0, 32.4, 32.6),
+    (9, "fast"): (25.4, 28.6, 24.7, 26.2, 31.0, 32.7, 32.5),
+    (11, "exact"): (31.2, 25.9, 29.9, 31.8, 31.3, 34.5, 34.5),
+    (11, "high"): (31.2, 25.9, 29.9, 31.8, 31.3, 34.5, 34.6),
+    (11, "balanced"): (31.2, 25.9, 29.9, 31.8, 31.3, 34.4, 34.6),
+    (11, "fast"): (31.2, 25.9, 30.3, 31.4, 31.1, 34.5, 34.6),
+    (15, "high"): (100.0, 100.0, 100.0, 51.6, 50.7, 51.7, 52.2),
+    (15, "balanced"): (100.0, 100.0, 49.5, 48.0, 49.1, 49.8, 50.0),
+    (15, "fast"): (100.0, 53.2, 43.8, 40.9, 44.9, 43.4, 44.5),
+}
+
+#: :data:`CALIBRATION` for ``placement="blend"``: the same runs with ``--placements blend``.
+#: Its reduced-resolution worst cases are lower (a pixel is in two layers, often one of them on
+#: a coarser grid: 41.5 dB for ``"balanced"`` in the 8-16 px bin), and fewer layers cost more
+#: at the largest CoCs (15-19 dB in the open bin: a CoC between the 1-px kernel and a large one
+#: is drawn with both).
+BLEND_CALIBRATION: dict[tuple[int, str], tuple[float | None, ...]] = {
+    (5, "exact"): (20.5, 22.6, 22.3, 20.3, 24.8, 17.2, 15.8),
+    (5, "high"): (20.5, 22.6, 22.4, 20.3, 24.8, 17.3, 15.8),
+    (5, "balanced"): (20.5, 22.6, 22.4, 20.3, 24.8, 17.3, 15.9),
+    (5, "fast"): (20.5, 22.6, 22.4, 20.3, 24.8, 17.4, 15.9),
+    (7, "exact"): (24.2, 27.6, 26.4, 25.2, 25.8, 16.8, 15.3),
+    (7, "high"): (24.2, 27.6, 26.4, 25.2, 25.8, 16.8, 15.3),
+    (7, "balanced"): (24.2, 27.6, 26.4, 25.2, 25.8, 16.8, 15.3),
+    (7, "fast"): (24.2, 27.4, 26.4, 25.2, 25.8, 16.8, 15.4),
+    (9, "exact"): (24.2, 30.3, 26.4, 25.3, 25.8, 22.8, 18.8),
+    (9, "high"): (24.2, 30.3, 26.4, 25.3, 25.8, 22.7, 18.8),
+    (9, "balanced"): (24.2, 30.3, 26.4, 25.3, 25.8, 22.7, 18.8),
+    (9, "fast"): (24.2, 30.3, 26.4, 25.3, 25.8, 22.6, 18.8),
+    (11, "exact"): (44.8, 31.6, 32.5, 29.2, 30.7, 21.3, 18.3),
+    (11, "high"): (44.8, 31.6, 32.5, 29.3, 30.7, 21.3, 18.3),
+    (11, "balanced"): (44.8, 31.6, 32.0, 29.3, 30.7, 21.3, 18.3),
+    (11, "fast"): (44.8, 31.6, 32.0, 29.0, 30.5, 21.3, 18.3),
     (15, "high"): (100.0, 100.0, 100.0, 45.7, 46.0, 47.3, 47.0),
     (15, "balanced"): (100.0, 100.0, 41.5, 43.0, 43.8, 44.0, 44.8),
     (15, "fast"): (100.0, 46.8, 36.7, 35.6, 40.9, 38.1, 38.5),
@@ -163,12 +188,17 @@ def coc_bin(max_coc: float) -> int:
     return len(COC_BINS)
 
 
-def predicted_psnr(num_layers: int, quality: str, max_coc: float) -> float:
+def predicted_psnr(
+    num_layers: int, quality: str, max_coc: float, placement: str = "blend"
+) -> float:
     """Calibrated worst-case PSNR (dB) of a candidate for a scene whose largest CoC is
-    ``max_coc`` px; ``inf`` for the reference itself, ``-inf`` when not calibrated."""
+    ``max_coc`` px, with the layer ``placement`` (:data:`BLEND_CALIBRATION` for
+    ``"blend"``, else :data:`CALIBRATION`); ``inf`` for the reference itself, ``-inf`` when
+    not calibrated."""
     if num_layers == 15 and quality == "exact":
         return math.inf
-    row = CALIBRATION.get((num_layers, quality))
+    table = BLEND_CALIBRATION if placement == "blend" else CALIBRATION
+    row = table.get((num_layers, quality))
     if row is None:
         return -math.inf
     value = row[coc_bin(max_coc)]
@@ -285,7 +315,7 @@ def choose_settings(
     occupancy: dict[int, list[tuple[int, int, float]]] = {}
     best: RenderSettings | None = None
     for num_layers, preset in CANDIDATES:
-        expected = predicted_psnr(num_layers, preset, max_coc)
+        expected = predicted_psnr(num_layers, preset, max_coc, placement)
         if expected < budget:
             continue
         if num_layers not in occupancy:
