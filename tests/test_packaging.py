@@ -22,9 +22,17 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-SHIPPED = ["weights/d2f_lite.pt"] + [
-    f"samples/{p.name}" for p in sorted((ROOT / "assets" / "samples").iterdir())
-]
+SAMPLES = [f"samples/{p.name}" for p in sorted((ROOT / "assets" / "samples").iterdir())]
+#: the network, the scene teachers' weights with their notice and licence texts, the samples
+SHIPPED = (
+    ["weights/d2f_lite.pt"]
+    + [
+        f"weights/{p.name}"
+        for p in sorted((ROOT / "assets" / "weights").iterdir())
+        if p.name.startswith(("teacher_", "TEACHERS", "LICENSE"))
+    ]
+    + SAMPLES
+)
 
 pytestmark = pytest.mark.slow
 
@@ -140,12 +148,16 @@ weights = bundled.shipped_weights()
 assert pathlib.Path({str(venv)!r}).resolve() in weights.resolve().parents, weights
 model = D2F.from_pretrained()
 photos = bundled.sample_photos()
-assert [p.name for p in photos] == {[p.split("/")[1] for p in SHIPPED[1:]]!r}, photos
+assert [p.name for p in photos] == {[p.split("/")[1] for p in SAMPLES]!r}, photos
 image = load_image(photos[0])
 scene = model.prepare(image)
 result = model.render(scene, model.focus_at(scene, 10, 10), 20.0)
 assert result.bokeh.shape == image.shape and np.isfinite(result.bokeh).all()
 assert np.abs(result.bokeh - image).mean() > 1e-3  # something was blurred
+# the scene source: the teachers' ports and their weights, with nothing but torch
+scene = model.prepare(image, depth="scene")
+assert scene.disparity_source == "scene", scene.disparity_source
+assert "objects" in scene.disparity_output, scene.disparity_output
 import app.main
 assert app.main.sample_paths() == [str(p) for p in photos]
 demo = app.main.build_demo(model)  # the page with its examples, not launched

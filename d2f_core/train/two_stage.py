@@ -401,9 +401,10 @@ def build_parser() -> argparse.ArgumentParser:
         description="Train D2F: stage1 = defocus + radiance networks, stage2 = fusion network.",
     )
     parser.epilog = (
-        "Also: 'd2f-train label' (teacher pseudo-labels of real photos) and 'd2f-train depth' "
+        "Also: 'd2f-train label' (teacher pseudo-labels of real photos), 'd2f-train depth' "
         "(stage 0, the defocus network on real photos; 'd2f-train depth export' makes a D2F "
-        "checkpoint of it): see TRAINING.md."
+        "checkpoint of it) and 'd2f-train port-teachers' (the scene teachers' original files into "
+        "the torch weights the scene source ships): see TRAINING.md."
     )
     sub = parser.add_subparsers(dest="stage", required=True)
     for name, crop, help_text in (
@@ -485,6 +486,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         from .depth_pack import main as pack_main
 
         return pack_main(argv[1:])
+    if argv[:1] == ["port-teachers"]:  # the scene teachers' original files -> torch weights
+        from .port_teachers import main as port_main
+
+        return port_main(argv[1:])
     if argv[:1] == ["depth"]:  # stage 0: depth from real photos
         from .depth_train import main as depth_main
 
