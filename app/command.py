@@ -15,7 +15,7 @@ __all__ = ["render_command"]
 
 def _depth_args(source: str) -> list[str]:
     """The CLI's depth options for a scene's ``disparity_source``."""
-    if source in ("embedded", "d2f") or source.startswith("transformers:"):
+    if source in ("embedded", "d2f", "scene") or source.startswith("transformers:"):
         return ["--depth-model", source]
     # the user's own map: the CLI reads it from its file, which the app only saw uploaded
     return ["--depth", "YOUR_DEPTH_MAP.png"]

@@ -29,6 +29,7 @@ CHOICES = (
     ("The photo's own depth (phone)", "embedded"),
     ("Your depth map (below)", "file"),
     ("Shipped network (offline)", "d2f"),
+    ("Scene teachers with the network's subjects (offline)", "scene"),
     ("Hugging Face model (id or folder below)", "transformers"),
 )
 #: What the app tells of the shipped network under the depth source choice.
@@ -200,13 +201,18 @@ def resolve(choice: Any, hub_model: Any, has_map: bool, has_embedded: bool) -> t
     if choice == "transformers":
         _hub_extra()
         return f"transformers:{check_hub_model(hub_model)}", ""
-    if choice not in ("embedded", "file", "d2f"):
+    if choice not in ("embedded", "file", "d2f", "scene"):
         raise ValueError(f"Unknown depth source {choice!r}.")
     return choice, ""
 
 
 def _using(source: str) -> str:
-    words = {"file": "your map", "embedded": "the photo's own depth", "d2f": "the network"}
+    words = {
+        "file": "your map",
+        "embedded": "the photo's own depth",
+        "d2f": "the network",
+        "scene": "the scene teachers",
+    }
     return f"using {words[source]}."
 
 
@@ -242,4 +248,6 @@ def describe(scene: Any, fallback: str) -> str:
         return f"{name} ({getattr(scene, 'disparity_output', '')})"
     if name == "d2f":
         return "shipped network (d2f)"
+    if name == "scene":
+        return f"scene teachers ({getattr(scene, 'disparity_output', '')})"
     return fallback

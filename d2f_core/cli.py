@@ -284,7 +284,8 @@ def build_parser() -> argparse.ArgumentParser:
         type=_depth_source,
         metavar="SOURCE",
         help="where depth comes from: embedded (the phone's), file:PATH, d2f (the shipped "
-        "network, offline) or transformers:MODEL (a Hugging Face depth model id or a local "
+        "network, offline), scene (the scene teachers with the network's subjects, offline) "
+        "or transformers:MODEL (a Hugging Face depth model id or a local "
         "folder; needs the hub extra). Default: --depth, else the phone's, else d2f",
     )
     depth.add_argument(

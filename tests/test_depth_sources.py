@@ -445,7 +445,7 @@ class TestApp:
         from app import sources
 
         values = [v for _, v in sources.choices()]
-        assert values == ["auto", "embedded", "file", "d2f", "transformers"]
+        assert values == ["auto", "embedded", "file", "d2f", "scene", "transformers"]
         assert "embedded" not in [v for _, v in sources.choices(has_embedded=False)]
         monkeypatch.setattr(ds, "hub_available", lambda: False)
         assert "transformers" not in [v for _, v in sources.choices()]

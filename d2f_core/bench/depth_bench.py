@@ -39,6 +39,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..depth import sources as depth_sources
 from ..train.depth_train import resize_array
 from .depth_metrics import (
     EVAL_SIDE,
@@ -56,6 +57,7 @@ from .depth_predictors import (
     network_predictors,
     ramp_predictor,
     rank_mix,
+    source_predictor,
     subject_blend_predictor,
     teacher_predictors,
     weight_specs,
@@ -480,6 +482,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         metavar="[NAME=]PATH",
         help="checkpoint(s) to score (default: the shipped weights); NAME labels the column",
     )
+    p.add_argument(
+        "--source",
+        action="append",
+        default=[],
+        metavar="SOURCE",
+        help="also score the map D2F.prepare gives from this depth source (scene, d2f), with "
+        "the first network's weights; one column each",
+    )
     p.add_argument("--data", type=Path, default=DEFAULT_DATA, help="measured-depth photos")
     p.add_argument("--datasets", type=Path, default=DEFAULT_DATASETS, help="held-out masks")
     p.add_argument("--masks", type=int, default=None, help="at most this many held-out masks")
@@ -524,6 +534,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         networks = network_predictors(args.weights)
         predictors.update(networks)
+        first = weight_specs(args.weights)[next(iter(networks))]
+        for source in args.source:
+            depth_sources.parse_source(source)  # a bad name fails before anything runs
+            predictors[f"source {source}"] = source_predictor(source, first)
         if args.teachers is not None:
             found = teacher_predictors(args.teachers, args.threads)
             predictors.update(found)

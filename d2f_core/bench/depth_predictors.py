@@ -20,6 +20,7 @@ __all__ = [
     "network_predictors",
     "ramp_predictor",
     "rank_mix",
+    "source_predictor",
     "subject_blend_predictor",
     "teacher_predictors",
     "weight_specs",
@@ -42,6 +43,16 @@ def network_predictor(weights: str | Path | None = None) -> Predictor:
     model = D2F.from_pretrained(weights)
     # a mix asks for the same photo's map again
     return _remember_last(lambda image: model.prepare(image).disparity_full())
+
+
+def source_predictor(source: str, weights: str | Path | None = None) -> Predictor:
+    """The disparity :meth:`D2F.prepare` gives a photo from the depth source ``source``
+    (``"scene"``, ``"d2f"``; :mod:`d2f_core.depth.sources`), with the network in ``weights``
+    (the shipped one by default)."""
+    from ..pipeline import D2F
+
+    model = D2F.from_pretrained(weights)
+    return _remember_last(lambda image: model.prepare(image, depth=source).disparity_full())
 
 
 def weight_specs(specs: Sequence[str] | None) -> dict[str, str | None]:

@@ -28,14 +28,17 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = [
+    "FURNITURE_VOC",
     "GROUND",
     "OCCLUDERS",
     "ROOM",
+    "ROOM_SHARE",
     "SKY",
     "feather",
     "ground_plane",
     "horizon_row",
     "in_classes",
+    "is_room",
     "normalise",
     "occluder_alpha",
     "ramp",
@@ -62,6 +65,19 @@ OCCLUDERS = (94, 43, 88, 137, 44, 5)
 
 
 # ------------------------------------------------------------------- the ramp, the older layout
+
+
+#: PASCAL VOC classes that are a room's furniture (chair, dining table, sofa, tv monitor): in a
+#: room they stand where the room does, and are not made subjects (:func:`is_room`)
+FURNITURE_VOC = (9, 11, 18, 20)
+#: share of the frame that walls, floor, ceiling and the like cover in a room
+ROOM_SHARE = 0.4
+
+
+def is_room(ade: np.ndarray) -> bool:
+    """Whether the scene parse ``ade`` shows a room: :data:`ROOM` classes over
+    :data:`ROOM_SHARE` of the frame."""
+    return float(in_classes(ade, ROOM).mean()) >= ROOM_SHARE
 
 
 def ramp(height: int, width: int) -> np.ndarray:
@@ -164,7 +180,7 @@ def scene_strength(ade: np.ndarray, teacher_weight: float = 0.0) -> float:
     (:func:`scene_layout` blends its model in by this much)."""
     scene = float(in_classes(ade, SKY).mean() + in_classes(ade, GROUND).mean())
     strength = float(np.clip((scene - 0.05) / 0.2, 0.0, 1.0))
-    if in_classes(ade, ROOM).mean() >= 0.4:
+    if is_room(ade):
         strength *= 1.0 - float(teacher_weight)
     return strength
 
@@ -224,7 +240,7 @@ def silhouette_alpha(
     clarity = float(np.mean(np.abs(soft - 0.5)) * 2) if soft.size else 0.0
     if clarity < min_clarity:
         return None
-    if ade is not None and in_classes(ade, ROOM).mean() >= 0.4:
+    if ade is not None and is_room(ade):
         return None
     parts = label(hard, connectivity=2)
     sizes = np.bincount(parts.ravel())[1:]

@@ -15,6 +15,10 @@ Sources (:data:`SOURCES`), written as a string:
 ``d2f``
     The shipped D2F defocus network (the default; runs offline, weights in
     ``assets/weights/``).
+``scene``
+    The scene teachers run at inference (:mod:`d2f_core.depth.scene_source`: the scene parse,
+    the silhouette, the VOC objects and the indoor depth, as torch modules with shipped
+    weights) with the D2F network's subjects stood on their map; offline.
 ``transformers:MODEL``
     Any depth-estimation model that Hugging Face ``transformers`` loads with
     ``AutoImageProcessor`` and ``AutoModelForDepthEstimation``: a hub id such as
@@ -79,6 +83,7 @@ SOURCES: dict[str, str] = {
     "embedded": "the phone depth stored in the photo (Google Lens Blur, Apple portrait)",
     "file": "a depth or disparity map file (file:PATH)",
     "d2f": "the shipped D2F defocus network (offline; the default)",
+    "scene": "the scene teachers' map with the network's subjects (offline)",
     "transformers": "a Hugging Face depth-estimation model (transformers:MODEL_ID or a folder)",
 }
 
@@ -154,10 +159,10 @@ def parse_source(source: str | DepthSource) -> DepthSource:
     kind, sep, arg = text.partition(":")
     kind = kind.strip().lower()
     arg = arg.strip()
-    known = ", ".join(["embedded", "file:PATH", "d2f", "transformers:MODEL"])
+    known = ", ".join(["embedded", "file:PATH", "d2f", "scene", "transformers:MODEL"])
     if kind not in SOURCES:
         raise ValueError(f"unknown depth source {source!r}; expected one of {known}")
-    if kind in ("embedded", "d2f"):
+    if kind in ("embedded", "d2f", "scene"):
         if arg:
             raise ValueError(f"depth source {kind!r} takes no argument, got {source!r}")
         return DepthSource(kind)
@@ -291,6 +296,15 @@ def depth_map(
         if model is None or not hasattr(model, "predict_disparity"):
             raise ValueError("depth source 'd2f' needs the D2F model (its weights) to run")
         return DepthMap(_d2f_map(model, image_np), spec.name, "D2F network disparity")
+    if spec.kind == "scene":
+        if model is None or not hasattr(model, "scene_maps"):
+            raise ValueError("depth source 'scene' needs the D2F model (its subjects) to run")
+        from .scene_source import scene_maps, shared_teachers
+
+        with torch.no_grad():
+            found = scene_maps(image_np, shared_teachers(), model)
+        ran = ", ".join(found.ran)
+        return DepthMap(_fit(found.disparity, size), spec.name, f"scene teachers' map ({ran})")
     if device is None and model is not None and hasattr(model, "device"):
         device = model.device
     d, kind = _hub_map(spec.arg, image_np, torch.device(device or "cpu"))

@@ -201,6 +201,17 @@ class D2F(FusionStage, FocusStage, nn.Module):
 
         Shape: (B, 3, h, w) in [0, 1] -> (B, 1, h, w) in [0, 1].
         """
+        return self.disparity_and_scene_maps(image, refine, photo)[0]
+
+    def disparity_and_scene_maps(
+        self, image: Tensor, refine: bool = True, photo: Tensor | None = None
+    ) -> tuple[Tensor, Tensor | None]:
+        """:meth:`predict_disparity` and, from the same network pass, the scene head's
+        probabilities (subject, sky) at the size the network read the photo (``None`` for a
+        network that stands no subjects).
+
+        Shape: (B, 3, h, w) -> (B, 1, h, w) in [0, 1] and (B, 2, hn, wn) in [0, 1].
+        """
         size = tuple(image.shape[-2:])
         if photo is not None:
             _check_photo(photo, image)
@@ -211,8 +222,9 @@ class D2F(FusionStage, FocusStage, nn.Module):
         net_size = scaled_size(tuple(source.shape[-2:]), 1.0, self.config.network_size)
         small = resize(source, net_size)
         d, maps = self._network_pass(small, self.stands_subjects)
-        if maps is not None:
-            d = self._stand(d, torch.sigmoid(maps))
+        probs = None if maps is None else torch.sigmoid(maps)
+        if probs is not None:
+            d = self._stand(d, probs)
         d = resize(d, size)  # [B,1,h,w]
         if refine:
             d = self._snap(image, d)
@@ -220,7 +232,7 @@ class D2F(FusionStage, FocusStage, nn.Module):
         if self.config.spread > 0:
             s = self.config.spread
             d = (1 - s) * d + s * equalize(d, self.config.spread_clip)
-        return d
+        return d, probs
 
     @property
     def stands_subjects(self) -> bool:
@@ -334,7 +346,8 @@ class D2F(FusionStage, FocusStage, nn.Module):
                 reads, and which is the default for a photo that carries some).
             depth: where the disparity comes from (:mod:`d2f_core.depth.sources`): ``None``
                 (the photo's phone depth when it has some, else this model's defocus network),
-                ``"d2f"`` (the network), ``"embedded"``, ``"file:PATH"``,
+                ``"d2f"`` (the network), ``"scene"`` (the scene teachers with the network's
+                subjects), ``"embedded"``, ``"file:PATH"``,
                 ``"transformers:MODEL"``, a :class:`~d2f_core.depth.sources.DepthMap`, or a
                 ready ``H' x W'`` map in [0, 1] (1 = nearest) of any size and the photo's
                 aspect ratio (within 5 %), resized to the photo.
@@ -368,7 +381,9 @@ class D2F(FusionStage, FocusStage, nn.Module):
             if spec.kind == "d2f":
                 depth = None
             else:
-                depth = depth_sources.depth_map(spec, image_t, photo=photo, device=device)
+                depth = depth_sources.depth_map(
+                    spec, image_t, photo=photo, model=self, device=device
+                )
         if isinstance(depth, depth_sources.DepthMap):
             source, output, recorded = depth.source, depth.output, depth.focus
             depth = depth.disparity
