@@ -91,6 +91,10 @@ class D2FConfig:
             network's map as it is; maps from any other source are never changed.
         spread_clip: the equalisation's clip limit, at least 1 (the larger, the nearer the
             equalised map is to the map's ranks).
+        depth_source: where :meth:`D2F.prepare` takes a photo's depth from when the photo
+            brings none and none is asked for: ``"d2f"`` (this defocus network) or
+            ``"scene"`` (the scene teachers with this network's subjects and map,
+            :mod:`d2f_core.depth.scene_source`).
     """
 
     defocus: str = "lite"
@@ -119,6 +123,7 @@ class D2FConfig:
     subject_blend: float = 0.0
     spread: float = 0.0
     spread_clip: float = 4.0
+    depth_source: str = "d2f"
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -155,6 +160,10 @@ class D2FConfig:
             raise ValueError(f"config.subject_shift must be in [0, 1], got {self.subject_shift}")
         if not 0 <= self.subject_blend <= 1:
             raise ValueError(f"config.subject_blend must be in [0, 1], got {self.subject_blend}")
+        if self.depth_source not in ("d2f", "scene"):
+            raise ValueError(
+                f"config.depth_source must be 'd2f' or 'scene', got {self.depth_source!r}"
+            )
         if not (0 <= self.spread <= 1 and self.spread_clip >= 1):
             raise ValueError(
                 f"config.spread must be in [0, 1] and spread_clip >= 1, got {self.spread} "

@@ -10,13 +10,11 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 from torch import Tensor, nn
 
 from .. import rendering
 from ..depth import sources as depth_sources
-from ..depth.refine import equalize, harden_edges, snap_edges
 from ..errors import InputTypeError, whole_number
 from ..io.depth import check_aspect
 from ..io.embedded import Photo
@@ -33,31 +31,11 @@ from ..rendering.schedule import (
 )
 from ..sizing import resize, scaled_size, size_ratio
 from .config import CHECKPOINT_VERSION, D2FConfig, default_weights_path
+from .depth_stage import DepthStage
 from .focus import FocusStage
-from .fusion import FUSION_TILE, FusionStage, ms_since, per_sample, to_numpy_image
+from .fusion import FUSION_TILE, FusionStage, ms_since, to_numpy_image
 from .outputs import Result, Scene
-
-
-def _check_photo(photo: Tensor, image: Tensor) -> None:
-    """``photo`` (B, 3, H, W) must be ``image``'s photo: the same batch and channels, float,
-    at least as large, and the same frame within a pixel of rounding.
-
-    Raises:
-        ValueError: naming what differs.
-    """
-    if photo.dim() != 4 or photo.shape[:2] != image.shape[:2]:
-        raise ValueError(
-            f"photo must be the image's batch at its own size, (B, C, H, W) = "
-            f"{tuple(image.shape[:2])} + (H, W); got {tuple(photo.shape)}"
-        )
-    if not photo.is_floating_point():
-        raise ValueError(f"photo must be float in [0, 1], got {photo.dtype}")
-    (ph, pw), (h, w) = photo.shape[-2:], image.shape[-2:]
-    if ph < h or pw < w:
-        raise ValueError(f"photo ({ph}x{pw}) is smaller than the image ({h}x{w})")
-    scale = w / pw if pw >= ph else h / ph  # the long side's scale: the one rounded least
-    if abs(ph * scale - h) > 1 or abs(pw * scale - w) > 1:
-        raise ValueError(f"photo ({ph}x{pw}) and image ({h}x{w}) are not the same frame")
+from .training import TrainingStage
 
 
 def _recorded_focus(value: Any) -> float | None:
@@ -70,7 +48,7 @@ def _recorded_focus(value: Any) -> float | None:
     return min(max(f, 0.0), 1.0) if math.isfinite(f) else None
 
 
-class D2F(FusionStage, FocusStage, nn.Module):
+class D2F(DepthStage, FusionStage, FocusStage, TrainingStage, nn.Module):
     """Defocus-to-Focus: defocus, radiance and fusion networks plus the layered renderer.
 
     Use :meth:`from_pretrained`, :meth:`from_checkpoint` or :meth:`from_config`; all return
@@ -182,147 +160,6 @@ class D2F(FusionStage, FocusStage, nn.Module):
 
     # ---------------------------------------------------------------- networks
 
-    def predict_disparity(
-        self, image: Tensor, refine: bool = True, photo: Tensor | None = None
-    ) -> Tensor:
-        """Defocus network at ``config.network_size`` (averaged with its mirror image with
-        ``config.flip_average``), resized back to the input size; with ``refine`` and
-        ``config.refine="snap"`` its edges are then moved onto the photo's
-        (:func:`refine.snap_edges`); with ``config.spread`` the map is then partly equalised
-        (:func:`refine.equalize`).
-
-        Args:
-            image: the photo at the size the map is wanted at (the rendering pass's).
-            refine: snap the map's edges onto ``image``'s.
-            photo: the same photo at a larger size (its own), which the network then reads,
-                at up to ``network_size``, when ``image`` is smaller than that: a photo of
-                400 px has a rendering pass of 200 px, and the network sees it at 400 (it
-                was trained at 256-384). A pass of ``network_size`` or more is read as it is.
-
-        Shape: (B, 3, h, w) in [0, 1] -> (B, 1, h, w) in [0, 1].
-        """
-        return self.disparity_and_scene_maps(image, refine, photo)[0]
-
-    def disparity_and_scene_maps(
-        self, image: Tensor, refine: bool = True, photo: Tensor | None = None
-    ) -> tuple[Tensor, Tensor | None]:
-        """:meth:`predict_disparity` and, from the same network pass, the scene head's
-        probabilities (subject, sky) at the size the network read the photo (``None`` for a
-        network that stands no subjects).
-
-        Shape: (B, 3, h, w) -> (B, 1, h, w) in [0, 1] and (B, 2, hn, wn) in [0, 1].
-        """
-        size = tuple(image.shape[-2:])
-        if photo is not None:
-            _check_photo(photo, image)
-        # the photo only when the pass is smaller than the network reads (one resize of a
-        # large photo would cost more than the network)
-        small_pass = max(size) < self.config.network_size
-        source = photo if photo is not None and small_pass else image
-        net_size = scaled_size(tuple(source.shape[-2:]), 1.0, self.config.network_size)
-        small = resize(source, net_size)
-        d, maps = self._network_pass(small, self.stands_subjects)
-        probs = None if maps is None else torch.sigmoid(maps)
-        if probs is not None:
-            d = self._stand(d, probs)
-        d = resize(d, size)  # [B,1,h,w]
-        if refine:
-            d = self._snap(image, d)
-        d = d.clamp(0, 1)
-        if self.config.spread > 0:
-            s = self.config.spread
-            d = (1 - s) * d + s * equalize(d, self.config.spread_clip)
-        return d, probs
-
-    @property
-    def stands_subjects(self) -> bool:
-        """Whether :meth:`predict_disparity` runs the scene head and stands its subjects: a
-        ``"-scene"`` network with ``config.subject_lift`` or ``config.subject_blend`` over 0."""
-        return self.defocus_net.scene_head is not None and (
-            self.config.subject_lift > 0 or self.config.subject_blend > 0
-        )
-
-    def _network_pass(self, small: Tensor, scene: bool) -> tuple[Tensor, Tensor | None]:
-        """The defocus network on a photo at the size it reads (averaged with its mirror
-        image with ``config.flip_average``): the disparity, and with ``scene`` the scene
-        head's logits (else ``None``)."""
-        net = self.defocus_net
-        forward = net.forward_scene if scene else lambda x: (net(x), None)
-        if not self.config.flip_average:
-            return forward(small)
-        b = small.shape[0]
-        both, maps = forward(torch.cat([small, small.flip(-1)]))  # [2B,1,hn,wn]
-        d = 0.5 * (both[:b] + both[b:].flip(-1))
-        if maps is not None:
-            maps = 0.5 * (maps[:b] + maps[b:].flip(-1))
-        return d, maps
-
-    def _stand(self, disparity: Tensor, maps: Tensor) -> Tensor:
-        """:meth:`stand` on each map of a batch, with the scene head's probabilities
-        ``maps`` (subject, sky)."""
-        out = []
-        for d, m in zip(disparity, maps, strict=True):
-            subject, sky = m.float().cpu().numpy()[:2]
-            out.append(torch.from_numpy(self.stand(d[0].float().cpu().numpy(), subject, sky)))
-        return torch.stack(out)[:, None].to(disparity)
-
-    def stand(self, disparity: np.ndarray, subject: np.ndarray, sky: np.ndarray) -> np.ndarray:
-        """:func:`~d2f_core.depth.scene.stand_subjects` with this model's settings
-        (``config.subject_lift``, ``subject_clarity``, ``subject_shift``, ``subject_blend``):
-        what :meth:`predict_disparity` does to the network's map with the scene head's
-        ``subject`` and ``sky`` probabilities, for any ``H x W`` map of the same shape."""
-        from ..depth.scene import stand_subjects
-
-        shift = self.config.subject_shift if self.config.subject_shift < 1 else math.inf
-        return stand_subjects(
-            disparity,
-            subject,
-            sky,
-            lift=self.config.subject_lift,
-            min_clarity=self.config.subject_clarity,
-            max_shift=shift,
-            blend=self.config.subject_blend,
-        )
-
-    def scene_maps(self, image: Tensor) -> Tensor | None:
-        """The scene head's probabilities (subject, sky) for a photo, at the size the
-        network reads it (``config.network_size``, mirrored and averaged with
-        ``config.flip_average``, as :meth:`predict_disparity`); ``None`` for a network
-        without the head.
-
-        Shape: (B, 3, h, w) in [0, 1] -> (B, 2, hn, wn) in [0, 1].
-        """
-        if self.defocus_net.scene_head is None:
-            return None
-        small = resize(image, scaled_size(tuple(image.shape[-2:]), 1.0, self.config.network_size))
-        with torch.no_grad():
-            _, maps = self._network_pass(small, scene=True)
-        return torch.sigmoid(maps)
-
-    def _snap(self, image: Tensor, disparity: Tensor) -> Tensor:
-        if self.config.refine != "snap":
-            return disparity
-        radius = max(1, round(self.config.refine_radius * max(image.shape[-2:])))
-        return snap_edges(image, disparity, radius, self.config.refine_eps).clamp_(0, 1)
-
-    def refine_disparity(self, image: Tensor, disparity: Tensor) -> Tensor:
-        """Edge-aware refinement of a disparity map from any source, guided by the photo at
-        the map's size (:meth:`prepare` runs it at the rendering pass's size): with
-        ``config.edge_step > 0`` every pixel on a silhouette's ramp is put on one side of it
-        by its colour (:func:`refine.harden_edges`).
-
-        The snapping of ``config.refine="snap"`` belongs to the defocus network's own map
-        (:meth:`predict_disparity`), a soft map at ``network_size``; on a phone's map it
-        copies the photo's texture into the depth (the portrait with a matte, at 768x1024:
-        depth-edge pixels 12k -> 48k, the silhouette's IoU with the matte 0.653 -> 0.597).
-
-        Shape: image (1, 3, h, w) in [0, 1], disparity (1, 1, h, w) -> (1, 1, h, w) in [0, 1].
-        """
-        if self.config.edge_step <= 0:
-            return disparity
-        radius = max(3, round(self.config.edge_radius * max(image.shape[-2:])))
-        return harden_edges(image, disparity, radius, self.config.edge_step)
-
     # ---------------------------------------------------------------- inference
 
     def pass_size(self, size: tuple[int, int], given: bool = False) -> tuple[int, int]:
@@ -372,6 +209,8 @@ class D2F(FusionStage, FocusStage, nn.Module):
             photo, image = image, image.image
             if depth is None and photo.disparity is not None:
                 depth = "embedded"  # the phone's own depth, as the CLI and the app take it
+        if depth is None and self.config.depth_source != "d2f":
+            depth = self.config.depth_source
         device = self.device
         image_t = rendering.image_tensor(image).to(device)  # [1,3,H,W]
         source, output = depth_sources.DEFAULT_SOURCE, "D2F network disparity"
@@ -393,12 +232,17 @@ class D2F(FusionStage, FocusStage, nn.Module):
         size = (int(image_t.shape[-2]), int(image_t.shape[-1]))
         if given is not None:  # resized to the photo, never stretched onto it
             check_aspect(tuple(given.shape[-2:]), size, "depth")
-        lr_size = self.pass_size(size, given=given is not None)
+        # a map this model predicts (its network's or the scene source's) is rendered at its
+        # pass size and snapped onto the photo's edges; a measured map is taken as it is
+        predicted = given is None or source == "scene"
+        lr_size = self.pass_size(size, given=not predicted)
         image_lr = resize(image_t, lr_size).clamp_(0, 1)  # [1,3,h,w]
         if given is None:
             disparity_lr = self.predict_disparity(image_lr, refine, image_t)  # [1,1,h,w]
         else:
             disparity_lr = resize(given, lr_size).clamp_(0, 1)
+            if predicted and refine:
+                disparity_lr = self._snap(image_lr, disparity_lr)
         if refine:
             disparity_lr = self.refine_disparity(image_lr, disparity_lr)
         radiance_lr = self.radiance_net(image_lr)  # [1,1,h,w]
@@ -477,46 +321,12 @@ class D2F(FusionStage, FocusStage, nn.Module):
         Returns:
             :class:`Result`; ``result.settings`` says what was picked.
         """
-        if not isinstance(scene, Scene):
-            kind = type(scene).__name__
-            raise InputTypeError(f"scene must be a Scene from prepare(), got {kind}")
-        if f_number is not None:
-            if blur is not None:
-                raise ValueError("give blur or f_number, not both")
-            if isinstance(f_number, bool) or not isinstance(f_number, numbers.Real):
-                raise ValueError(f"f_number must be a number, got {f_number!r}")
-            f_number = float(f_number)
-            blur = blur_px(f_number, max(scene.size))
-        if focus is None and scene.focus is not None:
-            focus = scene.focus
-        elif focus is None:
-            focus = self.subject_focus(scene)[0]
-        focus, blur = rendering.check_focus_blur(focus, 40.0 if blur is None else blur)
-        focal_range = check_focal_range(focal_range)
-        if "rotation" in render_options:  # named even when no kernel needs it
-            render_options["rotation"] = check_rotation(render_options["rotation"])
+        focus, blur, focal_range, budget = self._render_args(
+            scene, focus, blur, f_number, focal_range, budget, render_options
+        )
         if max_side is not None:
             max_side = whole_number(max_side, "max_side", 1)
-        if "radiance" in render_options:
-            raise ValueError("render_options must not contain 'radiance' (it comes from scene)")
-        if "checked" in render_options:
-            raise ValueError("render_options must not contain 'checked' (D2F.render sets it)")
-        render_options.setdefault("order", self.config.order)
-        render_options.setdefault("placement", self.config.placement)
         named = isinstance(budget, str)
-        if named and budget not in adaptive.BUDGETS:
-            names = sorted(adaptive.BUDGETS)
-            raise ValueError(f"budget must be one of {names}, a dB value or None, got {budget!r}")
-        if budget is not None and not named:
-            bad = f"budget must be a name, a dB value or None, got {budget!r}"
-            if isinstance(budget, bool):
-                raise ValueError(bad)
-            try:
-                budget = float(budget)
-            except (TypeError, ValueError):
-                raise ValueError(bad) from None
-            if not math.isfinite(budget):
-                raise ValueError(f"budget must be finite, got {budget}")
         pick = (
             budget is not None
             and render_options["order"] == "depth"
@@ -547,7 +357,6 @@ class D2F(FusionStage, FocusStage, nn.Module):
         settings = None
         if pick:
             t0 = time.perf_counter()
-            full = max_side is None
             settings = adaptive.choose_settings(
                 disparity_lr,
                 focus,
@@ -556,80 +365,43 @@ class D2F(FusionStage, FocusStage, nn.Module):
                 quality=budget if named else adaptive.DEFAULT_QUALITY,
                 schedule=render_options.get("schedule", "growing"),
                 placement=render_options["placement"],
-                full_scale=1.0 / lr_ratio if full else 1.0,
+                full_scale=1.0 / lr_ratio if max_side is None else 1.0,
                 fusion_coc=gate_coc,
                 checked=True,  # focus and blur were checked above; blur_lr <= blur
             )
-            if full:
-                # decide from the full-resolution map (a given map can hold finer extremes
-                # than its low-res copy): identity when every output CoC is under a pixel,
-                # fusion when some pixel is near enough to focus for _fuse_tiled to touch it
-                lo, hi = scene.disparity_tile_range(FUSION_TILE)
-                far = float(torch.maximum((hi - focus).abs(), (lo - focus).abs()).max())
-                near = float(torch.clamp(torch.maximum(lo - focus, focus - hi), min=0.0).min())
-                far, near = (outside_range(v, focal_range) for v in (far, near))
-                settings.identity = blur * far < 1.0
-                settings.fusion = blur * near < max(gate_coc, 2.0 * self.config.sharp_coc)
+            if max_side is None:
+                self._full_size_decisions(scene, settings, focus, blur, focal_range, gate_coc)
             timings["pick"] = ms_since(t0)
-        t0 = time.perf_counter()
+        identity = settings is not None and settings.identity
         fuse = (
             fusion
             and max_side is None
             and lr_size != tuple(scene.size)  # a full-size pass lost no detail to restore
-            and not (settings is not None and settings.identity)
+            and not identity
             and (settings is None or settings.fusion)
         )
-        behind_lr = None
-        if settings is not None and settings.identity:
-            bokeh_lr = image_lr  # every CoC is under a pixel of the output
+        t0 = time.perf_counter()
+        if identity:
+            bokeh_lr, behind_lr = image_lr, None  # every CoC is under a pixel of the output
         else:
             options = render_options | (settings.render_options() if settings else {})
-            bokeh_lr = rendering.render(
-                image_lr,
-                disparity_lr,
-                focus,
-                blur_lr,
-                radiance=radiance_lr,
-                behind=fuse,
-                # foreground layers blurred past the fusion gate: fusion never sharpens
-                # them, and must not paste what lies behind them over their blur
-                front_size=defocus_to_coc(self.config.fusion_gate),
-                checked=True,
-                **options,
-            )  # [1,3,h,w]
-            if fuse:
-                # what the layers behind the blurred foreground make of each pixel: fusion
-                # sharpens only that part
-                bokeh_lr, share_lr, colour_lr = bokeh_lr
-                if bool((share_lr < 1.0 - 1e-4).any()):
-                    behind_lr = (share_lr, colour_lr)
+            bokeh_lr, behind_lr = self._render_pass(
+                image_lr, disparity_lr, radiance_lr, focus, blur_lr, fuse, options
+            )
         timings["render_lr"] = ms_since(t0)
         defocus_lr = coc_to_defocus(blur_lr * (disparity_lr - focus).abs())
 
         # 3. upsample + deep Poisson fusion at full resolution
         if max_side is not None:
-            bokeh = bokeh_lr
-            mask = torch.zeros_like(disparity_lr)
-        elif settings is not None and settings.identity:
+            bokeh, mask = bokeh_lr, torch.zeros_like(disparity_lr)
+        elif identity:
             bokeh = scene.image.clone()
             mask = torch.ones((1, 1, *scene.size), device=bokeh.device)
         else:
-            t0 = time.perf_counter()
-            bokeh = resize(bokeh_lr, scene.size)  # [1,3,H,W]
-            if bokeh is bokeh_lr:
-                bokeh = bokeh.clone()  # fusion writes into it; bokeh_lr is returned too
-            timings["upsample"] = ms_since(t0)
-            if fuse:
-                t0 = time.perf_counter()
-                behind = None
-                if behind_lr is not None:
-                    behind = tuple(resize(t, scene.size).clamp_(0, 1) for t in behind_lr)
-                bokeh, mask = self._fuse_tiled(
-                    scene, bokeh, focus, blur, lr_ratio, behind, focal_range
-                )
-                timings["fusion"] = ms_since(t0)
-            else:
-                mask = torch.zeros((1, 1, *scene.size), device=bokeh.device)
+            bokeh, mask = self._full_size(
+                scene, bokeh_lr, behind_lr if fuse else None, fuse, focus, blur, lr_ratio,
+                focal_range, timings,
+            )  # fmt: skip
 
         t0 = time.perf_counter()
         result = Result(
@@ -646,106 +418,141 @@ class D2F(FusionStage, FocusStage, nn.Module):
         timings["total"] = ms_since(t_all)
         return result
 
-    # ---------------------------------------------------------------- training forwards
-
-    def _render_batch(
+    def _render_args(
         self,
-        image: Tensor,
-        disparity: Tensor,
-        focus: Tensor,
-        blur: Tensor,
-        radiance: Tensor,
-        **options: Any,
-    ) -> Tensor:
-        # rendering.render takes one blur per call; group samples that share it
-        blur_list = [float(v) for v in blur.reshape(-1)]
-        focus = focus.reshape(-1)
-        if all(v == blur_list[0] for v in blur_list):
-            return rendering.render(
-                image, disparity, focus, blur_list[0], radiance=radiance, **options
-            )
-        outs = [
-            rendering.render(
-                image[i : i + 1],
-                disparity[i : i + 1],
-                focus[i : i + 1],
-                blur_list[i],
-                radiance=radiance[i : i + 1],
-                **options,
-            )
-            for i in range(image.shape[0])
-        ]
-        return torch.cat(outs, dim=0)
+        scene: Any,
+        focus: float | None,
+        blur: float | None,
+        f_number: float | None,
+        focal_range: float,
+        budget: Any,
+        render_options: dict[str, Any],
+    ) -> tuple[float, float, float, str | float | None]:
+        """:meth:`render`'s arguments checked: ``(focus, blur, focal_range, budget)``, the
+        default focus found and ``render_options`` given the model's order and placement.
 
-    def forward_stage1(
-        self, image_lr: Tensor, focus: float | Tensor, blur_lr: float | Tensor, **options: Any
-    ) -> dict[str, Tensor]:
-        """Differentiable low-resolution bokeh (training stage 1).
-
-        Args:
-            image_lr: ``(B, 3, h, w)`` in [0, 1]; the defocus network runs at this size.
-            focus: focal disparity, float or ``[B]`` in [0, 1].
-            blur_lr: ``K`` in px at this resolution, float or ``[B]``.
-            **options: passed to ``rendering.render``.
-
-        Returns:
-            ``{"bokeh_lr": (B,3,h,w), "disparity": (B,1,h,w), "radiance": (B,1,h,w)}``.
+        Raises:
+            ValueError: naming the bad argument.
         """
-        b = image_lr.shape[0]
-        options.setdefault("order", self.config.order)
-        options.setdefault("placement", self.config.placement)
-        disparity = self.defocus_net(image_lr)  # [B,1,h,w]
-        radiance = self.radiance_net(image_lr)  # [B,1,h,w]
-        f = per_sample(focus, b, image_lr).reshape(-1)
-        k = per_sample(blur_lr, b, image_lr).reshape(-1)
-        bokeh = self._render_batch(image_lr, disparity, f, k, radiance, **options)
-        return {"bokeh_lr": bokeh, "disparity": disparity, "radiance": radiance}
+        if not isinstance(scene, Scene):
+            kind = type(scene).__name__
+            raise InputTypeError(f"scene must be a Scene from prepare(), got {kind}")
+        if f_number is not None:
+            if blur is not None:
+                raise ValueError("give blur or f_number, not both")
+            if isinstance(f_number, bool) or not isinstance(f_number, numbers.Real):
+                raise ValueError(f"f_number must be a number, got {f_number!r}")
+            blur = blur_px(float(f_number), max(scene.size))
+        if focus is None and scene.focus is not None:
+            focus = scene.focus
+        elif focus is None:
+            focus = self.subject_focus(scene)[0]
+        focus, blur = rendering.check_focus_blur(focus, 40.0 if blur is None else blur)
+        focal_range = check_focal_range(focal_range)
+        if "rotation" in render_options:  # named even when no kernel needs it
+            render_options["rotation"] = check_rotation(render_options["rotation"])
+        if "radiance" in render_options:
+            raise ValueError("render_options must not contain 'radiance' (it comes from scene)")
+        if "checked" in render_options:
+            raise ValueError("render_options must not contain 'checked' (D2F.render sets it)")
+        render_options.setdefault("order", self.config.order)
+        render_options.setdefault("placement", self.config.placement)
+        if isinstance(budget, str):
+            if budget not in adaptive.BUDGETS:
+                names = sorted(adaptive.BUDGETS)
+                raise ValueError(
+                    f"budget must be one of {names}, a dB value or None, got {budget!r}"
+                )
+        elif budget is not None:
+            bad = f"budget must be a name, a dB value or None, got {budget!r}"
+            if isinstance(budget, bool):
+                raise ValueError(bad)
+            try:
+                budget = float(budget)
+            except (TypeError, ValueError):
+                raise ValueError(bad) from None
+            if not math.isfinite(budget):
+                raise ValueError(f"budget must be finite, got {budget}")
+        return focus, blur, focal_range, budget
 
-    def forward_stage2(
-        self, image: Tensor, focus: float | Tensor, blur: float | Tensor, **options: Any
-    ) -> dict[str, Tensor]:
-        """Full-resolution fused bokeh (training stage 2; gradients reach ``f_p`` only).
+    def _full_size_decisions(
+        self,
+        scene: Scene,
+        settings: adaptive.RenderSettings,
+        focus: float,
+        blur: float,
+        focal_range: float,
+        gate_coc: float,
+    ) -> None:
+        """Decide ``settings.identity`` and ``settings.fusion`` from the full-resolution map
+        (a given map can hold finer extremes than its low-res copy): identity when every
+        output CoC is under a pixel, fusion when some pixel is near enough to focus for
+        :meth:`_fuse_tiled` to touch it."""
+        lo, hi = scene.disparity_tile_range(FUSION_TILE)
+        far = float(torch.maximum((hi - focus).abs(), (lo - focus).abs()).max())
+        near = float(torch.clamp(torch.maximum(lo - focus, focus - hi), min=0.0).min())
+        far, near = (outside_range(v, focal_range) for v in (far, near))
+        settings.identity = blur * far < 1.0
+        settings.fusion = blur * near < max(gate_coc, 2.0 * self.config.sharp_coc)
 
-        Args:
-            image: ``I_hr``, ``(B, 3, H, W)`` in [0, 1].
-            focus: focal disparity, float or ``[B]``.
-            blur: ``K`` in px at full resolution, float or ``[B]``.
+    def _render_pass(
+        self,
+        image_lr: Tensor,
+        disparity_lr: Tensor,
+        radiance_lr: Tensor,
+        focus: float,
+        blur_lr: float,
+        fuse: bool,
+        options: dict[str, Any],
+    ) -> tuple[Tensor, tuple[Tensor, Tensor] | None]:
+        """The layered render at the pass's size, ``(bokeh_lr, behind_lr)``: with ``fuse``,
+        ``behind_lr`` is what the layers behind the blurred foreground make of each pixel
+        (share and colour; ``None`` where nothing is in front), the only part fusion
+        sharpens."""
+        out = rendering.render(
+            image_lr,
+            disparity_lr,
+            focus,
+            blur_lr,
+            radiance=radiance_lr,
+            behind=fuse,
+            # foreground layers blurred past the fusion gate: fusion never sharpens them, and
+            # must not paste what lies behind them over their blur
+            front_size=defocus_to_coc(self.config.fusion_gate),
+            checked=True,
+            **options,
+        )  # [1,3,h,w]
+        if not fuse:
+            return out, None
+        bokeh_lr, share_lr, colour_lr = out
+        behind = (share_lr, colour_lr) if bool((share_lr < 1.0 - 1e-4).any()) else None
+        return bokeh_lr, behind
 
-        Returns:
-            dict with ``bokeh`` (B,3,H,W) = fused ``B_hr``, ``bokeh_up`` (B,3,H,W),
-            ``bokeh_lr`` (B,3,h,w), ``disparity_lr`` (B,1,h,w), ``disparity`` (B,1,H,W),
-            ``defocus`` (B,1,H,W) paper-normalised, ``mask`` and ``mask_soft`` (B,1,H,W).
-        """
-        b = image.shape[0]
-        size = (int(image.shape[-2]), int(image.shape[-1]))
-        lr_size = scaled_size(size, self.config.render_scale, None)
-        lr_ratio = size_ratio(lr_size, size)
-        k = per_sample(blur, b, image)
-        f = per_sample(focus, b, image)
-        frozen = (self.defocus_net, self.radiance_net)
-        modes = [m.training for m in frozen]
-        with torch.no_grad():
-            # the stage-1 networks are frozen here: batch statistics must not move
-            for m in frozen:
-                m.eval()
-            image_lr = resize(image, lr_size).clamp(0, 1)
-            low = self.forward_stage1(
-                image_lr, f.reshape(-1), (k * lr_ratio).reshape(-1), **options
-            )
-            bokeh_up = resize(low["bokeh_lr"], size)  # [B,3,H,W]
-            disparity = resize(low["disparity"], size).clamp(0, 1)  # [B,1,H,W]
-            for m, mode in zip(frozen, modes, strict=True):
-                m.train(mode)
-        mask, mask_soft = self.fusion_mask(image, disparity, f, k, lr_ratio)
-        bokeh = torch.lerp(bokeh_up, image, mask)
-        defocus = coc_to_defocus(k * lr_ratio * (disparity - f).abs())
-        return {
-            "bokeh": bokeh,
-            "bokeh_up": bokeh_up,
-            "bokeh_lr": low["bokeh_lr"],
-            "disparity_lr": low["disparity"],
-            "disparity": disparity,
-            "defocus": defocus,
-            "mask": mask,
-            "mask_soft": mask_soft,
-        }
+    def _full_size(
+        self,
+        scene: Scene,
+        bokeh_lr: Tensor,
+        behind_lr: tuple[Tensor, Tensor] | None,
+        fuse: bool,
+        focus: float,
+        blur: float,
+        lr_ratio: float,
+        focal_range: float,
+        timings: dict[str, float],
+    ) -> tuple[Tensor, Tensor]:
+        """Paper step 6: the pass upsampled to the photo's size and, with ``fuse``, deep
+        Poisson fusion; ``(bokeh, mask)`` at full resolution."""
+        t0 = time.perf_counter()
+        bokeh = resize(bokeh_lr, scene.size)  # [1,3,H,W]
+        if bokeh is bokeh_lr:
+            bokeh = bokeh.clone()  # fusion writes into it; bokeh_lr is returned too
+        timings["upsample"] = ms_since(t0)
+        if not fuse:
+            return bokeh, torch.zeros((1, 1, *scene.size), device=bokeh.device)
+        t0 = time.perf_counter()
+        behind = None
+        if behind_lr is not None:
+            behind = tuple(resize(t, scene.size).clamp_(0, 1) for t in behind_lr)
+        bokeh, mask = self._fuse_tiled(scene, bokeh, focus, blur, lr_ratio, behind, focal_range)
+        timings["fusion"] = ms_since(t0)
+        return bokeh, mask
