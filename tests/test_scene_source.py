@@ -221,3 +221,27 @@ def test_furniture_is_no_subject_in_a_room(room, voc_class, stood):
         assert lift > 0.1, lift
     else:
         assert abs(lift) < 0.02, lift
+
+
+def test_config_depth_source_is_the_default(tiny_checkpoint):
+    """A model whose config says 'scene' prepares a photo with no depth from the scene
+    teachers; a photo with phone depth keeps its own; 'd2f' or an explicit source wins."""
+    from d2f_core.io import load_photo
+    from d2f_core.pipeline import D2F, D2FConfig
+
+    with pytest.raises(ValueError, match="depth_source must be 'd2f' or 'scene'"):
+        D2FConfig(depth_source="hub")
+    model = D2F.from_checkpoint(tiny_checkpoint)
+    assert model.config.depth_source == "d2f"
+    image = load_image(SAMPLES / "chelsea.jpg")
+    assert model.prepare(image).disparity_source == "d2f"
+    model.config.depth_source = "scene"
+    scene = model.prepare(image)
+    assert scene.disparity_source == "scene"
+    assert "network" in scene.disparity_output  # the network's subjects and map were used
+    assert model.prepare(image, depth="d2f").disparity_source == "d2f"
+    photo = load_photo(SAMPLES / "chelsea.jpg")
+    photo.disparity = np.tile(
+        np.linspace(0, 1, image.shape[1], dtype=np.float32), (image.shape[0], 1)
+    )
+    assert model.prepare(photo).disparity_source == "embedded"
