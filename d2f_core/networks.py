@@ -15,17 +15,20 @@ Architectures are picked by name from the registry dicts :data:`DEFOCUS_NETS`,
 from __future__ import annotations
 
 import logging
-import pickle
-import re
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Any
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from .encoders import LiteEncoder, ResNeXt50Encoder
 from .errors import InputTypeError
+from .torch_files import (  # noqa: F401  (re-exported: loaders import them from here)
+    load_local_state_dict,
+    optimizer_state_on_cpu,
+    read_torch_file,
+)
 
 __all__ = [
     "DEFOCUS_NETS",
@@ -74,150 +77,6 @@ def _check_image(image: Tensor, name: str = "image") -> None:
         raise InputTypeError(f"{name} must be a torch.Tensor, got {type(image).__name__}")
     if image.ndim != 4 or image.shape[1] != 3:
         raise ValueError(f"{name} must have shape [B,3,H,W], got {tuple(image.shape)}")
-
-
-# --------------------------------------------------------------------------------------
-# Encoders. Both return four feature maps at strides 4, 8, 16, 32.
-# --------------------------------------------------------------------------------------
-
-
-class _Bottleneck(nn.Module):
-    """ResNeXt bottleneck; attribute names follow torchvision so its weights load as-is."""
-
-    expansion = 4
-
-    def __init__(
-        self, inplanes: int, planes: int, stride: int, groups: int, base_width: int
-    ) -> None:
-        super().__init__()
-        width = int(planes * (base_width / 64.0)) * groups
-        out = planes * self.expansion
-        self.conv1 = nn.Conv2d(inplanes, width, 1, bias=False)
-        self.bn1 = nn.BatchNorm2d(width)
-        self.conv2 = nn.Conv2d(width, width, 3, stride, 1, groups=groups, bias=False)
-        self.bn2 = nn.BatchNorm2d(width)
-        self.conv3 = nn.Conv2d(width, out, 1, bias=False)
-        self.bn3 = nn.BatchNorm2d(out)
-        self.relu = nn.ReLU(inplace=True)
-        self.downsample: nn.Module | None = None
-        if stride != 1 or inplanes != out:
-            self.downsample = nn.Sequential(
-                nn.Conv2d(inplanes, out, 1, stride, bias=False), nn.BatchNorm2d(out)
-            )
-
-    def forward(self, x: Tensor) -> Tensor:
-        identity = x if self.downsample is None else self.downsample(x)
-        y = self.relu(self.bn1(self.conv1(x)))
-        y = self.relu(self.bn2(self.conv2(y)))
-        y = self.bn3(self.conv3(y))
-        return self.relu(y + identity)
-
-
-class ResNeXt50Encoder(nn.Module):
-    """ResNeXt-50 (32x4d) backbone without the classifier.
-
-    Parameter names match torchvision's ``resnext50_32x4d`` (minus ``fc``), so an
-    ImageNet state dict loads through :meth:`DefocusNet.load_imagenet`.
-
-    Shape: (B, 3, H, W) normalised -> [(B,256,H/4,W/4), (B,512,H/8,W/8),
-    (B,1024,H/16,W/16), (B,2048,H/32,W/32)].
-    """
-
-    channels = (256, 512, 1024, 2048)
-
-    def __init__(self, groups: int = 32, width_per_group: int = 4) -> None:
-        super().__init__()
-        self.conv1 = nn.Conv2d(3, 64, 7, 2, 3, bias=False)
-        self.bn1 = nn.BatchNorm2d(64)
-        self.relu = nn.ReLU(inplace=True)
-        self.maxpool = nn.MaxPool2d(3, 2, 1)
-        inplanes = 64
-        stages = []
-        for planes, blocks, stride in ((64, 3, 1), (128, 4, 2), (256, 6, 2), (512, 3, 2)):
-            layers = []
-            for i in range(blocks):
-                layers.append(
-                    _Bottleneck(inplanes, planes, stride if i == 0 else 1, groups, width_per_group)
-                )
-                inplanes = planes * _Bottleneck.expansion
-            stages.append(nn.Sequential(*layers))
-        self.layer1, self.layer2, self.layer3, self.layer4 = stages
-        for m in self.modules():
-            if isinstance(m, nn.Conv2d):
-                nn.init.kaiming_normal_(m.weight, mode="fan_out", nonlinearity="relu")
-        # Zero-init the last BN of each block: every block starts as identity, which
-        # keeps a randomly initialised 50-layer encoder trainable from scratch.
-        for m in self.modules():
-            if isinstance(m, _Bottleneck):
-                nn.init.zeros_(m.bn3.weight)
-
-    def forward(self, x: Tensor) -> list[Tensor]:
-        x = self.maxpool(self.relu(self.bn1(self.conv1(x))))
-        f1 = self.layer1(x)
-        f2 = self.layer2(f1)
-        f3 = self.layer3(f2)
-        f4 = self.layer4(f3)
-        return [f1, f2, f3, f4]
-
-
-class _InvertedResidual(nn.Module):
-    """MobileNetV2-style block: 1x1 expand, 3x3 depthwise, 1x1 project."""
-
-    def __init__(self, cin: int, cout: int, stride: int, expand: int) -> None:
-        super().__init__()
-        hidden = cin * expand
-        self.use_residual = stride == 1 and cin == cout
-        self.block = nn.Sequential(
-            nn.Conv2d(cin, hidden, 1, bias=False),
-            nn.BatchNorm2d(hidden),
-            nn.ReLU6(inplace=True),
-            nn.Conv2d(hidden, hidden, 3, stride, 1, groups=hidden, bias=False),
-            nn.BatchNorm2d(hidden),
-            nn.ReLU6(inplace=True),
-            nn.Conv2d(hidden, cout, 1, bias=False),
-            nn.BatchNorm2d(cout),
-        )
-
-    def forward(self, x: Tensor) -> Tensor:
-        y = self.block(x)
-        return x + y if self.use_residual else y
-
-
-class LiteEncoder(nn.Module):
-    """Small MobileNetV2-like encoder for CPU inference (about 1 M parameters).
-
-    Shape: (B, 3, H, W) normalised -> four maps at strides 4, 8, 16, 32 with
-    :attr:`channels` channels.
-    """
-
-    channels = (24, 48, 96, 192)
-
-    def __init__(self, expand: int | Sequence[int] = 4) -> None:
-        super().__init__()
-        expands = (expand,) * 4 if isinstance(expand, int) else tuple(expand)
-        self.stem = nn.Sequential(
-            nn.Conv2d(3, 16, 3, 2, 1, bias=False), nn.BatchNorm2d(16), nn.ReLU(inplace=True)
-        )
-        cin = 16
-        stages = []
-        for cout, blocks, ex in zip(self.channels, (2, 3, 4, 3), expands, strict=True):
-            layers = []
-            for i in range(blocks):
-                layers.append(_InvertedResidual(cin, cout, 2 if i == 0 else 1, ex))
-                cin = cout
-            stages.append(nn.Sequential(*layers))
-        self.stages = nn.ModuleList(stages)
-        for m in self.modules():
-            if isinstance(m, nn.Conv2d):
-                nn.init.kaiming_normal_(m.weight, mode="fan_out", nonlinearity="relu")
-
-    def forward(self, x: Tensor) -> list[Tensor]:
-        x = self.stem(x)
-        feats = []
-        for stage in self.stages:
-            x = stage(x)
-            feats.append(x)
-        return feats
 
 
 # --------------------------------------------------------------------------------------
@@ -524,79 +383,6 @@ class DefocusNet(nn.Module):
             )
         self.encoder.load_state_dict(mapped, strict=False)
         logger.info("loaded ImageNet encoder weights from %s", path)
-
-
-def read_torch_file(path: str | Path, *, not_found: str, unreadable: str) -> Any:
-    """``torch.load`` of a LOCAL file, tensors and plain containers only (``weights_only``).
-
-    Raises:
-        FileNotFoundError: ``"{not_found}: {path}"`` when ``path`` is not a file.
-        ValueError: ``"{unreadable}: {error}"`` when the file cannot be read (corrupt,
-            truncated, not a torch file, or holding more than tensors and containers).
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{not_found}: {path}")
-    try:
-        return torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # pickle/zip errors come in many types
-        raise ValueError(f"{unreadable}: {_load_failure(exc)}") from exc
-
-
-def _load_failure(exc: BaseException) -> str:
-    """One line on why ``torch.load(weights_only=True)`` refused a file. Torch's own text
-    runs over several lines and advises ``weights_only=False``, which would run whatever
-    code the file holds: it is never passed on."""
-    text = str(exc)
-    if text.startswith("Weights only load failed"):
-        blocked = re.search(r"GLOBAL (\S+)", text, re.IGNORECASE)
-        if blocked:
-            return f"it holds a Python object ({blocked.group(1)}), not only tensors"
-        return "not a PyTorch checkpoint, or cut short"
-    if "PytorchStreamReader" in text:
-        return "its archive is damaged or cut short"
-    if isinstance(exc, (pickle.UnpicklingError, KeyError, EOFError)):
-        return "not a PyTorch checkpoint, or cut short"
-    lines = [line.strip() for line in text.splitlines() if line.strip()]
-    return lines[0] if lines else type(exc).__name__
-
-
-def optimizer_state_on_cpu(state: dict[str, Any]) -> dict[str, Any]:
-    """An optimiser's ``state_dict()`` with its per-parameter tensors on the CPU, for a
-    checkpoint that loads on any machine (``load_state_dict`` moves them back to the
-    parameters' device)."""
-    return {
-        **state,
-        "state": {
-            i: {k: v.detach().cpu() if isinstance(v, Tensor) else v for k, v in s.items()}
-            for i, s in state["state"].items()
-        },
-    }
-
-
-def load_local_state_dict(path: str | Path, what: str) -> Mapping[str, Tensor]:
-    """Read a state dict of tensors from a LOCAL file (optionally wrapped in
-    ``{"state_dict": ...}`` or ``{"model": ...}``); ``what`` names the weights in messages.
-
-    Raises:
-        FileNotFoundError: ``path`` does not exist.
-        ValueError: the file is unreadable or does not hold a state dict of tensors.
-    """
-    raw = read_torch_file(
-        path,
-        not_found=f"{what} weights file not found",
-        unreadable=f"cannot read {what} weights from {path}",
-    )
-    if isinstance(raw, Mapping):
-        for key in ("state_dict", "model"):
-            if key in raw and isinstance(raw[key], Mapping):
-                raw = raw[key]
-                break
-    if not isinstance(raw, Mapping) or not all(
-        isinstance(k, str) and isinstance(v, Tensor) for k, v in raw.items()
-    ):
-        raise ValueError(f"{path} does not hold a state dict of tensors")
-    return raw
 
 
 # --------------------------------------------------------------------------------------
