@@ -108,6 +108,7 @@ def test_scene_source_needs_the_model():
 def test_work_and_label_sizes():
     assert ss.work_size(600, 400) == (384, 256)
     assert ss.work_size(100, 3000) == (13, 384)
+    assert ss.work_size(48, 64) == (48, 64)  # never larger than the photo
     assert ss.label_size(640, 427) == (256, 171)
 
 

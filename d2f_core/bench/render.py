@@ -577,6 +577,12 @@ def _bench_standing(args: argparse.Namespace) -> int:
     return int(standing_main(args.rest) or 0)
 
 
+def _bench_sources(args: argparse.Namespace) -> int:
+    from .sources import main as sources_main
+
+    return int(sources_main(args.rest) or 0)
+
+
 def _bench_peers(args: argparse.Namespace) -> int:
     from .peers import main as peers_main
 
@@ -623,6 +629,7 @@ def main(argv: list[str] | None = None) -> int:
         ("depth", _bench_depth, "defocus network's depth on real photos against measured depth"),
         ("peers", _bench_peers, "d2f against other renderers, by category, against ground truth"),
         ("standing", _bench_standing, "whether a depth map puts held-out subjects in front"),
+        ("sources", _bench_sources, "each depth source's prepare time, beside its accuracy"),
         ("batch", _bench_batch, "d2f batch photos/s on local workers and Ray, memory at 12 MP"),
     ):
         q = sub.add_parser(name, help=text, add_help=False)

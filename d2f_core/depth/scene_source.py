@@ -65,8 +65,9 @@ NETWORK_SHARE = 0.15
 
 
 def work_size(h: int, w: int, side: int = WORK_SIDE) -> tuple[int, int]:
-    """``(h, w)`` of the map for a photo of ``h x w``: its aspect, long side ``side``."""
-    s = side / max(h, w)
+    """``(h, w)`` of the map for a photo of ``h x w``: its aspect, long side ``side`` (the
+    photo's own size when that is smaller)."""
+    s = min(side, max(h, w)) / max(h, w)
     return max(1, round(h * s)), max(1, round(w * s))
 
 
