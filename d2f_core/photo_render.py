@@ -205,10 +205,13 @@ def render_with_depth_only(
 
 
 def find_depth_file(folder: Path, stem: str) -> Path | None:
+    """The photo ``stem``'s depth map in ``folder`` (``STEM[SUFFIX].EXT``), or ``None``. A
+    FIFO, a device or a socket of that name is returned too, so that loading it says what it
+    is: the photo never falls back to the network's map without a word."""
     for suffix in DEPTH_SUFFIXES:
         for ext in DEPTH_FILE_EXTENSIONS:
             candidate = folder / f"{stem}{suffix}{ext}"
-            if candidate.is_file():
+            if candidate.is_file() or (candidate.exists() and not candidate.is_dir()):
                 return candidate
     return None
 

@@ -349,3 +349,20 @@ def test_a_rerun_with_other_settings_is_refused_unless_force(tmp_path, batch):
     code, err = batch(lib, "-o", out, "--jpeg-quality", "70", blur=f4)
     assert code == 0 and "3 already done" in _summary(err)
     assert _tree(out) == at_f4
+
+
+def test_a_fifo_in_the_depth_folder_fails_its_photo_by_name(tmp_path, batch):
+    """A FIFO named as a photo's depth map is that photo's failed row, named as a FIFO; the
+    photo is never rendered from the network's map instead, and the others are rendered."""
+    _photo(tmp_path / "lib" / "a.png", 1)
+    _photo(tmp_path / "lib" / "b.png", 2)
+    maps = tmp_path / "maps"
+    maps.mkdir()
+    save_depth(maps / "b.png", np.tile(np.linspace(0, 1, 32, dtype=np.float32), (24, 1)))
+    os.mkfifo(maps / "a.png")
+    code, err = batch(tmp_path / "lib", "-o", tmp_path / "out", "--depth", maps)
+    assert code != 0
+    assert "1 rendered, 1 failed" in _summary(err)
+    assert any("a.png" in line and "FIFO" in line for line in err), err
+    assert not (tmp_path / "out" / "a_bokeh.png").exists()
+    assert (tmp_path / "out" / "b_bokeh.png").is_file()
