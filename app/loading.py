@@ -184,7 +184,11 @@ class LoadEvents:
         )
         # the "Depth source" control (app/sources.py): the scene cache keys on the source
         chosen, note = sources.resolve(
-            depth_source, hub_model, depth_path is not None, photo.disparity is not None
+            depth_source,
+            hub_model,
+            depth_path is not None,
+            photo.disparity is not None,
+            getattr(self.model.config, "depth_source", "d2f"),
         )
         if note:
             gr.Warning(note)

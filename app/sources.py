@@ -4,7 +4,8 @@ The sources are those of :mod:`d2f_core.depth.sources`: the phone depth stored i
 the user's own map, the shipped network (offline) and, when ``transformers`` is installed
 (the ``hub`` extra), the Hugging Face depth-estimation models that the server's operator
 allows (:class:`HubPolicy`, ``d2f-app --depth-models``). "Automatic" keeps the order the app
-always used: the user's map, else the photo's own depth, else the network. The scene cache
+always used: the user's map, else the photo's own depth, else the weights' own default (the
+scene teachers with the network's subjects for the shipped weights). The scene cache
 keys on the source, so switching back to a source already computed for the photo is instant.
 
 A client never makes the server download a model or look at its folders: it picks one of the
@@ -25,11 +26,11 @@ from d2f_core.depth import sources as depth_sources
 AUTO = "auto"
 #: ``(label, value)`` of every choice, in the order shown.
 CHOICES = (
-    ("Automatic (your map, else the photo's own, else the network)", AUTO),
+    ("Automatic (your map, else the photo's own, else the scene teachers)", AUTO),
     ("The photo's own depth (phone)", "embedded"),
     ("Your depth map (below)", "file"),
-    ("Shipped network (offline)", "d2f"),
     ("Scene teachers with the network's subjects (offline)", "scene"),
+    ("Shipped network alone (offline, fastest)", "d2f"),
     ("Hugging Face model (id or folder below)", "transformers"),
 )
 #: What the app tells of the shipped network under the depth source choice.
@@ -180,10 +181,13 @@ def choices(has_embedded: bool | None = None) -> list[tuple[str, str]]:
     ]
 
 
-def resolve(choice: Any, hub_model: Any, has_map: bool, has_embedded: bool) -> tuple[str, str]:
-    """The source for this photo, ``"file"``, ``"embedded"``, ``"d2f"`` or
+def resolve(
+    choice: Any, hub_model: Any, has_map: bool, has_embedded: bool, default: str = "d2f"
+) -> tuple[str, str]:
+    """The source for this photo, ``"file"``, ``"embedded"``, ``"scene"``, ``"d2f"`` or
     ``"transformers:MODEL"``, and a note for the user (``""`` when none): a choice this
-    photo cannot have (no phone depth, no map uploaded) falls back to the automatic one.
+    photo cannot have (no phone depth, no map uploaded) falls back to the automatic one,
+    which ends in ``default`` (the model's ``config.depth_source``).
 
     Raises:
         ValueError: a hub model chosen without a name, one this server does not offer or has
@@ -191,7 +195,7 @@ def resolve(choice: Any, hub_model: Any, has_map: bool, has_embedded: bool) -> t
             a message for the user.
     """
     choice = AUTO if choice in (None, "") else str(choice)
-    automatic = "file" if has_map else "embedded" if has_embedded else "d2f"
+    automatic = "file" if has_map else "embedded" if has_embedded else default
     if choice == AUTO:
         return automatic, ""
     if choice == "embedded" and not has_embedded:

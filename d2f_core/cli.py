@@ -286,7 +286,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="where depth comes from: embedded (the phone's), file:PATH, d2f (the shipped "
         "network, offline), scene (the scene teachers with the network's subjects, offline) "
         "or transformers:MODEL (a Hugging Face depth model id or a local "
-        "folder; needs the hub extra). Default: --depth, else the phone's, else d2f",
+        "folder; needs the hub extra). Default: --depth, else the phone's, else the weights' "
+        "own (scene for the shipped weights)",
     )
     depth.add_argument(
         "--no-refine-depth",

@@ -445,7 +445,7 @@ class TestApp:
         from app import sources
 
         values = [v for _, v in sources.choices()]
-        assert values == ["auto", "embedded", "file", "d2f", "scene", "transformers"]
+        assert values == ["auto", "embedded", "file", "scene", "d2f", "transformers"]
         assert "embedded" not in [v for _, v in sources.choices(has_embedded=False)]
         monkeypatch.setattr(ds, "hub_available", lambda: False)
         assert "transformers" not in [v for _, v in sources.choices()]
@@ -459,7 +459,11 @@ class TestApp:
         assert resolve("auto", "", True, True) == ("file", "")
         assert resolve(None, "", False, True) == ("embedded", "")
         assert resolve("auto", "", False, False) == ("d2f", "")
+        # the automatic source ends in the weights' own default (scene for the shipped ones)
+        assert resolve("auto", "", False, False, "scene") == ("scene", "")
+        assert resolve("auto", "", False, True, "scene") == ("embedded", "")
         assert resolve("d2f", "", True, True) == ("d2f", "")
+        assert resolve("scene", "", False, False) == ("scene", "")
         assert resolve("transformers", " org/model ", False, False) == (
             "transformers:org/model",
             "",

@@ -155,9 +155,9 @@ def test_scene_source_scores_the_targets_on_the_measured_photos():
         r = np.broadcast_to(np.linspace(0, 1, pred.shape[0])[:, None], pred.shape)
         ramp.append(spearman(r, ph.nearness, ph.valid))
     assert len(scores) == 12
-    # measured: 0.761, all 12 over the ramp (0.737 and 11 before furniture was left where the
-    # room puts it and the network's map was blended in)
-    assert np.mean(scores) == pytest.approx(0.761, abs=0.005)
+    # measured: 0.757, all 12 over the ramp (0.737 and 11 before furniture was left where the
+    # room puts it, the network's map was blended in and its subjects stood at 0.6)
+    assert np.mean(scores) == pytest.approx(0.757, abs=0.005)
     assert sum(s > r for s, r in zip(scores, ramp, strict=True)) >= 11
 
 

@@ -13,12 +13,14 @@ Sources (:data:`SOURCES`), written as a string:
     A user's depth or disparity map (PNG 8/16-bit, ``.npy``, PFM, float TIFF), read by
     :func:`d2f_core.io.load_depth`.
 ``d2f``
-    The shipped D2F defocus network (the default; runs offline, weights in
+    The shipped D2F defocus network alone (the fast source; runs offline, weights in
     ``assets/weights/``).
 ``scene``
     The scene teachers run at inference (:mod:`d2f_core.depth.scene_source`: the scene parse,
     the silhouette, the VOC objects and the indoor depth, as torch modules with shipped
-    weights) with the D2F network's subjects stood on their map; offline.
+    weights) with the D2F network's subjects stood on their map and its own map blended in;
+    offline; the shipped weights' default for a photo with no depth of its own
+    (``config.depth_source``).
 ``transformers:MODEL``
     Any depth-estimation model that Hugging Face ``transformers`` loads with
     ``AutoImageProcessor`` and ``AutoModelForDepthEstimation``: a hub id such as
@@ -82,8 +84,9 @@ DEFAULT_SOURCE = "d2f"
 SOURCES: dict[str, str] = {
     "embedded": "the phone depth stored in the photo (Google Lens Blur, Apple portrait)",
     "file": "a depth or disparity map file (file:PATH)",
-    "d2f": "the shipped D2F defocus network (offline; the default)",
-    "scene": "the scene teachers' map with the network's subjects (offline)",
+    "d2f": "the shipped D2F defocus network alone (offline; the fastest)",
+    "scene": "the scene teachers' map with the network's subjects (offline; the shipped "
+    "weights' default)",
     "transformers": "a Hugging Face depth-estimation model (transformers:MODEL_ID or a folder)",
 }
 

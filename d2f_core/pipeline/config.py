@@ -94,7 +94,7 @@ class D2FConfig:
         depth_source: where :meth:`D2F.prepare` takes a photo's depth from when the photo
             brings none and none is asked for: ``"d2f"`` (this defocus network) or
             ``"scene"`` (the scene teachers with this network's subjects and map,
-            :mod:`d2f_core.depth.scene_source`).
+            :mod:`d2f_core.depth.scene_source`), rendered at the network's pass size.
     """
 
     defocus: str = "lite"

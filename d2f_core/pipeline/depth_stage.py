@@ -65,11 +65,15 @@ class DepthStage:
         return self.disparity_and_scene_maps(image, refine, photo)[0]
 
     def disparity_and_scene_maps(
-        self, image: Tensor, refine: bool = True, photo: Tensor | None = None
+        self,
+        image: Tensor,
+        refine: bool = True,
+        photo: Tensor | None = None,
+        blend: float | None = None,
     ) -> tuple[Tensor, Tensor | None]:
         """:meth:`predict_disparity` and, from the same network pass, the scene head's
         probabilities (subject, sky) at the size the network read the photo (``None`` for a
-        network that stands no subjects).
+        network that stands no subjects); ``blend`` in place of ``config.subject_blend``.
 
         Shape: (B, 3, h, w) -> (B, 1, h, w) in [0, 1] and (B, 2, hn, wn) in [0, 1].
         """
@@ -85,7 +89,7 @@ class DepthStage:
         d, maps = self._network_pass(small, self.stands_subjects)
         probs = None if maps is None else torch.sigmoid(maps)
         if probs is not None:
-            d = self._stand(d, probs)
+            d = self._stand(d, probs, blend)
         d = resize(d, size)  # [B,1,h,w]
         if refine:
             d = self._snap(image, d)
@@ -118,18 +122,26 @@ class DepthStage:
             maps = 0.5 * (maps[:b] + maps[b:].flip(-1))
         return d, maps
 
-    def _stand(self, disparity: Tensor, maps: Tensor) -> Tensor:
+    def _stand(self, disparity: Tensor, maps: Tensor, blend: float | None = None) -> Tensor:
         """:meth:`stand` on each map of a batch, with the scene head's probabilities
         ``maps`` (subject, sky)."""
         out = []
         for d, m in zip(disparity, maps, strict=True):
             subject, sky = m.float().cpu().numpy()[:2]
-            out.append(torch.from_numpy(self.stand(d[0].float().cpu().numpy(), subject, sky)))
+            stood = self.stand(d[0].float().cpu().numpy(), subject, sky, blend)
+            out.append(torch.from_numpy(stood))
         return torch.stack(out)[:, None].to(disparity)
 
-    def stand(self, disparity: np.ndarray, subject: np.ndarray, sky: np.ndarray) -> np.ndarray:
+    def stand(
+        self,
+        disparity: np.ndarray,
+        subject: np.ndarray,
+        sky: np.ndarray,
+        blend: float | None = None,
+    ) -> np.ndarray:
         """:func:`~d2f_core.depth.scene.stand_subjects` with this model's settings
-        (``config.subject_lift``, ``subject_clarity``, ``subject_shift``, ``subject_blend``):
+        (``config.subject_lift``, ``subject_clarity``, ``subject_shift``, and
+        ``subject_blend`` unless ``blend`` is given):
         what :meth:`predict_disparity` does to the network's map with the scene head's
         ``subject`` and ``sky`` probabilities, for any ``H x W`` map of the same shape."""
         from ..depth.scene import stand_subjects
@@ -142,7 +154,7 @@ class DepthStage:
             lift=self.config.subject_lift,
             min_clarity=self.config.subject_clarity,
             max_shift=shift,
-            blend=self.config.subject_blend,
+            blend=self.config.subject_blend if blend is None else blend,
         )
 
     def scene_maps(self, image: Tensor) -> Tensor | None:

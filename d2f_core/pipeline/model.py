@@ -232,8 +232,10 @@ class D2F(DepthStage, FusionStage, FocusStage, TrainingStage, nn.Module):
         size = (int(image_t.shape[-2]), int(image_t.shape[-1]))
         if given is not None:  # resized to the photo, never stretched onto it
             check_aspect(tuple(given.shape[-2:]), size, "depth")
-        # a map this model predicts (its network's or the scene source's) is rendered at its
-        # pass size and snapped onto the photo's edges; a measured map is taken as it is
+        # a map this model predicts (its network's or the scene source's) is rendered at the
+        # network's pass size; a measured map at the photo's own, up to full_pass_side. Only
+        # the network's own map is snapped onto the photo's edges (the scene map, snapped:
+        # 31.50 dB against 31.75 on the 12 measured photos, d2f-bench depth --bokeh)
         predicted = given is None or source == "scene"
         lr_size = self.pass_size(size, given=not predicted)
         image_lr = resize(image_t, lr_size).clamp_(0, 1)  # [1,3,h,w]
@@ -241,8 +243,6 @@ class D2F(DepthStage, FusionStage, FocusStage, TrainingStage, nn.Module):
             disparity_lr = self.predict_disparity(image_lr, refine, image_t)  # [1,1,h,w]
         else:
             disparity_lr = resize(given, lr_size).clamp_(0, 1)
-            if predicted and refine:
-                disparity_lr = self._snap(image_lr, disparity_lr)
         if refine:
             disparity_lr = self.refine_disparity(image_lr, disparity_lr)
         radiance_lr = self.radiance_net(image_lr)  # [1,1,h,w]
