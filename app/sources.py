@@ -35,11 +35,12 @@ CHOICES = (
 )
 #: What the app tells of the shipped network under the depth source choice.
 NETWORK_NOTE = (
-    "Without phone depth the shipped network guesses the depth: right for one clear subject "
-    "(a person, a pet, an object) and for tall subjects, posts and trunks crossing the frame; "
-    "often wrong for rooms, shelves and flower beds, where a sofa or a table can come forward "
-    "as if it were the subject; about 1 in 30 subjects over water or a floor goes behind. If "
-    "the blur lands on your subject, click the subject."
+    "Without phone depth the depth is guessed: by default from small scene networks (sky, "
+    "ground, walls and objects) with the shipped network's subjects stood in front. Right "
+    "for one clear subject (a person, a pet, an object), for tall subjects and for posts "
+    "crossing the frame; rooms, tunnels and shelves come out in their order, but furniture "
+    "and a fruit bowl's many similar objects can still be misplaced. If the blur lands on "
+    "your subject, click the subject."
 )
 HUB_PLACEHOLDER = "depth-anything/Depth-Anything-V2-Small-hf"
 #: Longest model id or folder name taken from a client (hub ids are at most 96 + 1 + 96).
@@ -252,6 +253,6 @@ def describe(scene: Any, fallback: str) -> str:
         return f"{name} ({getattr(scene, 'disparity_output', '')})"
     if name == "d2f":
         return "shipped network (d2f)"
-    if name == "scene":
-        return f"scene teachers ({getattr(scene, 'disparity_output', '')})"
+    if name == "scene":  # "scene teachers' map (parse, objects, network)": what ran
+        return str(getattr(scene, "disparity_output", "scene teachers' map"))
     return fallback

@@ -452,6 +452,21 @@ class TestApp:
         with pytest.raises(ValueError, match=r"d2f\[hub\]"):
             sources.resolve("transformers", "x/y", False, False)
 
+    def test_describe_names_what_ran(self):
+        from types import SimpleNamespace
+
+        from app import sources
+
+        ran = "scene teachers' map (parse, depth, objects, network)"
+        scene = SimpleNamespace(disparity_source="scene", disparity_output=ran)
+        assert sources.describe(scene, "x") == ran
+        assert sources.describe(SimpleNamespace(disparity_source="d2f"), "x") == (
+            "shipped network (d2f)"
+        )
+        assert sources.describe(SimpleNamespace(disparity_source="file"), "your map") == (
+            "your map"
+        )
+
     def test_resolve(self, monkeypatch):
         from app.sources import resolve
 
