@@ -626,7 +626,18 @@ def main(argv: list[str] | None = None) -> int:
     except (FileNotFoundError, ValueError) as err:
         parser.error(str(err))
     demo = build_demo(model)
-    demo.launch(server_name=args.host, server_port=args.port, share=False, **launch_options())
+    # quiet: Gradio's own start-up lines include advice to set share=True, an option d2f-app
+    # does not have; the address is printed here instead
+    demo.launch(
+        server_name=args.host,
+        server_port=args.port,
+        share=False,
+        quiet=True,
+        prevent_thread_lock=True,
+        **launch_options(),
+    )
+    print(f"d2f-app: serving at {demo.local_url} (stop with Ctrl+C)", flush=True)
+    demo.block_thread()
     return 0
 
 
