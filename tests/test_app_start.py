@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import os
+import queue
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -25,10 +27,15 @@ def test_start_up_names_the_address_and_no_share_option(free_port, gradio_env, t
     )  # fmt: skip
     lines: list[str] = []
     try:
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline:
-            line = proc.stdout.readline()
-            if not line:
+        # a reader thread: the wait for the address has a deadline even when the server
+        # prints nothing
+        got: queue.Queue[str] = queue.Queue()
+        threading.Thread(target=lambda: [got.put(x) for x in proc.stdout], daemon=True).start()
+        deadline = time.monotonic() + 60
+        while (left := deadline - time.monotonic()) > 0:
+            try:
+                line = got.get(timeout=left)
+            except queue.Empty:
                 break
             lines.append(line)
             if "serving at" in line:
@@ -37,10 +44,13 @@ def test_start_up_names_the_address_and_no_share_option(free_port, gradio_env, t
     finally:
         os.killpg(proc.pid, signal.SIGINT)
         try:
-            out, _ = proc.communicate(timeout=30)
+            proc.wait(timeout=30)
         except subprocess.TimeoutExpired:
             os.killpg(proc.pid, signal.SIGKILL)
-            out, _ = proc.communicate()
-    text = "".join(lines) + out
+            proc.wait()
+    time.sleep(0.5)  # the reader thread takes the last lines
+    while not got.empty():
+        lines.append(got.get())
+    text = "".join(lines)
     assert "share=True" not in text, text
     assert "Traceback" not in text, text
