@@ -86,7 +86,9 @@ def _held_out_row(shipped, kind: str, at_least: int, teachers: Path | None = Non
 @pytest.mark.slow
 def test_shipped_weights_put_generated_subjects_in_front(shipped, one_thread):
     """The shipped weights on the 24 held-out generated cases of ``d2f-bench standing``
-    (measured at 1 thread: all 24 in front, median margin +0.73, the map spread by
+    (the scene source, the default, at 1 thread: all 24 in front, margins +0.70 at night,
+    +0.52 over a floor, +0.60 for posts; the network alone: all 24, median margin +0.73, the
+    map spread by
     ``config.spread``; the weights before 2026-12-05's spread +0.91; those of 2026-12-04 also
     24, those of 2026-12-03 79 % at 2 threads, with a post across the frame 50 %)."""
     result = standing.score({"shipped": shipped}, standing.generated_cases(24))
@@ -95,15 +97,19 @@ def test_shipped_weights_put_generated_subjects_in_front(shipped, one_thread):
     assert summary["generated night"]["share"] == 1.0
     assert summary["generated over"]["share"] >= 0.875
     assert summary["generated post"]["share"] >= 0.75
-    # the automatic focus lands on the subject: measured 23 of 24 (every post; 7 of 8 night)
-    assert summary["all"]["focused"] >= 0.875 and summary["generated post"]["focused"] == 1.0
+    # the automatic focus lands on the subject: measured 23 of 24 with the scene source, the
+    # default (7 of 8 posts, every night and floor case; the network alone: every post, 7 of 8
+    # at night)
+    assert summary["all"]["focused"] >= 0.875
+    assert summary["generated post"]["focused"] >= 0.875
 
 
 @pytest.mark.slow
 @pytest.mark.shared_data
 def test_shipped_weights_put_tall_held_out_subjects_in_front(shipped, one_thread):
-    """The held-out masked photos whose subject spans the frame's height (measured: 47 of 48
-    in front, median margin +0.44)."""
+    """The held-out masked photos whose subject spans the frame's height (measured with the
+    scene source, the default: 98 % in front, median margin +0.54, focused on 98 %; the
+    network alone: 47 of 48, +0.49)."""
     row = _held_out_row(shipped, "photo tall", at_least=40)
     assert row["share"] >= 0.95 and row["median_margin"] > 0.3
     assert row["focused"] >= 0.9  # the automatic focus on the subject: measured 48 of 48
@@ -112,13 +118,14 @@ def test_shipped_weights_put_tall_held_out_subjects_in_front(shipped, one_thread
 @pytest.mark.slow
 @pytest.mark.shared_data
 def test_shipped_weights_put_held_out_subjects_over_ground_in_front(shipped, one_thread):
-    """The held-out masked photos of a subject over ground, water or a floor (measured: 67 of
-    70 in front, median margin +0.24; the weights before the 2026-12-05 ranking term: 63)."""
+    """The held-out masked photos of a subject over ground, water or a floor (measured with
+    the scene source, the default: 70 of 70 in front, median margin +0.40, focused on 90 %;
+    the network alone: 97 %, +0.37, 86 %; the weights before the 2026-12-05 ranking term: 63)."""
     # the ADE20K teacher tells the ground under the subject
     pytest.importorskip("ai_edge_litert", reason="ai-edge-litert is not installed (.[teach])")
     row = _held_out_row(shipped, "photo over ground", at_least=60, teachers=DATASETS / "teachers")
     assert row["share"] >= 0.92 and row["median_margin"] > 0.15  # 63 of 70 fails
-    assert row["focused"] >= 0.7  # the automatic focus on the subject: measured 57 of 70
+    assert row["focused"] >= 0.8  # the automatic focus on the subject: measured 90 %
 
 
 def test_near_mask_is_the_dilated_mask_read_at_a_point():
