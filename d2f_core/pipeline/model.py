@@ -256,7 +256,8 @@ class D2F(DepthStage, FusionStage, FocusStage, TrainingStage, nn.Module):
             disparity_output=output,
             refined=bool(refine),
             focus=_recorded_focus(recorded),
-            given_disparity=given,
+            # a predicted map's full size is its pass's upsampled: never kept twice
+            given_disparity=None if predicted else given,
         )
 
     def _preview_inputs(self, scene: Scene, max_side: int) -> tuple[Tensor, Tensor, Tensor]:
