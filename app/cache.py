@@ -4,7 +4,7 @@
 same user depth map, if any) -- in any session -- returns the cached ``Scene`` at once.
 
 Memory bound: the cache holds at most ``max_bytes`` of scene tensors/arrays (counted by
-:func:`scene_nbytes`), 512 MiB by default, or ``D2F_APP_CACHE_MB`` MiB from the environment.
+:func:`scene_nbytes`), 384 MiB by default, or ``D2F_APP_CACHE_MB`` MiB from the environment.
 The least recently used scenes are dropped first; a scene larger than the whole bound is
 returned but not kept. Sizes are re-counted on every access because a scene fills its own
 lazy caches (full-resolution disparity, preview inputs) after it was stored; the most
@@ -31,8 +31,8 @@ import torch
 log = logging.getLogger(__name__)
 
 #: the scene cache's default bound (``D2F_APP_CACHE_MB``): 40 sessions of 1600x1200 photos grew
-#: the server by 1.7-1.9 GB with a 1 GiB bound, 1.1 GB with 256 MB
-DEFAULT_MAX_BYTES = 512 << 20
+#: the server by 1.7-1.9 GB with a 1 GiB bound, 1.33-1.34 GB with 512 MB, 1.1 GB with 256 MB
+DEFAULT_MAX_BYTES = 384 << 20
 
 
 def content_key(image: np.ndarray, disparity: np.ndarray | None = None) -> str:

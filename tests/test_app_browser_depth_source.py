@@ -51,7 +51,7 @@ def test_depth_source_in_browser(app_server, chromium_launch_options, two_plane_
 
             page.get_by_text("Depth source", exact=True).click()
             radio = page.locator("#depth_source")
-            radio.get_by_text("Shipped network (offline)").wait_for(state="visible")
+            radio.get_by_text("Shipped network alone (offline, fastest)").wait_for(state="visible")
             hub_offered = radio.get_by_text("Hugging Face model", exact=False).count() > 0
             # the server runs in this environment: offered exactly when transformers is there
             assert hub_offered == depth_sources.hub_available()
@@ -82,7 +82,7 @@ def test_depth_source_in_browser(app_server, chromium_launch_options, two_plane_
             assert np.abs(other - network).mean() > 2.0
 
             # back to the network: named again, the first picture again, from the cache
-            radio.get_by_text("Shipped network (offline)").click()
+            radio.get_by_text("Shipped network alone (offline, fastest)").click()
             src = wait_new_result(page, src)
             status = wait_status(page, "depth: shipped network (d2f)", "cached scene")
             again = fetch_image(page, src)

@@ -226,6 +226,32 @@ class TestTiffHeader:
             assert "depth map is 12000x12000 but the image is 64x48" in got["message"], got
             assert got["rss_mb"] < 300, (surface, got)
 
+    def test_a_map_far_larger_than_the_photo_refused_unread(self, tiffs):
+        # 144 MP, under the limit and the photo's aspect, for a 64x64 photo: read, it took
+        # 5.9 GB (a map is resized to its photo; one over 4x the photo's pixels, and over
+        # 4096^2, adds nothing)
+        p = str(tiffs[12000])
+        calls = {
+            "library": "from d2f_core.io import load_depth\n"
+            f"out = load_depth({p!r}, size=(64, 64))",
+            "app": "from app.imaging import load_depth_map\n"
+            f"out = load_depth_map({p!r}, (64, 64), name='d.tif')",
+        }
+        for surface, code in calls.items():
+            got = _child(code, CHILD_AS)
+            assert got["outcome"] == "ValueError", (surface, got)
+            assert "depth map is 12000x12000 = 144000000 pixels for a 64x64 photo" in (
+                got["message"]
+            ), got
+            assert got["rss_mb"] < 300, (surface, got)
+        # as large as the floor: read whatever the photo (a 4096^2 map for a 64x64 photo)
+        from d2f_core.io.depth import _check_map_header
+
+        _check_map_header((4096, 4096), (64, 64), "d.tif")
+        with pytest.raises(ValueError, match="more than 4 times the photo's pixels"):
+            _check_map_header((4096, 4097), (64, 64), "d.tif")
+        _check_map_header((6000, 8000), (3000, 4000), "d.tif")  # 4x a 12 MP photo
+
     @pytest.mark.slow
     def test_cli_one_line(self, tiffs, tmp_path):
         photo = tmp_path / "p.png"

@@ -193,13 +193,30 @@ def _map_sides(shape: tuple[int, ...]) -> tuple[int, int] | None:
     return kept if len(kept) == 2 else None
 
 
+#: A map is resized to its photo: one of more than this many times the photo's pixels (and
+#: over :data:`MAP_PIXELS_FLOOR`) adds nothing and costs its decoding (a 144 MP float TIFF
+#: took 5.9 GB to read), so it is refused from its header.
+MAX_MAP_OVER_PHOTO = 4
+#: any map up to this many pixels is read whatever the photo's size (4096 x 4096)
+MAP_PIXELS_FLOOR = 4096 * 4096
+
+
 def _check_map_header(
     sides: tuple[int, int] | None, size: tuple[int, int] | None, name: str
 ) -> None:
-    """The map's (H, W) from a header against the photo's (H, W) ``size``: the aspect ratio
-    checked before any sample is decoded (:func:`check_aspect`)."""
-    if sides is not None and size is not None:
-        check_aspect(sides, size, name)
+    """The map's (H, W) from a header against the photo's (H, W) ``size``, before any sample
+    is decoded: the aspect ratio (:func:`check_aspect`) and the pixel count (at most
+    :data:`MAX_MAP_OVER_PHOTO` times the photo's, or :data:`MAP_PIXELS_FLOOR`)."""
+    if sides is None or size is None:
+        return
+    check_aspect(sides, size, name)
+    pixels, photo = sides[0] * sides[1], size[0] * size[1]
+    if pixels > max(MAX_MAP_OVER_PHOTO * photo, MAP_PIXELS_FLOOR):
+        raise ValueError(
+            f"{name}: depth map is {sides[1]}x{sides[0]} = {pixels} pixels for a "
+            f"{size[1]}x{size[0]} photo; a map of more than {MAX_MAP_OVER_PHOTO} times the "
+            f"photo's pixels (or {MAP_PIXELS_FLOOR}) is refused: resize it to the photo"
+        )
 
 
 TIFF_MAGICS = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")  # classic TIFF and BigTIFF
