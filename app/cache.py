@@ -31,7 +31,8 @@ import torch
 log = logging.getLogger(__name__)
 
 #: the scene cache's default bound (``D2F_APP_CACHE_MB``): 40 sessions of 1600x1200 photos grew
-#: the server by 1.7-1.9 GB with a 1 GiB bound, 1.33-1.34 GB with 512 MB, 1.1 GB with 256 MB
+#: the server by 1.7-1.9 GB with a 1 GiB bound, 1.33-1.34 GB with 512 MiB, 1.13-1.18 GB with
+#: 384 MiB, 1.1 GB with 256 MiB
 DEFAULT_MAX_BYTES = 384 << 20
 
 

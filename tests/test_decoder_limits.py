@@ -196,6 +196,22 @@ def tiffs(tmp_path_factory) -> dict[int, Path]:
     return out
 
 
+def _refused_unread(path: Path, size: tuple[int, int], says: str) -> None:
+    """The map at ``path`` for a photo of ``size`` (H, W), through the library and the app:
+    a ValueError that ``says`` so, in a child that stayed under 300 MB."""
+    p, (h, w) = str(path), size
+    calls = {
+        "library": f"from d2f_core.io import load_depth\nout = load_depth({p!r}, size=({h}, {w}))",
+        "app": "from app.imaging import load_depth_map\n"
+        f"out = load_depth_map({p!r}, ({w}, {h}), name='d.tif')",
+    }
+    for surface, code in calls.items():
+        got = _child(code, CHILD_AS)
+        assert got["outcome"] == "ValueError", (surface, got)
+        assert says in got["message"], got
+        assert got["rss_mb"] < 300, (surface, got)
+
+
 class TestTiffHeader:
     @pytest.mark.parametrize("n", [15000, 40000])
     def test_above_the_pixel_limit_refused_unread(self, tiffs, n):
@@ -213,37 +229,14 @@ class TestTiffHeader:
     def test_aspect_checked_before_decoding(self, tiffs):
         # 144 MP, under the limit, but square, for a 64x48 photo: the old code decoded it
         # (2.8 GB) before it compared the shapes
-        p = str(tiffs[12000])
-        calls = {
-            "library": "from d2f_core.io import load_depth\n"
-            f"out = load_depth({p!r}, size=(48, 64))",
-            "app": "from app.imaging import load_depth_map\n"
-            f"out = load_depth_map({p!r}, (64, 48), name='d.tif')",
-        }
-        for surface, code in calls.items():
-            got = _child(code, CHILD_AS)
-            assert got["outcome"] == "ValueError", (surface, got)
-            assert "depth map is 12000x12000 but the image is 64x48" in got["message"], got
-            assert got["rss_mb"] < 300, (surface, got)
+        _refused_unread(tiffs[12000], (48, 64), "depth map is 12000x12000 but the image is 64x48")
 
     def test_a_map_far_larger_than_the_photo_refused_unread(self, tiffs):
         # 144 MP, under the limit and the photo's aspect, for a 64x64 photo: read, it took
         # 5.9 GB (a map is resized to its photo; one over 4x the photo's pixels, and over
         # 4096^2, adds nothing)
-        p = str(tiffs[12000])
-        calls = {
-            "library": "from d2f_core.io import load_depth\n"
-            f"out = load_depth({p!r}, size=(64, 64))",
-            "app": "from app.imaging import load_depth_map\n"
-            f"out = load_depth_map({p!r}, (64, 64), name='d.tif')",
-        }
-        for surface, code in calls.items():
-            got = _child(code, CHILD_AS)
-            assert got["outcome"] == "ValueError", (surface, got)
-            assert "depth map is 12000x12000 = 144000000 pixels for a 64x64 photo" in (
-                got["message"]
-            ), got
-            assert got["rss_mb"] < 300, (surface, got)
+        says = "depth map is 12000x12000 = 144000000 pixels for a 64x64 photo"
+        _refused_unread(tiffs[12000], (64, 64), says)
         # as large as the floor: read whatever the photo (a 4096^2 map for a 64x64 photo)
         from d2f_core.io.depth import _check_map_header
 
