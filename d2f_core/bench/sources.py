@@ -150,6 +150,7 @@ def draw_chart(
                 continue
             ax.scatter([ms], [value], s=60)
             ax.annotate(source, (ms, value), textcoords="offset points", xytext=(6, 4))
+        ax.margins(x=0.2, y=0.2)
         ax.set_xlabel(f"prepare time per {size} photo (ms, median)")
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
