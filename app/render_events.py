@@ -38,7 +38,7 @@ SKIP5 = (*SKIP4, gr.skip())
 SKIP6 = (gr.skip(), gr.skip(), *SKIP4)
 
 _LEGENDS = {
-    "Disparity": ("viridis", "0 far", "1 near", "Disparity (network map or your upload)"),
+    "Disparity": ("viridis", "0 far", "1 near", "Disparity ({source})"),
     "Defocus": (
         "magma",
         "0 in focus",
@@ -52,6 +52,24 @@ _LEGENDS = {
         "Fusion mask: where the full-resolution input is kept",
     ),
 }
+
+
+#: what the disparity view's legend calls each depth source
+_MAP_SOURCES = {
+    "embedded": "the photo's own phone depth",
+    "file": "your depth map",
+    "scene": "scene teachers and network",
+    "d2f": "network map",
+}
+
+
+def _map_source(key: str) -> str:
+    """The disparity legend's words for the source that made the map of the scene cache key
+    ``key`` (:func:`app.sources.scene_key`: the pixels, then ``|SOURCE``)."""
+    source = key.rsplit("|", 1)[-1] if "|" in key else ""
+    if source.startswith("transformers:"):
+        return f"Hugging Face model {source.split(':', 1)[1]}"
+    return _MAP_SOURCES.get(source, "depth map")
 
 
 class RenderEvents:
@@ -126,6 +144,9 @@ class RenderEvents:
     def _legend(session: Session, view: str) -> tuple[str, str, str, str] | None:
         """The legend of ``view``; the defocus map's top end in full-resolution pixels."""
         legend = _LEGENDS.get(view)
+        if legend is not None and view == "Disparity":
+            cmap, low, high, title = legend
+            return cmap, low, high, title.format(source=_map_source(session.key))
         if legend is None or view != "Defocus":
             return legend
         # the defocus map is the paper's D of the CoC at the render pass, 1 = 69 px there;

@@ -1178,3 +1178,20 @@ def test_app_extra_reads_heic():
     app_extra = meta["project"]["optional-dependencies"]["app"]
     assert any(req.startswith("pillow-heif") for req in app_extra)
     assert any(req.startswith("gradio") for req in app_extra)
+
+
+def test_disparity_legend_names_the_maps_source():
+    """The disparity view's legend says where its map came from: the phone's depth, the
+    user's map, the scene teachers, the network or a hub model."""
+    from types import SimpleNamespace
+
+    from app.render_events import RenderEvents
+
+    def title(key: str) -> str:
+        return RenderEvents._legend(SimpleNamespace(key=key), "Disparity")[3]
+
+    assert title("abc|embedded") == "Disparity (the photo's own phone depth)"
+    assert title("abc|file") == "Disparity (your depth map)"
+    assert title("abc|scene") == "Disparity (scene teachers and network)"
+    assert title("abc|d2f") == "Disparity (network map)"
+    assert title("abc|transformers:org/m") == "Disparity (Hugging Face model org/m)"
