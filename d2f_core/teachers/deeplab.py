@@ -401,23 +401,28 @@ def _run(model: DeepLab, x: np.ndarray) -> torch.Tensor:
         return model(t)[0].permute(1, 2, 0)
 
 
-def ade20k_input(image: Image.Image | np.ndarray) -> tuple[np.ndarray, tuple[int, int]]:
+def ade20k_input(
+    image: Image.Image | np.ndarray, side: int = ADE_SIDE
+) -> tuple[np.ndarray, tuple[int, int]]:
     """The ADE20K graph's input, float32 513x513x3 in [-1, 1]: the photo with its long side
     resized to 513 (PIL bilinear) at the top left, the rest 0 (mid grey); and ``(h, w)``,
-    the photo's part."""
+    the photo's part. ``side`` in place of 513 gives the same at another size (the network
+    is fully convolutional; the original graph reads 513)."""
     rgb = _rgb(image)
     w, h = rgb.size
-    s = ADE_SIDE / max(w, h)
+    s = side / max(w, h)
     rw, rh = max(1, round(w * s)), max(1, round(h * s))
-    x = np.zeros((ADE_SIDE, ADE_SIDE, 3), np.float32)
+    x = np.zeros((side, side, 3), np.float32)
     x[:rh, :rw] = np.asarray(rgb.resize((rw, rh), Image.BILINEAR), np.float32) / 127.5 - 1
     return x, (rh, rw)
 
 
-def ade20k_logits(image: Image.Image | np.ndarray, model: DeepLab | None = None) -> torch.Tensor:
+def ade20k_logits(
+    image: Image.Image | np.ndarray, model: DeepLab | None = None, side: int = ADE_SIDE
+) -> torch.Tensor:
     """ADE20K logits, float32 ``h x w x 151``, of :func:`ade20k_input`'s photo part (the
-    padding's logits cut off)."""
-    x, (rh, rw) = ade20k_input(image)
+    padding's logits cut off), the input ``side`` px square."""
+    x, (rh, rw) = ade20k_input(image, side)
     return _run(_shipped(ADE20K) if model is None else model, x)[:rh, :rw]
 
 
@@ -431,18 +436,21 @@ def ade20k_probabilities(
 
 
 def ade20k_labels(
-    image: Image.Image | np.ndarray, size: tuple[int, int], model: DeepLab | None = None
+    image: Image.Image | np.ndarray,
+    size: tuple[int, int],
+    model: DeepLab | None = None,
+    side: int = ADE_SIDE,
 ) -> np.ndarray:
     """What ``SceneTeachers.parse`` returned: the argmax class of :func:`ade20k_logits`,
     uint8, resized to ``size`` = ``(width, height)`` with PIL's nearest neighbour;
     ``height x width``. The labels used ``scene_teachers.label_size`` of the photo (its
-    aspect, long side 256).
+    aspect, long side 256). ``side``: the input's size (513, the original's, by default).
 
     Raises:
         ValueError: a bad ``image`` or ``size``.
     """
     size = _size(size)
-    cls = ade20k_logits(image, model).argmax(dim=-1).to(torch.uint8).numpy()
+    cls = ade20k_logits(image, model, side).argmax(dim=-1).to(torch.uint8).numpy()
     return np.asarray(Image.fromarray(cls).resize(size, Image.NEAREST))
 
 
