@@ -79,10 +79,14 @@ def test_command_lines_run(folder, capsys, tiny_checkpoint):
     lines = [ln.split("#")[0].strip() for b in _blocks("bash") for ln in b.splitlines()]
     commands = [shlex.split(ln) for ln in lines if ln.startswith("d2f ")]
     assert len(commands) >= 4
-    sample = Path(__file__).resolve().parents[1] / "assets" / "samples" / "coffee.jpg"
+    # as written, from the checkout: the shipped samples and what earlier lines wrote
+    samples = Path(__file__).resolve().parents[1] / "assets" / "samples"
     for argv in commands:
-        argv = [str(sample) if a == "assets/samples/coffee.jpg" else a for a in argv[1:]]
+        argv = [a.replace("assets/samples", str(samples), 1) for a in argv[1:]]
         code = cli_main([*argv, "--weights", str(tiny_checkpoint)])
         assert code == 0, (argv, capsys.readouterr().err)
-    assert (tmp / "out.jpg").is_file() and (tmp / "coffee_bokeh.png").is_file()
-    assert (tmp / "out" / "a.png").is_file() or any((tmp / "out").iterdir())
+    for name in ("coffee_bokeh.png", "coffee_cup.jpg", "coffee_own.jpg"):
+        assert (tmp / name).is_file(), name
+    assert (tmp / "maps" / "coffee_bokeh_disparity.png").is_file()
+    rendered = sorted(p.name for p in (tmp / "out").iterdir() if p.suffix != ".jsonl")
+    assert rendered == sorted(f"{p.stem}_bokeh{p.suffix}" for p in samples.iterdir()), rendered
