@@ -35,6 +35,7 @@ import numpy as np
 import torch
 from PIL import Image
 
+from ..rendering.inputs import image_tensor
 from ..sizing import resize
 from . import layout as L
 
@@ -212,8 +213,7 @@ def reading_copy(image: np.ndarray, side: int = READ_SIDE) -> np.ndarray:
     h, w = image.shape[:2]
     if max(h, w) <= side:
         return image
-    t = torch.from_numpy(np.ascontiguousarray(image, dtype=np.float32)).permute(2, 0, 1)[None]
-    small = resize(t, work_size(h, w, side)).clamp_(0, 1)
+    small = resize(image_tensor(image), work_size(h, w, side)).clamp_(0, 1)
     return small[0].permute(1, 2, 0).contiguous().numpy()
 
 
@@ -237,8 +237,7 @@ def _with_network(
     """``target`` with the subjects of ``model``'s scene head stood on it by
     :data:`SUBJECT_BLEND` (none on ``furniture``, its probability in a room) and the
     network's own map (its subjects stood alike) blended in by :data:`NETWORK_SHARE`."""
-    x = torch.from_numpy(np.ascontiguousarray(image, dtype=np.float32)).permute(2, 0, 1)[None]
-    x = x.to(model.device)
+    x = image_tensor(image).to(model.device)
     work = resize(x, target.shape).clamp_(0, 1)
     with torch.no_grad():
         d, probs = model.disparity_and_scene_maps(work, refine=True, photo=x, blend=SUBJECT_BLEND)

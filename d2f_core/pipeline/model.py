@@ -327,7 +327,6 @@ class D2F(DepthStage, FusionStage, FocusStage, TrainingStage, nn.Module):
         )
         if max_side is not None:
             max_side = whole_number(max_side, "max_side", 1)
-        named = isinstance(budget, str)
         pick = (
             budget is not None
             and render_options["order"] == "depth"
@@ -338,14 +337,7 @@ class D2F(DepthStage, FusionStage, FocusStage, TrainingStage, nn.Module):
         t_all = time.perf_counter()
 
         # 1. inputs of the rendering pass (preview: its own size, cached per size)
-        if max_side is not None:
-            image_lr, disparity_lr, radiance_lr = self._preview_inputs(scene, int(max_side))
-        else:
-            image_lr, disparity_lr, radiance_lr = (
-                scene.image_lr,
-                scene.disparity_lr,
-                scene.radiance_lr,
-            )
+        image_lr, disparity_lr, radiance_lr = self._pass_inputs(scene, max_side)
         # a focal range folded into the map: every later step sees its CoCs
         disparity_lr = fold_focal_range(disparity_lr, focus, focal_range)  # [1,1,h,w]
         lr_size = (int(image_lr.shape[-2]), int(image_lr.shape[-1]))
@@ -358,20 +350,10 @@ class D2F(DepthStage, FusionStage, FocusStage, TrainingStage, nn.Module):
         settings = None
         if pick:
             t0 = time.perf_counter()
-            settings = adaptive.choose_settings(
-                disparity_lr,
-                focus,
-                blur_lr,
-                budget_db=None if named else budget,
-                quality=budget if named else adaptive.DEFAULT_QUALITY,
-                schedule=render_options.get("schedule", "growing"),
-                placement=render_options["placement"],
-                full_scale=1.0 / lr_ratio if max_side is None else 1.0,
-                fusion_coc=gate_coc,
-                checked=True,  # focus and blur were checked above; blur_lr <= blur
-            )
-            if max_side is None:
-                self._full_size_decisions(scene, settings, focus, blur, focal_range, gate_coc)
+            settings = self._pick_settings(
+                scene, disparity_lr, focus, blur, lr_ratio, budget, focal_range, gate_coc,
+                render_options, full=max_side is None,
+            )  # fmt: skip
             timings["pick"] = ms_since(t0)
         identity = settings is not None and settings.identity
         fuse = (
@@ -418,6 +400,13 @@ class D2F(DepthStage, FusionStage, FocusStage, TrainingStage, nn.Module):
         timings["to_numpy"] = ms_since(t0)
         timings["total"] = ms_since(t_all)
         return result
+
+    def _pass_inputs(self, scene: Scene, max_side: int | None) -> tuple[Tensor, Tensor, Tensor]:
+        """The photo, map and radiance of the rendering pass: the scene's own, or a
+        preview's at ``max_side`` (cached per size)."""
+        if max_side is not None:
+            return self._preview_inputs(scene, int(max_side))
+        return scene.image_lr, scene.disparity_lr, scene.radiance_lr
 
     def _render_args(
         self,
@@ -475,6 +464,39 @@ class D2F(DepthStage, FusionStage, FocusStage, TrainingStage, nn.Module):
             if not math.isfinite(budget):
                 raise ValueError(f"budget must be finite, got {budget}")
         return focus, blur, focal_range, budget
+
+    def _pick_settings(
+        self,
+        scene: Scene,
+        disparity_lr: Tensor,
+        focus: float,
+        blur: float,
+        lr_ratio: float,
+        budget: str | float,
+        focal_range: float,
+        gate_coc: float,
+        render_options: dict[str, Any],
+        full: bool,
+    ) -> adaptive.RenderSettings:
+        """The adaptive settings for this focus and blur (:func:`adaptive.choose_settings`
+        on the pass's map); for a ``full`` render, identity and fusion then decided from the
+        full-resolution map."""
+        named = isinstance(budget, str)
+        settings = adaptive.choose_settings(
+            disparity_lr,
+            focus,
+            blur * lr_ratio,
+            budget_db=None if named else budget,
+            quality=budget if named else adaptive.DEFAULT_QUALITY,
+            schedule=render_options.get("schedule", "growing"),
+            placement=render_options["placement"],
+            full_scale=1.0 / lr_ratio if full else 1.0,
+            fusion_coc=gate_coc,
+            checked=True,  # focus and blur were checked by _render_args; blur_lr <= blur
+        )
+        if full:
+            self._full_size_decisions(scene, settings, focus, blur, focal_range, gate_coc)
+        return settings
 
     def _full_size_decisions(
         self,
