@@ -473,7 +473,37 @@ def format_bokeh(scores: dict[str, dict[str, float]]) -> str:
     return "\n".join(lines)
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def _predictors(args: argparse.Namespace) -> tuple[dict[str, Predictor], dict[str, Predictor]]:
+    """Every map the command scores, by name (the ramp, the networks of ``--weights``, the
+    sources of ``--source``, the teachers' columns of ``--teachers``), and the networks
+    alone."""
+    predictors: dict[str, Predictor] = {"ramp": ramp_predictor}
+    networks = network_predictors(args.weights)
+    predictors.update(networks)
+    net = next(iter(networks))  # the first network: the sources and subjects use its weights
+    first = weight_specs(args.weights)[net]
+    for source in args.source:
+        depth_sources.parse_source(source)  # a bad name fails before anything runs
+        predictors[f"source {source}"] = source_predictor(source, first)
+    if args.teachers is not None:
+        found = teacher_predictors(args.teachers, args.threads)
+        predictors.update(found)
+        # how far the first network's map and the teachers' maps go together: a
+        # ceiling for what stage 0 can learn from these teachers
+        for key in ("layout", "targets", "scene targets"):
+            if key in found:
+                predictors[f"{net}+{key}"] = rank_mix(predictors[net], found[key])
+        # the targets with the first network's subjects stood on them, as its own map
+        # gets them: what that recipe reaches if the network learns its targets
+        if "scene targets" in found:
+            blended = subject_blend_predictor(first, found["scene targets"])
+            if blended is not None:
+                predictors[f"scene targets+{net}'s subjects"] = blended
+    return predictors, networks
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``d2f-bench depth`` argument parser."""
     p = argparse.ArgumentParser(prog="d2f-bench depth", description=__doc__.split("\n\n")[0])
     p.add_argument(
         "--weights",
@@ -527,33 +557,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         default=0.4,
         help="--layout-teacher of the targets --fit compares with",
     )
-    args = p.parse_args(argv)
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
     torch.set_num_threads(args.threads)
     logging.basicConfig(level=logging.WARNING)
-    predictors: dict[str, Predictor] = {"ramp": ramp_predictor}
     try:
-        networks = network_predictors(args.weights)
-        predictors.update(networks)
-        first = weight_specs(args.weights)[next(iter(networks))]
-        for source in args.source:
-            depth_sources.parse_source(source)  # a bad name fails before anything runs
-            predictors[f"source {source}"] = source_predictor(source, first)
-        if args.teachers is not None:
-            found = teacher_predictors(args.teachers, args.threads)
-            predictors.update(found)
-            # how far the first network's map and the teachers' maps go together: a
-            # ceiling for what stage 0 can learn from these teachers
-            net = next(iter(networks))
-            for key in ("layout", "targets", "scene targets"):
-                if key in found:
-                    predictors[f"{net}+{key}"] = rank_mix(predictors[net], found[key])
-            # the targets with the first network's subjects stood on them, as its own map
-            # gets them: what that recipe reaches if the network learns its targets
-            if "scene targets" in found:
-                path = weight_specs(args.weights)[net]
-                blended = subject_blend_predictor(path, found["scene targets"])
-                if blended is not None:
-                    predictors[f"scene targets+{net}'s subjects"] = blended
+        predictors, networks = _predictors(args)
         photos = measured_photos(args.data)
         masks = [] if args.no_masks else heldout_masks(args.datasets, args.masks)
     except (FileNotFoundError, ValueError) as exc:
