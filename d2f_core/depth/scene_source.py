@@ -35,6 +35,7 @@ import numpy as np
 import torch
 from PIL import Image
 
+from ..io.save import to_uint8
 from ..rendering.inputs import image_tensor
 from ..sizing import resize
 from . import layout as L
@@ -151,7 +152,7 @@ def needed_teachers(ade: np.ndarray) -> tuple[bool, bool]:
 
 
 def _rgb(image: np.ndarray) -> Image.Image:
-    return Image.fromarray((np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8))
+    return Image.fromarray(to_uint8(image, "photo"))
 
 
 def _resized(label: np.ndarray, size: tuple[int, int], nearest: bool) -> np.ndarray:
