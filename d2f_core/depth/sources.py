@@ -127,12 +127,16 @@ class DepthMap:
             inverse depth"``, ``"metric depth"``, ``"apple_mpo phone depth"``,
             ``"disparity map"``, ``"depth map"`` or ``"D2F network disparity"``.
         focus: a focal disparity that came with the map (a phone's focus), or ``None``.
+        predicted: a coarse map the model predicts (the ``scene`` source's), which
+            :meth:`D2F.prepare` renders at the network's pass size like the network's own,
+            not at the photo's size as a measured map.
     """
 
     disparity: np.ndarray
     source: str
     output: str
     focus: float | None = None
+    predicted: bool = False
 
     def describe(self) -> str:
         """One line for logs and status lines: ``"transformers:X (relative inverse depth)"``."""
@@ -307,7 +311,9 @@ def depth_map(
         with torch.no_grad():
             found = scene_maps(image_np, shared_teachers(), model)
         ran = ", ".join(found.ran)
-        return DepthMap(_fit(found.disparity, size), spec.name, f"scene teachers' map ({ran})")
+        return DepthMap(
+            _fit(found.disparity, size), spec.name, f"scene teachers' map ({ran})", predicted=True
+        )
     if device is None and model is not None and hasattr(model, "device"):
         device = model.device
     d, kind = _hub_map(spec.arg, image_np, torch.device(device or "cpu"))

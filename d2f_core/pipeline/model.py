@@ -214,7 +214,7 @@ class D2F(DepthStage, FusionStage, FocusStage, TrainingStage, nn.Module):
         device = self.device
         image_t = rendering.image_tensor(image).to(device)  # [1,3,H,W]
         source, output = depth_sources.DEFAULT_SOURCE, "D2F network disparity"
-        recorded = None
+        recorded, predicted = None, True
         if isinstance(depth, (str, depth_sources.DepthSource)):
             spec = depth_sources.parse_source(depth)
             if spec.kind == "d2f":
@@ -225,18 +225,19 @@ class D2F(DepthStage, FusionStage, FocusStage, TrainingStage, nn.Module):
                 )
         if isinstance(depth, depth_sources.DepthMap):
             source, output, recorded = depth.source, depth.output, depth.focus
+            predicted = depth.predicted
             depth = depth.disparity
         elif depth is not None:
-            source, output = "given", "disparity map"
+            source, output, predicted = "given", "disparity map", False
         given = None if depth is None else rendering.disparity_tensor(depth).to(device)
         size = (int(image_t.shape[-2]), int(image_t.shape[-1]))
         if given is not None:  # resized to the photo, never stretched onto it
             check_aspect(tuple(given.shape[-2:]), size, "depth")
-        # a map this model predicts (its network's or the scene source's) is rendered at the
-        # network's pass size; a measured map at the photo's own, up to full_pass_side. Only
-        # the network's own map is snapped onto the photo's edges (the scene map, snapped:
-        # 31.50 dB against 31.75 on the 12 measured photos, d2f-bench depth --bokeh)
-        predicted = given is None or source == "scene"
+        # a map this model predicts (its network's, or a DepthMap marked predicted: the scene
+        # source's) is rendered at the network's pass size; a measured map at the photo's
+        # own, up to full_pass_side. Only the network's own map is snapped onto the photo's
+        # edges (the scene map, snapped: 31.50 dB against 31.75 on the 12 measured photos,
+        # d2f-bench depth --bokeh)
         lr_size = self.pass_size(size, given=not predicted)
         image_lr = resize(image_t, lr_size).clamp_(0, 1)  # [1,3,h,w]
         if given is None:
