@@ -6,6 +6,7 @@ focal range, the aperture, the quality and the depth source.
 from __future__ import annotations
 
 import shlex
+from typing import Any
 
 from app.imaging import MAX_PIXELS
 from app.settings import RenderParams
@@ -22,7 +23,11 @@ def _depth_args(source: str) -> list[str]:
 
 
 def render_command(
-    params: RenderParams, photo: str, depth_source: str, output: str | None = None
+    params: RenderParams,
+    photo: str,
+    depth_source: str,
+    output: str | None = None,
+    masks: dict[str, Any] | None = None,
 ) -> str:
     """``d2f render PHOTO -o OUTPUT ...`` giving the picture of ``params`` (a PNG output is
     the app's PNG download, pixel for pixel).
@@ -33,6 +38,8 @@ def render_command(
         depth_source: the scene's ``disparity_source`` (``embedded``, ``d2f``,
             ``transformers:MODEL``, or ``file`` / ``given`` for the user's map).
         output: the output file (default ``STEM_bokeh.png``).
+        masks: the brushes' masks as painted, ``{"sharp": PATH, "blur": PATH}`` (either
+            may be absent): ``--sharp-mask`` / ``--blur-mask``.
     """
     stem = photo.rsplit(".", 1)[0] if "." in photo else photo
     args = ["d2f", "render", photo, "-o", output or f"{stem}_bokeh.png"]
@@ -51,6 +58,8 @@ def render_command(
         args.append("--no-highlight-boost")
     if not params.fusion:
         args.append("--no-fusion")
+    for key, path in sorted((masks or {}).items(), reverse=True):  # sharp, then blur
+        args += [f"--{key}-mask", str(path)]
     args += _depth_args(depth_source)
     # the app downscales larger uploads to this many pixels, as --max-pixels does
     args += ["--max-pixels", str(MAX_PIXELS)]

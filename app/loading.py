@@ -23,6 +23,7 @@ from app.cache import content_key
 from app.reporting import user_error
 from app.sessions import Session, SessionClosed, no_scene, reported
 from app.settings import (
+    FOCAL_RANGE_MAX,
     PANEL_PREFIX,
     VIEWS,
     RenderParams,
@@ -223,12 +224,18 @@ class LoadEvents:
         source = sources.describe(scene, source)
         t_prepare = time.perf_counter()
         subject = ""
-        if search:
+        # the focal range the load sets: the subject's with the automatic focus, else the
+        # thin lens (the camera's focal plane, or the slider's focus on a map of one's own)
+        params = dataclasses.replace(params, focal_range=0.0)
+        if search:  # D2F.default_focus: the subject, with the range that keeps it sharp
             t_search = time.perf_counter()
-            focus_found, (sx, sy) = self.model.subject_focus(scene)
+            focus_found, auto_range, (sx, sy), _ = self.model.default_focus(scene)
             ms_search = 1000 * (time.perf_counter() - t_search)
             new_focus = position_of(focus_found)
-            params = dataclasses.replace(params, focus=disparity_of(new_focus))
+            auto_range = round(min(auto_range, FOCAL_RANGE_MAX), 3)
+            params = dataclasses.replace(
+                params, focus=disparity_of(new_focus), focal_range=auto_range
+            )
             subject = f" | focus on the subject at ({sx:.0f}, {sy:.0f}) in {ms_search:.0f} ms"
         new = Session(
             key=key,
@@ -240,6 +247,7 @@ class LoadEvents:
             icc_profile=photo.icc_profile,
             exif=photo.exif,
             owner=getattr(request, "session_hash", None),
+            auto_range=params.focal_range,
         )
         new.get_scene = self._scene_source(new, key, path, photo_name, depth_path, depth_kind,
                                            depth_name, chosen)  # fmt: skip
@@ -342,6 +350,14 @@ class LoadEvents:
         imaging.write_display(session.before, path)
         session.panel = path
         session.shown_size = (session.before.shape[1], session.before.shape[0])
+
+    @staticmethod
+    def loaded_range(session: Session | None) -> Any:
+        """The focal range slider after a load: the subject's range with the automatic
+        focus, 0 (thin lens) otherwise; ``gr.skip()`` without a photo."""
+        if isinstance(session, Session) and not session.closed:
+            return session.auto_range
+        return gr.skip()
 
     @staticmethod
     def photo_panel(session: Session | None) -> Any:

@@ -200,9 +200,14 @@ class RenderEvents:
     def _info(session: Session, params: RenderParams, kind: str, ms: float, extra: str = "") -> str:
         w, h = session.size
         span = f", focal range {params.focal_range:g}" if params.focal_range else ""
+        paint = ""
+        if params.paint and session.brushes is not None:
+            sharp, blurred = session.brushes.coverage()
+            paint = f" | painted: {100 * sharp:.0f}% kept sharp, {100 * blurred:.0f}% blurred"
         text = (
             f"{w}x{h} px | focus {params.position:.3f} (0 = near, 1 = far; disparity "
-            f"{params.focus:.3f}) | {params.blur_text()}{span} | {kind} render {ms:.0f} ms"
+            f"{params.focus:.3f}) | {params.blur_text()}{span}{paint} | {kind} render "
+            f"{ms:.0f} ms"
         )
         return text + (f" | {extra}" if extra else "")
 
@@ -267,7 +272,8 @@ class RenderEvents:
             if scene is None:
                 scene = session.scene
             photo = session.upload_name or f"{session.name}.jpg"
-            command = render_command(params, photo, getattr(scene, "disparity_source", "d2f"))
+            source = getattr(scene, "disparity_source", "d2f")
+            command = render_command(params, photo, source, masks=session.paint_files)
             t0 = time.perf_counter()
             result = self.model.render(scene, params.focus, params.blur, **params.render_options())
             del scene
@@ -393,7 +399,7 @@ class RenderEvents:
             return SKIP4
         params = RenderParams.from_inputs(
             focus, f_number, blades, rotation, highlight_boost, fusion, quality, blur_on,
-            focal_range, size=session.size,
+            focal_range, size=session.size, paint=session.paint_id,
         )  # fmt: skip
         session.touch()
         with session.lock:
@@ -434,7 +440,7 @@ class RenderEvents:
             return SKIP5
         params = RenderParams.from_inputs(
             focus, f_number, blades, rotation, highlight_boost, fusion, quality, blur_on,
-            focal_range, size=session.size,
+            focal_range, size=session.size, paint=session.paint_id,
         )  # fmt: skip
         session.touch()
         with session.lock:
@@ -500,7 +506,7 @@ class RenderEvents:
             return skip
         view = controls.pop(6)
         try:
-            params = RenderParams.from_inputs(*controls, size=session.size)
+            params = RenderParams.from_inputs(*controls, size=session.size, paint=session.paint_id)
         except gr.Error:
             return skip  # the render events have said what is wrong
         session.touch()
@@ -587,7 +593,7 @@ class RenderEvents:
         ms_focus = 1000 * (time.perf_counter() - t0)
         params = RenderParams.from_inputs(
             focus, f_number, blades, rotation, highlight_boost, fusion, quality, blur_on,
-            span, size=session.size,
+            span, size=session.size, paint=session.paint_id,
         )  # fmt: skip
         clicked = f" | focused on the click at ({xs:.0f}, {ys:.0f}) in {ms_focus:.0f} ms"
         steps = self._render_shown(session, params, view, session.scene, clicked, first_look)

@@ -7,6 +7,7 @@ turns its failures into messages.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import functools
 import inspect
 import logging
@@ -93,6 +94,10 @@ class Session:
         closed: True once :meth:`close` ran.
         closed_message: what an event on the closed session tells its user (None: the
             usual :data:`~app.reporting.CLOSED_MESSAGE`).
+        brushes: the focus and blur paint (:class:`d2f_core.depth.brushes.Brushes`) every
+            render of the session applies, or None; :attr:`paint_id` names it (its hash) and
+            :attr:`paint_files` holds the masks as painted (PNG, for the reproduce command).
+        auto_range: the focal range the load gave the photo with its automatic focus.
         token: this photo's name on the page (its hidden ``photo_id`` box): every render
             event sends the one the page held when the event started, and an event started
             for another photo than the session's is dropped (:meth:`shown_by`).
@@ -129,14 +134,22 @@ class Session:
     on_close: Callable[[Session], None] | None = field(default=None, repr=False)
     busy: int = 0
     token: str = field(default_factory=lambda: uuid.uuid4().hex)
+    brushes: Any = field(default=None, repr=False)
+    paint_id: str = ""
+    paint_files: dict[str, Path] = field(default_factory=dict)
+    auto_range: float = 0.0
     lock: threading.RLock = field(default_factory=threading.RLock, repr=False)
 
     @property
     def scene(self) -> Any:
-        """The prepared scene (from the shared cache, or prepared again)."""
+        """The prepared scene (from the shared cache, or prepared again), with this
+        session's brush paint (:attr:`brushes`)."""
         if self.closed:
             raise SessionClosed
-        return self.get_scene()
+        scene = self.get_scene()
+        if self.brushes is not None:
+            scene = dataclasses.replace(scene, brushes=self.brushes)
+        return scene
 
     @property
     def last_full(self) -> np.ndarray | None:

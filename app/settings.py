@@ -79,7 +79,9 @@ class RenderParams:
 
     ``focus`` and ``blur`` are the library's (disparity, 1 = near; K in px at full
     resolution); ``f_number`` is the aperture chosen (None: blur off, ``blur`` is 0);
-    ``focal_range`` the span of disparity kept sharp around the focus (0 = thin lens).
+    ``focal_range`` the span of disparity kept sharp around the focus (0 = thin lens);
+    ``paint`` names the session's brush paint (its content's hash, "" for none): the same
+    values with other paint are another picture.
     """
 
     focus: float
@@ -91,6 +93,7 @@ class RenderParams:
     quality: str = "balanced"
     f_number: float | None = None
     focal_range: float = 0.0
+    paint: str = ""
 
     @classmethod
     def from_inputs(
@@ -106,6 +109,7 @@ class RenderParams:
         focal_range: Any = 0.0,
         *,
         size: tuple[int, int] | None,
+        paint: str = "",
     ) -> RenderParams:
         """Validate raw widget values (numbers may arrive as str/None from API callers).
 
@@ -117,6 +121,7 @@ class RenderParams:
                 to :data:`FOCAL_RANGE_MAX`.
             size: ``(width, height)`` of the photo K is computed for; None gives K = 0 (to
                 check the inputs before the photo is known; :meth:`sized` sets it).
+            paint: the session's paint (:attr:`app.sessions.Session.paint_id`).
         """
         try:
             position = round(float(focus), FOCUS_DECIMALS)
@@ -142,7 +147,7 @@ class RenderParams:
             raise user_error(f"quality must be one of {', '.join(QUALITIES)}, got {quality!r}.")
         on = blur_on not in (False, None, 0, "false", "False")
         params = cls(disparity_of(position), 0.0, blades_n, r, bool(highlight_boost),
-                     bool(fusion), quality, n if on else None, span)  # fmt: skip
+                     bool(fusion), quality, n if on else None, span, paint)  # fmt: skip
         return params.sized(size)
 
     def sized(self, size: tuple[int, int] | None) -> RenderParams:

@@ -9,7 +9,9 @@ embedded in the photo (Google Lens Blur, Apple portrait JPEG/HEIC), or the D2F d
 network. Every map is refined to the photo's edges (``--no-refine-depth`` keeps it as the
 source gave it); ``-v`` says which source was used. The focal plane comes from
 ``--focus``/``--focus-at``, else the focus stored by the phone, else the subject found in the
-disparity map (``D2F.subject_focus``; the image centre when nothing stands out).
+disparity map with the focal range that keeps it sharp (``D2F.default_focus``; the image
+centre when nothing stands out). ``--sharp-mask`` and ``--blur-mask`` paint over the photo
+what must stay sharp or be blurred, whatever the map says (``D2F.paint``).
 Without network weights, photos with a depth map still render (the physical layered
 renderer with a sharp in-focus prior instead of the learned radiance and fusion networks).
 
@@ -195,7 +197,8 @@ def build_parser() -> argparse.ArgumentParser:
         type=_unit_float,
         metavar="R",
         help="a span of disparity around the focus that stays perfectly sharp, the blur "
-        "growing from its edges (0 = thin lens; default: the subject's with --focus-at, else 0)",
+        "growing from its edges (0 = thin lens; default: the subject's with --focus-at or with "
+        "no focus given, else 0)",
     )
     amount = focus.add_mutually_exclusive_group(required=True)
     amount.add_argument(
@@ -341,6 +344,23 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument(
         "-o", "--output", type=Path, required=True, metavar="OUT", help="output file or folder"
     )
+    # one photo's paint: a batch has no mask per photo
+    paint = render.add_argument_group("brushes (masks painted over the photo)")
+    paint.add_argument(
+        "--sharp-mask",
+        type=Path,
+        metavar="PNG",
+        help="a mask of the photo's aspect ratio, white = painted: what it paints stays "
+        "sharp wherever the focus is (drawn onto the focal plane); its edges follow the "
+        "photo's",
+    )
+    paint.add_argument(
+        "--blur-mask",
+        type=Path,
+        metavar="PNG",
+        help="a mask, white = painted: what it paints is moved away from the focal plane "
+        "and blurred",
+    )
     from .batch.command import add_batch_arguments
 
     batch = sub.add_parser(
@@ -402,6 +422,9 @@ def _cmd_render(args: argparse.Namespace) -> int:
             raise UsageError("--depth must be a file for 'd2f render'")
         if same_file(dst, args.depth):
             raise UsageError(f"output {os.fspath(dst)!r} is the --depth file")
+    for flag, mask in (("--sharp-mask", args.sharp_mask), ("--blur-mask", args.blur_mask)):
+        if mask is not None and same_file(dst, mask):
+            raise UsageError(f"output {os.fspath(dst)!r} is the {flag} file")
     if not dst.parent.exists():
         raise RenderError(f"output folder {os.fspath(dst.parent)!r} does not exist")
     photo_render.render_file(src, dst, args, Engine(args.weights), args.depth)

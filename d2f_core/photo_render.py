@@ -238,7 +238,7 @@ def _choose_depth(src: Path, photo: Any, args: argparse.Namespace, depth_file: P
         elif photo.disparity is not None:
             source = DepthSource("embedded")
         else:
-            source = DepthSource("d2f")
+            return None  # the weights' own source (D2F.prepare's default), logged there
     elif source.kind == "file" and depth_file is not None:
         raise UsageError("give the map once: --depth FILE or --depth-model file:PATH")
     elif source.kind == "embedded" and args.no_embedded_depth:
@@ -256,6 +256,37 @@ def _choose_depth(src: Path, photo: Any, args: argparse.Namespace, depth_file: P
     )
     logger.info("%s: depth from %s", src, depth.describe())
     return depth
+
+
+def _load_masks(args: argparse.Namespace, size: tuple[int, int]) -> dict[str, np.ndarray]:
+    """``--sharp-mask`` and ``--blur-mask`` read (each checked against the photo's aspect
+    ratio before it is decoded), as :meth:`D2F.paint`'s keywords; empty without them."""
+    from .io.masks import load_mask
+
+    masks = {}
+    for key, flag in (("sharp", "sharp_mask"), ("blur", "blur_mask")):
+        path = getattr(args, flag, None)
+        if path is not None:
+            masks[key] = load_mask(path, size=size)
+    return masks
+
+
+def _painted_map(
+    image: np.ndarray, disparity: np.ndarray, focus: float, masks: dict[str, np.ndarray]
+) -> np.ndarray:
+    """A bare map edited by the brushes for a render at ``focus`` (no weights: the map
+    itself, as :meth:`D2F.render` edits a scene's)."""
+    import torch
+
+    from .depth.brushes import Brushes
+
+    img = torch.from_numpy(np.ascontiguousarray(image, dtype=np.float32)).permute(2, 0, 1)[None]
+    brushes = Brushes.painted(img, masks.get("sharp"), masks.get("blur"))
+    if brushes is None:
+        return disparity
+    disp = torch.from_numpy(np.ascontiguousarray(disparity, dtype=np.float32))[None, None]
+    with torch.no_grad():
+        return brushes.apply(disp, focus)[0, 0].numpy()
 
 
 def render_file(
@@ -284,6 +315,7 @@ def render_file(
 
         focus = focus_of_position(args.focus_position)
     focal_range = getattr(args, "focal_range", None)
+    masks = _load_masks(args, (h, w))
     depth = _choose_depth(src, photo, args, depth_file)
     if depth is not None and depth.focus is not None:
         if focus is None and args.focus_at is None:
@@ -311,10 +343,15 @@ def render_file(
     model = engine.model()
     if model is not None:
         scene = model.prepare(image, depth=depth, refine=not args.no_refine_depth)
-        if point == "subject":
-            focus, (sx, sy) = model.subject_focus(scene)
-            _say_subject(args, src, photo, (sx, sy), focus)
-            point = (sx, sy)
+        if depth is None:
+            logger.info("%s: depth from %s (the weights' own source)", src, scene.disparity_source)
+        if masks:
+            scene = model.paint(scene, **masks)
+        if point == "subject":  # the library's default focus, the app's too
+            focus, auto_range, point, _ = model.default_focus(scene)
+            focal_range = auto_range if focal_range is None else focal_range
+            if point is not None:
+                _say_subject(args, src, photo, point, focus)
         elif point is not None and focal_range is None:
             focus, focal_range = model.focus_at(scene, *point, with_range=True)
         elif point is not None:
@@ -340,15 +377,18 @@ def render_file(
             },
         )
     elif disparity is not None:
-        if point == "subject":
-            focus, (sx, sy) = subject_in_map(disparity)
-            _say_subject(args, src, photo, (sx, sy), focus)
-            point = (sx, sy)
+        if point == "subject":  # D2F.default_focus on the bare map: the subject's range too
+            focus, point = subject_in_map(disparity)
+            _say_subject(args, src, photo, point, focus)
+            if focal_range is None:
+                focal_range = range_in_map(disparity, *point, focus)
         elif point is not None:
             focus = focus_in_map(disparity, *point)
             if focal_range is None:
                 focal_range = range_in_map(disparity, *point, focus)
         focal_range = focal_range or 0.0
+        if masks:
+            disparity = _painted_map(image, disparity, focus, masks)
         logger.info("%s: rendering with the depth map only (no D2F weights)", src)
         rendered = render_with_depth_only(
             image,
@@ -369,6 +409,7 @@ def render_file(
     logger.info("%s: focus %.3f, blur %g px, focal range %g", src, focus, blur, focal_range)
 
     protect = [src] + ([depth_file] if depth_file is not None else [])
+    protect += [getattr(args, f) for f in ("sharp_mask", "blur_mask") if getattr(args, f, None)]
     if args.depth_model is not None and args.depth_model.kind == "file":
         protect.append(Path(args.depth_model.arg))
     # checked before writing; every map at the photo's size (the defocus map comes at the

@@ -8,7 +8,7 @@ import pytest
 
 from app import sources
 from app.cache import SceneCache
-from app.main import sample_paths
+from app.panels import sample_paths
 
 
 def offered(update: dict) -> set[str]:

@@ -98,7 +98,7 @@ def test_forged_paths_are_refused_alike(app_server, gradio_env, secret, two_plan
     photo = upload(server.url, two_plane_scene.photo)
     event, answer = call(server.url, "load", [{"path": photo}, None, *REST], "honest")
     assert event == "complete", answer
-    from app.main import SAMPLES_DIR
+    from app.panels import SAMPLES_DIR
 
     sample = sorted(SAMPLES_DIR.glob("*.jpg"))[0]
     event, answer = call(server.url, "load", [{"path": str(sample)}, None, *REST], "sample")

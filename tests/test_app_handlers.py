@@ -1153,7 +1153,7 @@ class TestBuildDemo:
         assert all(d["outputs"] == [by_elem["blur"]] for d in on if d["api_name"] != "render")
 
     def test_examples_from_assets(self):
-        from app.main import sample_paths
+        from app.panels import sample_paths
 
         names = {Path(p).name for p in sample_paths()}
         assert {"astronaut.jpg", "coffee.jpg", "chelsea.jpg", "rocket.jpg"} <= names

@@ -167,13 +167,23 @@ class TestPipeline:
         assert r == pytest.approx(0.0, abs=1e-3)  # a flat map: no depth to cover
 
     def test_no_focus_given_renders_at_the_subject(self, model):
-        """The library with no focus focuses as the app and the CLI do: on the subject, found
-        once per scene; ``result.focus`` says where (and repeats a focus given)."""
+        """The library with no focus focuses as the app and the CLI do (``default_focus``): on
+        the subject, found once per scene, with the focal range a click on it gets, so the
+        whole subject is the photo's own; ``result.focus`` and ``result.focal_range`` say
+        where (and repeat a focus given, whose range is 0 unless given)."""
         scene = model.prepare(_photo(), depth=_depth(), refine=False)
-        focus, _ = model.subject_focus(scene)
+        focus, (x, y), r = model.subject_focus(scene, with_range=True)
+        assert model.default_focus(scene) == (focus, r, (x, y), "subject")
         auto = model.render(scene, blur=30.0)
         assert auto.focus == focus and 0.7 <= focus <= 0.8
-        assert np.array_equal(auto.bokeh, model.render(scene, focus, 30.0).bokeh)
+        assert auto.focal_range == r and 0.09 <= r <= 0.2
+        assert np.array_equal(auto.bokeh, model.render(scene, focus, 30.0, focal_range=r).bokeh)
+        inner = (slice(24, 72), slice(44, 84))  # the subject, 0.7-0.8 of depth
+        assert np.array_equal(auto.bokeh[inner], _photo()[inner])
+        thin = model.render(scene, focus, 30.0)
+        assert thin.focal_range == 0.0 and not np.array_equal(thin.bokeh[inner], _photo()[inner])
+        # a range given with no focus is kept
+        assert model.render(scene, blur=30.0, focal_range=0.0).focal_range == 0.0
         middle = model.render(scene, 0.5, 30.0)
         assert middle.focus == 0.5 and not np.array_equal(middle.bokeh, auto.bokeh)
         assert scene.cache["subject"] == (focus, model.subject_focus(scene)[1])  # found once
@@ -189,7 +199,8 @@ class TestPipeline:
         scene = model.prepare(_photo(), depth=recorded, refine=False)
         assert scene.focus == 0.2
         result = model.render(scene, blur=30.0)
-        assert result.focus == 0.2
+        assert result.focus == 0.2 and result.focal_range == 0.0  # a phone's focal plane
+        assert model.default_focus(scene) == (0.2, 0.0, None, "photo")
         assert np.array_equal(result.bokeh, model.render(scene, 0.2, 30.0).bokeh)
         for bad in (float("nan"), None):
             odd = DepthMap(_depth(), "embedded", "phone depth", focus=bad)

@@ -416,7 +416,6 @@ class TestSave:
             save_image(tmp_path / "." / "photo.png", np.ones((4, 4, 3)), protect=[str(src)])
         assert src.read_bytes() == before
 
-
     def test_sides_over_the_encoders_limit(self, tmp_path):
         """WebP writes at most 16,383 px a side and JPEG 65,500: a longer picture is refused
         before the encoder runs, naming the limit, and a file already there is kept; PNG

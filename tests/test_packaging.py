@@ -159,7 +159,8 @@ scene = model.prepare(image, depth="scene")
 assert scene.disparity_source == "scene", scene.disparity_source
 assert "objects" in scene.disparity_output, scene.disparity_output
 import app.main
-assert app.main.sample_paths() == [str(p) for p in photos]
+import app.panels
+assert app.panels.sample_paths() == [str(p) for p in photos]
 demo = app.main.build_demo(model)  # the page with its examples, not launched
 assert type(demo).__name__ == "Blocks"
 print("ok", weights)

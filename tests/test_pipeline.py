@@ -254,9 +254,12 @@ class TestFocusAt:
         with pytest.raises(TypeError, match="scene"):
             model.focus_at("scene", 1, 1)
         # a window radius is a whole number of pixels, never truncated
-        for radius, words in ((float("nan"), "radius must be a whole number"),
-                              (2.7, "radius must be a whole number, got 2.7"),
-                              (-1, "radius must be >= 0"), ("3", "radius must be a whole")):
+        for radius, words in (
+            (float("nan"), "radius must be a whole number"),
+            (2.7, "radius must be a whole number, got 2.7"),
+            (-1, "radius must be >= 0"),
+            ("3", "radius must be a whole"),
+        ):
             with pytest.raises(ValueError, match=words):
                 model.focus_at(scene, 5, 5, radius=radius)
         assert model.focus_at(scene, 5, 5, radius=np.int64(2)) == model.focus_at(

@@ -16,7 +16,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-__all__ = ["box_mean", "equalize", "harden_edges", "snap_edges"]
+__all__ = ["box_mean", "colour_share", "equalize", "harden_edges", "snap_edges"]
 
 
 def _box_sum_1d(x: Tensor, radius: int, dim: int) -> Tensor:
@@ -77,7 +77,7 @@ def _check_pair(image: Tensor, disparity: Tensor) -> None:
         )
 
 
-def _colour_share(
+def colour_share(
     colour: Tensor, c_near: Tensor, c_far: Tensor, eps: float, dim: int, keepdim: bool
 ) -> tuple[Tensor, Tensor]:
     """A pixel's share of the near region, the projection of its ``colour`` onto the line
@@ -104,7 +104,7 @@ def _two_regions(
     near_w = means[:, :1]
     c_near = means[:, 1:4] / near_w.clamp_min(1e-4)
     c_far = (means[:, 4:7] - means[:, 1:4]) / (1.0 - near_w).clamp_min(1e-4)
-    alpha, conf = _colour_share(image, c_near, c_far, eps, dim=1, keepdim=True)
+    alpha, conf = colour_share(image, c_near, c_far, eps, dim=1, keepdim=True)
     return lo, span, box_mean(alpha.clamp(0, 1), 1), conf
 
 
@@ -224,7 +224,7 @@ def harden_edges(
         c_near = (colours * weight).sum(2) / near_w.clamp_min(1e-4)
         c_far = (colours * (valid - weight)).sum(2) / (count - near_w).clamp_min(1e-4)
         own_rgb = torch.stack([torch.take(c, centre) for c in rgb_pad])  # [3, M]
-        alpha, conf = _colour_share(own_rgb, c_near, c_far, eps, dim=0, keepdim=False)
+        alpha, conf = colour_share(own_rgb, c_near, c_far, eps, dim=0, keepdim=False)
         near = torch.lerp(own, alpha.clamp(0, 1), conf) >= 0.5
         out[part] = torch.where(near, lo_n + span, lo_n)
     return out.view_as(disparity)

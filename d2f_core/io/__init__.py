@@ -20,6 +20,7 @@ from .depth import (
 from .embedded import Photo, extract_xmp, jpeg_segments, load_photo, read_embedded_depth
 from .formats import apply_orientation
 from .image import READ_EXTENSIONS, SAVE_FORMATS, ImageInfo, load_image, load_image_with_info
+from .masks import load_mask
 from .save import float_to_uint8, same_file, save_image
 
 __all__ = [
@@ -36,6 +37,7 @@ __all__ = [
     "load_depth",
     "load_image",
     "load_image_with_info",
+    "load_mask",
     "load_photo",
     "normalize_disparity",
     "read_depth_array",

@@ -393,15 +393,18 @@ def normalize_disparity(
     return np.clip((d - lo) / (hi - lo), 0.0, 1.0).astype(np.float32)
 
 
-def check_aspect(map_shape: tuple[int, ...], image_shape: tuple[int, ...], name: str) -> None:
+def check_aspect(
+    map_shape: tuple[int, ...], image_shape: tuple[int, ...], name: str, what: str = "depth map"
+) -> None:
     """Raise ``ValueError`` when a depth map of ``(H, W)`` ``map_shape`` would be stretched onto
     an image of ``(H, W)`` ``image_shape``: their aspect ratios differ by more than 5 % (a map
     of another resolution and the same shape is only resized). The message says when the map
     looks turned a quarter relative to the image. A map or an image of one pixel passes.
+    ``what`` names the map in the message (a painted mask is checked the same way).
     """
     mh, mw, h, w = int(map_shape[0]), int(map_shape[1]), int(image_shape[0]), int(image_shape[1])
     if min(mh, mw) < 1 or min(h, w) < 1:
-        raise ValueError(f"{name}: depth map is {mw}x{mh} and the image {w}x{h}: a side is empty")
+        raise ValueError(f"{name}: {what} is {mw}x{mh} and the image {w}x{h}: a side is empty")
     if max(mh, mw) <= 1 or max(h, w) <= 1:
         return
     ar_map, ar_img = mw / mh, w / h
@@ -410,7 +413,7 @@ def check_aspect(map_shape: tuple[int, ...], image_shape: tuple[int, ...], name:
         if abs(math.log(ar_map * ar_img)) <= 0.05:
             hint = " (it looks rotated by 90 degrees relative to the image)"
         raise ValueError(
-            f"{name}: depth map is {mw}x{mh} but the image is {w}x{h}: aspect ratios differ{hint}"
+            f"{name}: {what} is {mw}x{mh} but the image is {w}x{h}: aspect ratios differ{hint}"
         )
 
 

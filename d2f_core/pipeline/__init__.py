@@ -23,6 +23,9 @@ About the mask ``M``:
   can leave no sharp region at all; with ``P`` every pixel whose CoC is below a pixel is
   guaranteed to show the sharp input, whatever ``f_p`` predicts.
 
+Brushes (:meth:`D2F.paint`) edit the disparity of steps 4-6 for each render's focus: what is
+painted sharp is drawn onto the focal plane, what is painted blurred away from it.
+
 Checkpoints are ``{"config", "state_dict", "version"}`` files written by :meth:`D2F.save`.
 """
 
@@ -30,11 +33,13 @@ from __future__ import annotations
 
 from ..depth.subject import find_subject, locate_subject
 from .config import CHECKPOINT_VERSION, D2FConfig, default_weights_path
+from .focus import AutoFocus
 from .model import D2F
 from .outputs import Result, Scene
 
 __all__ = [
     "CHECKPOINT_VERSION",
+    "AutoFocus",
     "D2F",
     "D2FConfig",
     "Result",

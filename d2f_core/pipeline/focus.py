@@ -6,6 +6,7 @@ the map shows.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -14,6 +15,21 @@ from ..depth.subject import RANGE_MAP_SIDE, click_window, locate_subject, subjec
 from ..errors import InputTypeError, whole_number
 from ..sizing import resize, scaled_size
 from .outputs import Scene
+
+
+class AutoFocus(NamedTuple):
+    """Where a render focuses when it is given no focus (:meth:`FocusStage.default_focus`).
+
+    ``focus``: the focal disparity (1 = nearest); ``focal_range``: the span of disparity kept
+    sharp around it; ``point``: the subject's full-res pixel ``(x, y)``, ``None`` for the
+    phone's focal plane; ``reason``: ``"photo"`` (the focal plane the phone recorded with its
+    depth) or ``"subject"`` (the subject the map shows).
+    """
+
+    focus: float
+    focal_range: float
+    point: tuple[float, float] | None
+    reason: str
 
 
 class FocusStage:
@@ -81,6 +97,19 @@ class FocusStage:
         height, width = scene.size
         point = ((x + 0.5) / width, (y + 0.5) / height)
         return subject_range(scene.cache[key], point, focus)
+
+    def default_focus(self, scene: Scene) -> AutoFocus:
+        """The focus of a render given none, the one rule of the library, the CLI and the app:
+        the focal plane the phone recorded with its depth (``scene.focus``) when there is one,
+        as a thin lens; else the subject the map shows, with the focal range that keeps the
+        whole subject sharp, as a click on it gets (:meth:`subject_focus` with its range)."""
+        if not isinstance(scene, Scene):
+            kind = type(scene).__name__
+            raise InputTypeError(f"scene must be a Scene from prepare(), got {kind}")
+        if scene.focus is not None:
+            return AutoFocus(float(scene.focus), 0.0, None, "photo")
+        focus, point, focal_range = self.subject_focus(scene, with_range=True)
+        return AutoFocus(float(focus), float(focal_range), point, "subject")
 
     def subject_focus(
         self, scene: Scene, *, with_range: bool = False

@@ -4,6 +4,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import numbers
 import time
@@ -15,6 +16,7 @@ from torch import Tensor, nn
 
 from .. import rendering
 from ..depth import sources as depth_sources
+from ..depth.brushes import Brushes
 from ..errors import InputTypeError, whole_number
 from ..io.depth import check_aspect
 from ..io.embedded import Photo
@@ -261,6 +263,37 @@ class D2F(DepthStage, FusionStage, FocusStage, TrainingStage, nn.Module):
             given_disparity=None if predicted else given,
         )
 
+    def paint(
+        self, scene: Scene, sharp: Any = None, blur: Any = None, *, edges: bool = True
+    ) -> Scene:
+        """The scene with focus and blur brushes painted over it (:mod:`d2f_core.depth.brushes`).
+
+        What ``sharp`` paints is drawn onto the focal plane of every later render, wherever
+        the focus is then set, so it stays sharp; what ``blur`` paints is moved away from the
+        focal plane, so it is at least as blurred as without the paint. The masks replace any
+        paint the scene had; ``None`` for both clears it. The networks do not run again.
+
+        Args:
+            scene: from :meth:`prepare`.
+            sharp, blur: masks of the photo's aspect ratio and any size, white (1 or 255) =
+                painted, soft values partial paint: ``H x W`` numpy or tensor, or ``H x W x C``
+                (the colour's mean, times alpha when there is one).
+            edges: each stroke's rim follows the photo's own edges (a stroke that spills
+                over a silhouette is cut back to it); ``False`` takes the masks as they are.
+
+        Returns:
+            A new :class:`Scene` sharing this one's maps; ``scene.brushes`` holds the paint.
+
+        Raises:
+            ValueError: a mask that is not a mask (see
+                :func:`~d2f_core.depth.brushes.mask_tensor`) or of another aspect ratio.
+        """
+        if not isinstance(scene, Scene):
+            kind = type(scene).__name__
+            raise InputTypeError(f"scene must be a Scene from prepare(), got {kind}")
+        brushes = Brushes.painted(scene.image, sharp, blur, edges=edges)
+        return dataclasses.replace(scene, brushes=brushes)
+
     def _preview_inputs(self, scene: Scene, max_side: int) -> tuple[Tensor, Tensor, Tensor]:
         size = scaled_size(scene.size, 1.0, max_side)
         key = ("preview", size)
@@ -285,7 +318,7 @@ class D2F(DepthStage, FusionStage, FocusStage, TrainingStage, nn.Module):
         budget: str | float | None = adaptive.DEFAULT_QUALITY,
         *,
         f_number: float | None = None,
-        focal_range: float = 0.0,
+        focal_range: float | None = None,
         **render_options: Any,
     ) -> Result:
         """Refocus a prepared photo.
@@ -293,10 +326,11 @@ class D2F(DepthStage, FusionStage, FocusStage, TrainingStage, nn.Module):
         Args:
             scene: from :meth:`prepare`.
             focus: focal disparity in [0, 1] (1 = nearest); see :meth:`focus_at`. ``None``
-                (the default) focuses where the CLI does with no focus given: on the focal
-                plane a phone recorded with its depth (``scene.focus``), else on the subject
-                the map puts in front (:meth:`subject_focus`, found once per scene);
-                ``result.focus`` says where.
+                (the default) focuses where the CLI and the app do with no focus given
+                (:meth:`default_focus`): on the focal plane a phone recorded with its depth
+                (``scene.focus``), else on the subject the map puts in front, with the focal
+                range that keeps it sharp (found once per scene); ``result.focus`` and
+                ``result.focal_range`` say where.
             blur: ``K``, CoC diameter in px at FULL resolution for ``|d - focus| = 1``
                 (default 40 px unless ``f_number`` is given).
             f_number: the blur as the f-number of the stated virtual lens
@@ -305,7 +339,8 @@ class D2F(DepthStage, FusionStage, FocusStage, TrainingStage, nn.Module):
             focal_range: ``r``, a span of disparity around ``focus`` that stays perfectly
                 sharp, the blur growing from its edges (``CoC = K max(0, |d - f| - r/2)``);
                 with fusion every pixel inside it is the photo's own, at full resolution.
-                0 (default) is the thin lens; :meth:`focus_at` can measure a subject's range.
+                0 is the thin lens; :meth:`focus_at` can measure a subject's range. ``None``
+                (default): the default focus's range when ``focus`` is ``None``, else 0.
             fusion: apply deep Poisson fusion at full resolution (else plain upsampling; a
                 pass at the photo's own size needs none and has none).
             max_side: preview mode: render at this long side, no fusion.
@@ -337,8 +372,13 @@ class D2F(DepthStage, FusionStage, FocusStage, TrainingStage, nn.Module):
         timings: dict[str, float] = {}
         t_all = time.perf_counter()
 
-        # 1. inputs of the rendering pass (preview: its own size, cached per size)
+        # 1. inputs of the rendering pass (preview: its own size, cached per size), the map
+        # edited by the brushes for this focus (the full-size steps see the full map edited)
         image_lr, disparity_lr, radiance_lr = self._pass_inputs(scene, max_side)
+        if scene.brushes is not None:
+            disparity_lr = scene.brushes.apply(disparity_lr, focus)
+            if max_side is None:
+                scene = scene.brushed(focus)
         # a focal range folded into the map: every later step sees its CoCs
         disparity_lr = fold_focal_range(disparity_lr, focus, focal_range)  # [1,1,h,w]
         lr_size = (int(image_lr.shape[-2]), int(image_lr.shape[-1]))
@@ -397,6 +437,7 @@ class D2F(DepthStage, FusionStage, FocusStage, TrainingStage, nn.Module):
             timings=timings,
             settings=settings,
             focus=float(focus),
+            focal_range=float(focal_range),
         )
         timings["to_numpy"] = ms_since(t0)
         timings["total"] = ms_since(t_all)
@@ -415,7 +456,7 @@ class D2F(DepthStage, FusionStage, FocusStage, TrainingStage, nn.Module):
         focus: float | None,
         blur: float | None,
         f_number: float | None,
-        focal_range: float,
+        focal_range: float | None,
         budget: Any,
         render_options: dict[str, Any],
     ) -> tuple[float, float, float, str | float | None]:
@@ -434,10 +475,10 @@ class D2F(DepthStage, FusionStage, FocusStage, TrainingStage, nn.Module):
             if isinstance(f_number, bool) or not isinstance(f_number, numbers.Real):
                 raise ValueError(f"f_number must be a number, got {f_number!r}")
             blur = blur_px(float(f_number), max(scene.size))
-        if focus is None and scene.focus is not None:
-            focus = scene.focus
-        elif focus is None:
-            focus = self.subject_focus(scene)[0]
+        if focus is None:
+            focus, auto_range, _, _ = self.default_focus(scene)
+            focal_range = auto_range if focal_range is None else focal_range
+        focal_range = 0.0 if focal_range is None else focal_range
         focus, blur = rendering.check_focus_blur(focus, 40.0 if blur is None else blur)
         focal_range = check_focal_range(focal_range)
         if "rotation" in render_options:  # named even when no kernel needs it

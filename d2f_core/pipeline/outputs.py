@@ -5,7 +5,7 @@ disparity ``d`` and the radiance ``R0`` of D2F steps 1-3) and a render (:class:`
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -13,6 +13,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from ..depth.brushes import Brushes
 from ..rendering import adaptive
 from ..sizing import resize
 
@@ -35,6 +36,8 @@ class Scene:
         refined: whether :meth:`D2F.refine_disparity` ran on the map.
         focus: the focal disparity the depth source recorded with the map (a phone's focal
             plane), ``None`` for the others; :meth:`D2F.render` focuses there by default.
+        brushes: the focus and blur paint (:meth:`D2F.paint`), applied by every render for
+            its focus; ``None`` when nothing is painted.
         cache: derived tensors (full-res disparity, preview-size inputs), filled lazily.
     """
 
@@ -48,7 +51,17 @@ class Scene:
     refined: bool = True
     focus: float | None = None
     given_disparity: Tensor | None = field(default=None, repr=False)
+    brushes: Brushes | None = field(default=None, repr=False)
     cache: dict[Any, Any] = field(default_factory=dict, repr=False)
+
+    def brushed(self, focus: float) -> Scene:
+        """This scene as a render focused at ``focus`` sees it: its full-resolution map
+        edited by the brushes (itself when nothing is painted)."""
+        if self.brushes is None:
+            return self
+        with torch.no_grad():
+            d = self.brushes.apply(self.disparity_full_tensor(), focus)
+        return replace(self, given_disparity=d, brushes=None, cache={"disparity_full": d})
 
     def disparity_full_tensor(self) -> Tensor:
         """Disparity at full resolution, ``[1, 1, H, W]`` in [0, 1] (cached).
@@ -98,6 +111,8 @@ class Result:
             (:class:`adaptive.RenderSettings`: layer count, reduced-resolution preset,
             identity path, predicted PSNR), ``None`` when the settings were fixed.
         focus: the focal disparity rendered at (the subject's when none was given).
+        focal_range: the span of disparity kept sharp around it (the subject's when no
+            focus was given).
     """
 
     bokeh: np.ndarray
@@ -108,3 +123,4 @@ class Result:
     timings: dict[str, float]
     settings: adaptive.RenderSettings | None = None
     focus: float | None = None
+    focal_range: float = 0.0

@@ -1,0 +1,143 @@
+"""The focus and blur brushes of the page: paint over the photo what must stay sharp (green)
+or be blurred (red), whatever the depth map says (``D2F.paint``).
+
+The paint is the session's: every later render applies it for its own focus, so it stays
+when the focus or the aperture changes, until it is cleared or another photo is loaded. The
+masks as painted are kept as PNG files in the session's folder, and the status line's
+``d2f render`` command names them (``--sharp-mask``, ``--blur-mask``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from PIL import Image
+
+from app.reporting import NO_PHOTO, SKIP4, user_error
+from app.sessions import Session, reported
+from d2f_core.depth.brushes import Brushes
+
+log = logging.getLogger("app.handlers")
+
+#: The brushes' colours on the canvas, with their opacity: keep sharp, blur.
+SHARP_COLOUR = "#22c55e"
+BLUR_COLOUR = "#ef4444"
+BRUSH_OPACITY = 0.6
+
+
+def masks_from_layers(layers: Any) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The keep-sharp and blur masks (``H x W`` float32, 1 = painted, ``None`` where nothing
+    is) of the editor's paint layers (``H x W x 4`` RGBA): a painted pixel (alpha > 0) is
+    "keep sharp" where the green brush left more green than red, "blur" otherwise."""
+    sharp = blur = None
+    for layer in layers or []:
+        a = np.asarray(layer)
+        if a.ndim != 3 or a.shape[2] != 4 or a.size == 0:
+            raise user_error(f"The paint layer must be an RGBA picture, got shape {a.shape}.")
+        painted = a[..., 3] > 0
+        green = a[..., 1].astype(np.int16) > a[..., 0].astype(np.int16)
+        for kind, where in (("sharp", painted & green), ("blur", painted & ~green)):
+            if not where.any():
+                continue
+            if kind == "sharp":
+                sharp = where if sharp is None else (sharp | where)
+            else:
+                blur = where if blur is None else (blur | where)
+    return tuple(None if m is None else m.astype(np.float32) for m in (sharp, blur))
+
+
+def paint_id(sharp: np.ndarray | None, blur: np.ndarray | None, edges: bool) -> str:
+    """A short name of the paint's content ("" for none)."""
+    if sharp is None and blur is None:
+        return ""
+    h = hashlib.sha1(str(bool(edges)).encode())
+    for m in (sharp, blur):
+        h.update(b"-" if m is None else m.shape.__repr__().encode() + np.packbits(m > 0).tobytes())
+    return h.hexdigest()[:12]
+
+
+class PaintEvents:
+    """The brushes' events as methods of :class:`~app.handlers.RefocusApp`."""
+
+    @reported
+    def paint_canvas(self, session: Session | None) -> Any:
+        """The paint editor's value for ``session``'s photo: the photo at display size as the
+        canvas's background, no paint (``None`` without a photo)."""
+        if session is None:
+            return None
+        return {"background": session.before, "layers": [], "composite": None}
+
+    def _keep_paint(
+        self, session: Session, sharp: np.ndarray | None, blur: np.ndarray | None, edges: bool
+    ) -> None:
+        """Make the paint the session's: its brushes (edges following the photo's) and the
+        masks' files; no paint clears both."""
+        name = paint_id(sharp, blur, edges)
+        if name == session.paint_id:
+            return
+        brushes, files = None, {}
+        if name:
+            w, h = session.size
+            for what, m in (("painted keep-sharp", sharp), ("painted blur", blur)):
+                if m is not None and abs(np.log((m.shape[1] / m.shape[0]) / (w / h))) > 0.05:
+                    raise user_error(
+                        f"The {what} mask is {m.shape[1]}x{m.shape[0]}, not the photo's shape "
+                        f"({w}x{h}): paint on the photo shown in the brushes' panel."
+                    )
+            image = session.get_scene().image
+            brushes = Brushes.painted(image, sharp, blur, edges=edges)
+            folder = self._session_dir(session, "paint")
+            for key, m in (("sharp", sharp), ("blur", blur)):
+                if m is not None:
+                    path = Path(folder) / f"{key}_mask_{name}.png"
+                    Image.fromarray((m > 0).astype(np.uint8) * 255).save(path)
+                    files[key] = path
+        with session.lock:
+            session.brushes = brushes
+            session.paint_id = name if brushes is not None else ""
+            session.paint_files = files if brushes is not None else {}
+        log.info("paint %s: %s", session.name, session.paint_id or "cleared")
+
+    @reported(dropped=SKIP4)
+    def apply_paint(
+        self,
+        session: Session | None,
+        editor: Any,
+        edges: Any,
+        *controls: Any,
+    ) -> tuple:
+        """Take the paint of the brushes' editor (its layers) and render with it.
+
+        ``editor``: the ``gr.ImageEditor`` value (``{"background", "layers", "composite"}``,
+        numpy RGBA); ``edges``: strokes' rims follow the photo's edges; ``controls``: the
+        render's inputs after the session, as :meth:`render_full` takes them.
+
+        Returns:
+            ``(result, compare, legend, info)`` of the full render with the paint.
+        """
+        if session is None:
+            raise user_error(NO_PHOTO)
+        if controls and not session.shown_by(controls[-1]):
+            return SKIP4
+        layers = editor.get("layers") if isinstance(editor, dict) else None
+        sharp, blur = masks_from_layers(layers)
+        self._keep_paint(session, sharp, blur, bool(edges))
+        return self.render_full(session, *controls)
+
+    @reported(dropped=SKIP4)
+    def clear_paint(self, session: Session | None, *controls: Any) -> tuple:
+        """Clear the session's paint and render without it (nothing to do without a photo).
+
+        Returns:
+            ``(result, compare, legend, info)``.
+        """
+        if session is None:
+            return SKIP4
+        if controls and not session.shown_by(controls[-1]):
+            return SKIP4
+        self._keep_paint(session, None, None, True)
+        return self.render_full(session, *controls)

@@ -1,0 +1,181 @@
+"""The focus and blur brushes in the real page (headless Chromium): paint with the green
+brush over a part of the background that the map blurs, Apply, and it is sharp; it stays
+sharp when the aperture changes; the red brush blurs a part of the subject in focus; Clear
+paint gives the picture without paint again. The status line's command names the masks."""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pytest
+from _browser import TIMEOUT_MS, click_photo_at, fetch_image, open_app, result_src, wait_new_result
+from PIL import Image
+
+pytestmark = [pytest.mark.browser, pytest.mark.slow]
+
+STATUS = "(document.querySelector('#info textarea')?.value ?? '')"
+WIDTH, HEIGHT = 960, 720
+#: the subject, near (0.85), before a wall far away (0.1)
+SUBJECT = (120, 160, 400, 560)
+#: where the green brush paints (photo pixels x0, y0, x1, y1), on the wall
+PAINT = (560, 160, 880, 340)
+
+
+def _write_scene(folder):
+    rng = np.random.default_rng(5)
+    cells = rng.integers(30, 226, size=(HEIGHT // 2, WIDTH // 2, 3), dtype=np.uint8)
+    image = cells.repeat(2, 0).repeat(2, 1)
+    disparity = np.full((HEIGHT, WIDTH), 0.1, np.float32)
+    x0, y0, x1, y1 = SUBJECT
+    disparity[y0:y1, x0:x1] = 0.85
+    photo, depth = folder / "wall.png", folder / "wall_disparity.png"
+    Image.fromarray(image).save(photo)
+    Image.fromarray((disparity * 255).round().astype(np.uint8)).save(depth)
+    return photo, depth, image
+
+
+def _wait_status(page, *parts: str, absent: str | None = None, old: str | None = None) -> str:
+    page.wait_for_function(
+        f"""([parts, absent, old]) => {{
+            const s = {STATUS};
+            return s !== old && parts.every(p => s.includes(p))
+                && (absent === null || !s.includes(absent));
+        }}""",
+        arg=[list(parts), absent, old],
+        timeout=TIMEOUT_MS,
+    )
+    return page.locator("#info textarea").input_value()
+
+
+def _picture(page, old_src):
+    src = result_src(page)
+    if src == old_src:
+        src = wait_new_result(page, old_src)
+    return src, fetch_image(page, src)
+
+
+def _to_canvas(page, x: float, y: float) -> tuple[float, float]:
+    """Page coordinates of photo pixel (x, y) on the editor's canvas: the photo is drawn
+    centred at the zoom the editor shows (its "NN%")."""
+    box = page.locator("#paint canvas").first.bounding_box()
+    zoom_text = page.locator("#paint").get_by_text(re.compile(r"^\d+%$")).first.inner_text()
+    zoom = float(zoom_text.rstrip("%")) / 100.0
+    ox = box["x"] + (box["width"] - WIDTH * zoom) / 2
+    oy = box["y"] + (box["height"] - HEIGHT * zoom) / 2
+    return ox + (x + 0.5) * zoom, oy + (y + 0.5) * zoom
+
+
+def _paint(page, rect, rows: int = 8) -> None:
+    """Strokes across ``rect`` (photo pixels), row after row, with the tool selected."""
+    x0, y0, x1, y1 = rect
+    viewport = page.viewport_size
+    for y in np.linspace(y0 + 10, y1 - 10, rows):
+        ax, ay = _to_canvas(page, x0 + 10, y)
+        bx, _ = _to_canvas(page, x1 - 10, y)
+        assert 0 < ay < viewport["height"] and 0 < bx < viewport["width"], "canvas off screen"
+        page.mouse.move(ax, ay)
+        page.mouse.down()
+        for t in np.linspace(0.0, 1.0, 12):
+            page.mouse.move(ax + (bx - ax) * t, ay)
+        page.mouse.up()
+
+
+def test_brushes_keep_sharp_and_blur(app_server, chromium_launch_options, sharpness, tmp_path):
+    from playwright.sync_api import sync_playwright
+
+    photo, depth, image = _write_scene(tmp_path)
+    x0, y0, x1, y1 = PAINT
+    inside = (x0 + 40, y0 + 30, x1 - 40, y1 - 30)  # the paint's inside, away from its rim
+    wall = (560, 440, 880, 660)  # wall never painted
+    sx0, sy0, sx1, sy1 = SUBJECT
+    subject_left, subject_right = (
+        (sx0 + 20, sy0 + 20, 240, sy1 - 20),
+        (290, sy0 + 20, sx1 - 20, sy1 - 20),
+    )
+    server = app_server()
+    errors: list[str] = []
+    with sync_playwright() as p:
+        browser = p.chromium.launch(**chromium_launch_options)
+        try:
+            page = open_app(browser, server.url, height=1300, errors=errors)
+            page.set_input_files("#input input[type=file]", str(photo))
+            _wait_status(page, "full render")
+            page.get_by_text("Your own depth map (optional)").click()
+            page.set_input_files("#depth input[type=file]", str(depth))
+            _wait_status(page, "your disparity map")
+            old = result_src(page)
+            click_photo_at(page, (sx0 + sx1) // 2, (sy0 + sy1) // 2)
+            info = _wait_status(page, "focused on the click", "full render")
+            src, plain = _picture(page, old)
+            assert sharpness(plain, inside) < 0.5 * sharpness(image, inside)
+            assert sharpness(plain, subject_left) >= 0.95 * sharpness(image, subject_left)
+
+            # 1. the green brush over the wall, applied: the painted wall is sharp, the rest
+            # as before, and the command names the mask
+            page.get_by_text("Brushes: keep sharp / blur").click()
+            page.wait_for_selector("#paint canvas")
+            page.wait_for_function(
+                "() => [...document.querySelectorAll('#paint *')].some("
+                "e => /^\\d+%$/.test(e.textContent.trim()))"
+            )
+            page.locator("#paint canvas").first.scroll_into_view_if_needed()
+            page.locator("#paint button[aria-label=Brush]").click()
+            _paint(page, PAINT)
+            page.locator("#paint_apply").click()
+            info = _wait_status(page, "painted:", "full render", old=info)
+            assert "--sharp-mask " in info and "--blur-mask" not in info
+            mask_path = re.search(r"--sharp-mask (\S+)", info).group(1)
+            mask = np.asarray(Image.open(mask_path)) > 0
+            assert mask.shape == (HEIGHT, WIDTH)
+            ys, xs = np.nonzero(mask)
+            # the strokes cover the painted rectangle (the brush's width around each row)
+            assert xs.min() <= x0 + 20 and xs.max() >= x1 - 20, (xs.min(), xs.max())
+            assert ys.min() <= y0 + 20 and ys.max() >= y1 - 20, (ys.min(), ys.max())
+            assert not mask[wall[1] :, :].any() and not mask[:, :sx1].any()
+            ix0, iy0, ix1, iy1 = inside
+            assert mask[iy0:iy1, ix0:ix1].all()  # rows of strokes with no gap between them
+
+            src, painted = _picture(page, src)
+            assert sharpness(painted, inside) >= 0.9 * sharpness(image, inside)
+            assert sharpness(painted, subject_left) >= 0.95 * sharpness(image, subject_left)
+            assert sharpness(painted, wall) == pytest.approx(sharpness(plain, wall), rel=0.05)
+            # 2. another aperture: the paint stays
+            box = page.locator("#blur input[data-testid=number-input]")
+            box.click()
+            box.fill("2")
+            box.press("Enter")
+            info = _wait_status(page, "f/2,", "painted:", "full render", old=info)
+            src, f2 = _picture(page, src)
+            assert sharpness(f2, inside) >= 0.9 * sharpness(image, inside)
+            # the unpainted wall: less blurred than at f/1.4, still blurred
+            assert sharpness(plain, wall) < sharpness(f2, wall) < 0.9 * sharpness(image, wall)
+
+            # 3. the red brush over the subject's right part: blurred, its left part sharp
+            page.locator("#paint button[aria-label=Color]").click()
+            # the palette's swatches: green (keep sharp), red (blur)
+            page.locator("#paint button.color").nth(1).click()
+            page.locator("#paint button[aria-label=Brush]").click()
+            _paint(page, (290, sy0 + 10, sx1 + 30, sy1 - 10))
+            page.locator("#paint_apply").click()
+            info = _wait_status(page, "% blurred", "full render", "--blur-mask", old=info)
+            src, red = _picture(page, src)
+            # as blurred as the wall (the red paint sends it to the far end of the depth)
+            assert sharpness(red, subject_right) < 0.85 * sharpness(image, subject_right)
+            assert sharpness(red, subject_right) < 1.1 * sharpness(red, wall)
+            assert sharpness(red, subject_left) >= 0.9 * sharpness(image, subject_left)
+            assert sharpness(red, inside) >= 0.9 * sharpness(image, inside)
+
+            # 4. cleared: the picture without paint, the canvas back to the photo
+            page.locator("#paint_clear").click()
+            info = _wait_status(page, "full render", absent="painted:", old=info)
+            assert "--sharp-mask" not in info
+            src, cleared = _picture(page, src)
+            assert sharpness(cleared, inside) < 0.85 * sharpness(image, inside)
+            assert sharpness(cleared, inside) < 1.1 * sharpness(cleared, wall)
+            assert sharpness(cleared, subject_right) >= 0.95 * sharpness(image, subject_right)
+        finally:
+            browser.close()
+    assert not errors, errors
+    log = server.log.read_text()
+    assert "Traceback" not in log, log[-3000:]
