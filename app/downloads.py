@@ -43,13 +43,13 @@ class DownloadEvents:
             if shown is not None and not session.shows_last_full(shown):
                 return gr.skip()  # the page shows another picture
             done = session.download_file
-            image = None
-            if done is None or done[:2] != (params, fmt) or not done[2].exists():
-                image = session.last_full
-        if done is not None and image is None:  # written already: hand out the same file
+            written = done is not None and done[:2] == (params, fmt) and done[2].exists()
+        if written:  # hand out the same file
             w, h = session.size
             label = f"Download {fmt} ({w}x{h})"
             return gr.update(value=str(done[2]), label=label, interactive=True)
+        # the full resolution, rendered now when the page shows it at the screen's size
+        image = self.full_res_picture(session, params)
         if image is None:
             return gr.skip()
         # each file in its own numbered folder, written once: a file handed to Gradio is

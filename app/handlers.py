@@ -13,7 +13,8 @@ has made this one obsolete.
 
 The handlers live by concern: uploads and depth sources in :mod:`app.loading`, the render
 events (views, preview, full render, click) in :mod:`app.render_events`, downloads in
-:mod:`app.downloads`, the brushes in :mod:`app.painting`, the per-session cache in
+:mod:`app.downloads`, the brushes in :mod:`app.painting`, the loupe in :mod:`app.loupe`,
+the per-session cache in
 :mod:`app.sessions`; the page's settings are in :mod:`app.settings` and the error reporting
 in :mod:`app.reporting`. :class:`RefocusApp` joins them.
 """
@@ -33,6 +34,7 @@ from typing import Any
 from app.cache import SCENE_CACHE, SceneCache
 from app.downloads import DownloadEvents
 from app.loading import LoadEvents
+from app.loupe import LoupeEvents
 from app.painting import PaintEvents
 from app.render_events import RenderEvents
 from app.sessions import DEFAULT_MAX_SESSIONS, DEFAULT_SESSION_IDLE_S, Session, SessionRegistry
@@ -51,7 +53,9 @@ def _env_number(name: str, default: float) -> float:
         return default
 
 
-class RefocusApp(SessionRegistry, LoadEvents, RenderEvents, PaintEvents, DownloadEvents):
+class RefocusApp(
+    SessionRegistry, LoadEvents, RenderEvents, PaintEvents, LoupeEvents, DownloadEvents
+):
     """The app's logic, independent of the page layout.
 
     Args:

@@ -136,6 +136,7 @@ def build_demo(
         events.renders()
         events.clicks()
         events.paint()
+        events.loupe()
         events.views()
 
         # a closed tab frees its photo at once (API clients' sessions expire when idle)

@@ -20,6 +20,7 @@ from app.settings import (
     FOCAL_RANGE_MAX,
     FOCAL_RANGE_STEP,
     FORMATS,
+    LOUPE_SIZE,
     QUALITIES,
     VIEWS,
 )
@@ -209,6 +210,15 @@ def result_panel() -> SimpleNamespace:
         max_height=PANEL_HEIGHT,
     )
     legend = gr.HTML(visible=False, elem_id="legend", label="Legend")
+    # the region around a click on the result, at the photo's full resolution
+    loupe = gr.Image(
+        label="100 % view: click the result",
+        format="png",
+        interactive=False,
+        elem_id="loupe",
+        height=LOUPE_SIZE[1],
+        buttons=["fullscreen"],
+    )
     info = gr.Textbox(label="Status", interactive=False, elem_id="info")
     with gr.Row():
         fmt = gr.Radio(list(FORMATS), value="JPEG", label="Download format", elem_id="format")
@@ -218,6 +228,6 @@ def result_panel() -> SimpleNamespace:
     # sends it, and one sent for the photo before is dropped
     photo_id = gr.Textbox("", visible="hidden", interactive=False, elem_id="photo_id")
     return SimpleNamespace(
-        view=view, result=result, compare=compare, legend=legend, info=info, fmt=fmt,
+        view=view, result=result, compare=compare, legend=legend, loupe=loupe, info=info, fmt=fmt,
         download=download, photo_id=photo_id,
     )  # fmt: skip

@@ -13,6 +13,7 @@ from typing import Any
 
 import gradio as gr
 import numpy as np
+from PIL import Image
 
 from app import imaging
 from app.command import render_command
@@ -23,6 +24,7 @@ from app.settings import (
     FOCAL_RANGE_MAX,
     PREVIEW_MAX_SIDE,
     REFERENCE_SIZE,
+    SCREEN_SIDE,
     VIEWS,
     RenderParams,
     position_of,
@@ -105,17 +107,21 @@ class RenderEvents:
             session.files_written += 1
             return f"{session.files_written:09d}{suffix}"
 
-    def _display_file(self, session: Session, image: np.ndarray) -> str:
-        """Write a picture for the browser as JPEG (:func:`app.imaging.write_display`) and
-        return its path; the download is written apart, at full resolution.
+    def _display_file(self, session: Session, image: np.ndarray, lossless: bool = False) -> str:
+        """Write a picture for the browser as JPEG (:func:`app.imaging.write_display`), or as
+        a PNG with ``lossless`` (the 100 % loupe's pixels are judged one by one), and return
+        its path; the download is written apart, at full resolution.
 
         Gradio would encode arrays itself as PNG at level 6 (0.7 s for 1600x1200 here); it
         copies the file into its cache after the event returns, so a file is removed only
         once it is old (see :func:`prune_files`).
         """
         folder = self._session_dir(session, "display")
-        path = folder / self._next_name(session, ".jpg")
-        imaging.write_display(image, path)
+        path = folder / self._next_name(session, ".png" if lossless else ".jpg")
+        if lossless:
+            Image.fromarray(image).save(path, format="PNG", compress_level=1)
+        else:
+            imaging.write_display(image, path)
         prune_files(folder, DISPLAY_FILES_KEPT)
         return str(path)
 
@@ -274,8 +280,12 @@ class RenderEvents:
             photo = session.upload_name or f"{session.name}.jpg"
             source = getattr(scene, "disparity_source", "d2f")
             command = render_command(params, photo, source, masks=session.paint_files)
+            # the picture at the screen's size: the full resolution waits for the download
+            screen = SCREEN_SIDE if max(session.size) > SCREEN_SIDE else None
             t0 = time.perf_counter()
-            result = self.model.render(scene, params.focus, params.blur, **params.render_options())
+            result = self.model.render(
+                scene, params.focus, params.blur, screen=screen, **params.render_options()
+            )
             del scene
             ms = 1000 * (time.perf_counter() - t0)
         except BaseException:
@@ -285,6 +295,9 @@ class RenderEvents:
             raise
         bokeh = imaging.to_uint8(result.bokeh)
         extra = self._settings_text(result.settings, params.quality)
+        if screen is not None:
+            sh, sw = bokeh.shape[:2]
+            extra += f" | shown at {sw}x{sh}, the download at full resolution"
         info = self._info(session, params, "full", ms, extra) + f" | reproduce: {command}" + note
         with session.lock:
             if session.full_seq != seq or session.closed:
@@ -294,15 +307,39 @@ class RenderEvents:
                 # full render will follow): an older value's picture must not replace it
                 session.full_params = None
                 return SKIP4
-            # the full render waits on disk for the download, not in memory
-            folder = self._session_dir(session, "")
-            part = folder / "last_full.part.npy"
-            np.save(part, bokeh)
-            os.replace(part, folder / "last_full.npy")
             session.last_full_params = params
             session.last_full_info = info
+            if screen is None:  # the photo's own size: the download's picture already
+                self._keep_full_res(session, params, bokeh)
             self._store_views(session, result, bokeh)
         return (*self.view_outputs(session, view), info)
+
+    def _keep_full_res(self, session: Session, params: RenderParams, bokeh: np.ndarray) -> None:
+        """Keep the full-resolution picture of ``params`` on disk for the download, not in
+        memory (call with the session's lock held)."""
+        folder = self._session_dir(session, "")
+        part = folder / "last_full.part.npy"
+        np.save(part, bokeh)
+        os.replace(part, folder / "last_full.npy")
+        session.full_res_params = params
+
+    def full_res_picture(self, session: Session, params: RenderParams) -> np.ndarray | None:
+        """The full-resolution picture of ``params``, the shown render's: read from disk, or
+        rendered now (the page shows it at the screen's size); ``None`` when the page has
+        moved on to other values meanwhile."""
+        with session.lock:
+            image = session.last_full if session.full_res_params == params else None
+        if image is not None:
+            return image
+        scene = session.scene
+        result = self.model.render(scene, params.focus, params.blur, **params.render_options())
+        del scene
+        bokeh = imaging.to_uint8(result.bokeh)
+        with session.lock:
+            if session.last_full_params != params or session.closed:
+                return None
+            self._keep_full_res(session, params, bokeh)
+        return bokeh
 
     def _render_small(
         self, scene: Any, params: RenderParams, max_side: int

@@ -74,8 +74,10 @@ class Session:
         wanted: params of the latest render asked for (full or preview): a
             render of other params that finishes after it was asked for is dropped, so the
             picture always belongs to the last value the user set (:meth:`still_wanted`).
-        last_full_params: params of the full render saved for the download.
+        last_full_params: params of the latest full render (the picture at the screen's
+            size; its full resolution is rendered for the download).
         last_full_info: the status line of that full render.
+        full_res_params: params of the full-resolution picture on disk (:attr:`last_full`).
         last_preview: params of the latest preview asked for.
         asked_before: the values asked for before :attr:`wanted` (the last other ones):
             the page's when a release or option's full render that the user made before
@@ -98,6 +100,8 @@ class Session:
             render of the session applies, or None; :attr:`paint_id` names it (its hash) and
             :attr:`paint_files` holds the masks as painted (PNG, for the reproduce command).
         auto_range: the focal range the load gave the photo with its automatic focus.
+        loupe_point: the full-res point the 100 % loupe shows (None until the result is
+            clicked).
         token: this photo's name on the page (its hidden ``photo_id`` box): every render
             event sends the one the page held when the event started, and an event started
             for another photo than the session's is dropped (:meth:`shown_by`).
@@ -116,6 +120,7 @@ class Session:
     wanted: RenderParams | None = None
     last_full_params: RenderParams | None = None
     last_full_info: str = ""
+    full_res_params: RenderParams | None = None
     last_preview: RenderParams | None = None
     asked_before: RenderParams | None = None
     download_file: tuple[RenderParams, str, Path] | None = None
@@ -138,6 +143,7 @@ class Session:
     paint_id: str = ""
     paint_files: dict[str, Path] = field(default_factory=dict)
     auto_range: float = 0.0
+    loupe_point: tuple[float, float] | None = None
     lock: threading.RLock = field(default_factory=threading.RLock, repr=False)
 
     @property
@@ -156,6 +162,8 @@ class Session:
         """``(H, W, 3)`` uint8 of the latest full render (read from the session's folder)."""
         if self.last_full_params is None or self.folder is None:
             return None
+        if self.full_res_params != self.last_full_params:
+            return None  # rendered at the screen's size only, so far
         try:
             return np.load(self.folder / "last_full.npy")
         except FileNotFoundError:

@@ -28,6 +28,13 @@ def wants_first_look(size: tuple[int, int]) -> bool:
     return size[0] * size[1] > FIRST_LOOK_PIXELS
 
 
+#: The long side at which the result panel's picture of a larger photo is rendered
+#: (``D2F.render(..., screen=...)``): the size the page shows it at; the full resolution is
+#: rendered for the download and, region by region, for the 100 % loupe.
+SCREEN_SIDE = 1600
+#: The loupe's region, full-resolution pixels (width, height).
+LOUPE_SIZE = (480, 360)
+
 FORMATS = ("PNG", "JPEG")
 DEPTH_KINDS = ("disparity (bright = near)", "depth (bright = far)")
 #: File names of the pictures the app puts in the photo panel (:meth:`RefocusApp.photo_panel`):

@@ -323,6 +323,31 @@ class Wiring:
         ):
             event.success(logic.download, [p.session, p.fmt], [p.download], **self.chained)
 
+    def loupe(self) -> None:
+        """A click on the result shows that spot at 100 % in the loupe; every new picture of
+        the result renders the loupe's region again for the page's values."""
+        p, logic = self.page, self.logic
+
+        def on_result_select(evt: gr.SelectData, state, *values):
+            return logic.loupe(state, evt.index, *values)
+
+        p.result.select(
+            on_result_select,
+            self.render_inputs,
+            [p.loupe],
+            api_visibility="private",
+            **self.heavy,
+            **self.quiet,
+        )
+        p.result.change(
+            logic.refresh_loupe,
+            self.render_inputs,
+            [p.loupe],
+            api_visibility="private",
+            **self.heavy,
+            **self.quiet,
+        )
+
     def views(self) -> None:
         """The view and the download format: no render."""
         p, logic = self.page, self.logic

@@ -225,10 +225,13 @@ def _blur_of(args: argparse.Namespace, size: tuple[int, int]) -> float:
     return blur_px(args.f_number, max(size))
 
 
-def _choose_depth(src: Path, photo: Any, args: argparse.Namespace, depth_file: Path | None) -> Any:
+def _choose_depth(
+    src: Path, photo: Any, args: argparse.Namespace, depth_file: Path | None, engine: Engine
+) -> Any:
     """The photo's :class:`~d2f_core.depth.sources.DepthMap` from the source the command line
     names (``--depth-model``, else ``--depth``, else the phone's depth), or ``None`` for the
-    D2F network; logs the source (``-v``)."""
+    weights' own source (the D2F network's, or the scene teachers'); logs the source
+    (``-v``). The ``scene`` source runs with the weights' network (its subjects)."""
     from .depth.sources import DepthSource, depth_map
 
     source = args.depth_model
@@ -246,10 +249,17 @@ def _choose_depth(src: Path, photo: Any, args: argparse.Namespace, depth_file: P
     if source.kind == "d2f":
         logger.info("%s: depth from d2f (the shipped network)", src)
         return None
+    model = engine.model() if source.kind == "scene" else None
+    if source.kind == "scene" and model is None:
+        raise RenderError(
+            f"{src}: --depth-model scene needs the D2F weights, which are unavailable "
+            f"({engine.error})"
+        )
     depth = depth_map(
         source,
         photo.image,
         photo=photo,
+        model=model,
         file_kind=args.depth_kind,
         near=args.near,
         zero_is_hole=True if args.zero_is_hole else None,
@@ -316,7 +326,7 @@ def render_file(
         focus = focus_of_position(args.focus_position)
     focal_range = getattr(args, "focal_range", None)
     masks = _load_masks(args, (h, w))
-    depth = _choose_depth(src, photo, args, depth_file)
+    depth = _choose_depth(src, photo, args, depth_file, engine)
     if depth is not None and depth.focus is not None:
         if focus is None and args.focus_at is None:
             focus = float(depth.focus)

@@ -345,7 +345,8 @@ class TestEventsOfThePhotoBefore:
         model.go.set()
         thread.join(60)
         assert out["value"] == SKIP6
-        assert not b.closed and b.last_full_params.focal_range == 0.0
+        # B keeps the range its own load gave it (its subject's), not the click's on A
+        assert not b.closed and b.last_full_params.focal_range == b.auto_range
 
     def test_a_preview_whose_photo_is_replaced_while_it_renders(self, two_photos):
         logic, model, load, a_photo, b_photo = two_photos

@@ -38,6 +38,7 @@ from .focus import FocusStage
 from .fusion import FUSION_TILE, FusionStage, ms_since, to_numpy_image
 from .outputs import Result, Scene
 from .training import TrainingStage
+from .views import ViewStage
 
 
 def _recorded_focus(value: Any) -> float | None:
@@ -50,7 +51,7 @@ def _recorded_focus(value: Any) -> float | None:
     return min(max(f, 0.0), 1.0) if math.isfinite(f) else None
 
 
-class D2F(DepthStage, FusionStage, FocusStage, TrainingStage, nn.Module):
+class D2F(DepthStage, FusionStage, FocusStage, ViewStage, TrainingStage, nn.Module):
     """Defocus-to-Focus: defocus, radiance and fusion networks plus the layered renderer.
 
     Use :meth:`from_pretrained`, :meth:`from_checkpoint` or :meth:`from_config`; all return
@@ -319,6 +320,7 @@ class D2F(DepthStage, FusionStage, FocusStage, TrainingStage, nn.Module):
         *,
         f_number: float | None = None,
         focal_range: float | None = None,
+        screen: int | None = None,
         **render_options: Any,
     ) -> Result:
         """Refocus a prepared photo.
@@ -344,6 +346,11 @@ class D2F(DepthStage, FusionStage, FocusStage, TrainingStage, nn.Module):
             fusion: apply deep Poisson fusion at full resolution (else plain upsampling; a
                 pass at the photo's own size needs none and has none).
             max_side: preview mode: render at this long side, no fusion.
+            screen: the whole render at this long side, as the full render downscaled to it
+                (what a screen shows of a large photo): the photo downscaled, the pass at no
+                more than this side, fusion at this side (:meth:`screen_scene`); ``blur``
+                stays K at the photo's full resolution. The photo's own size or larger: the
+                full render.
             budget: error budget of the adaptive settings (:mod:`d2f_core.rendering.adaptive`):
                 ``"high"``, ``"balanced"`` or ``"fast"`` (45, 40, 30 dB against the exact
                 renderer), or a PSNR in dB. The layer count and reduced-resolution preset are
@@ -363,6 +370,10 @@ class D2F(DepthStage, FusionStage, FocusStage, TrainingStage, nn.Module):
         )
         if max_side is not None:
             max_side = whole_number(max_side, "max_side", 1)
+        if screen is not None and max_side is None:
+            small = self.screen_scene(scene, whole_number(screen, "screen", 1))
+            blur *= size_ratio(small.size, scene.size)  # K in the screen's pixels
+            scene = small
         pick = (
             budget is not None
             and render_options["order"] == "depth"
