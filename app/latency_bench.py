@@ -38,7 +38,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import shutil
 import statistics
 import sys
 import tempfile
@@ -49,7 +48,12 @@ from app.latency_probe import CHROMIUM, CHROMIUM_ARGS, CLICK_POINTS, PAGE_PROBE,
 from app.latency_server import BenchError, commit, loadavg, start_app, write_photos
 
 #: Named photo sizes, width x height.
-SIZES = {"small": (800, 600), "12mp": (4000, 3000)}
+SIZES = {"small": (800, 600), "1mp": (1152, 864), "12mp": (4000, 3000)}
+
+#: The actions whose 12 MP / 1 MP ratio is printed, and the most each may take: the picture
+#: on screen is rendered at the screen's size, so a large photo is as live as a small one.
+RATIO_ROWS = ("release", "click", "drag_step")
+RATIO_TARGET = 1.5
 
 
 #: Rows of the table: key -> what is timed.
@@ -96,45 +100,64 @@ def summarize(runs: list[float]) -> dict[str, Any]:
     }
 
 
-def bench_size(
-    probe: Probe, photos: list[Path], repeats: int, steps: int, upload_timeout_ms: float
-) -> dict[str, Any]:
-    """All four figures on one page: ``photos[0]`` is the untimed warm-up upload, then
-    ``repeats`` uploads, ``repeats`` clicks (after one untimed click) and ``repeats``
-    drags of ``steps`` steps each."""
-    results: dict[str, list[dict[str, Any]]] = {key: [] for key in ROWS}
-    warmup = probe.upload(photos[0], upload_timeout_ms)
-    probe.settle()
-    for path in photos[1 : repeats + 1]:
-        out = probe.upload(path, upload_timeout_ms)
-        results["upload"].append({**out, "ms": out["first_ms"]})
-        results["upload_full"].append(out)
+def bench_sizes(
+    probes: dict[str, tuple[Probe, list[Path], float]], repeats: int, steps: int
+) -> dict[str, dict[str, Any]]:
+    """All figures of every size, one page per size, interleaved round by round (each
+    round times every size in turn, so that the sizes share the machine's load): per page an
+    untimed warm-up upload (``photos[0]``), then ``repeats`` rounds of uploads, ``repeats``
+    rounds of clicks (after one untimed click each) and ``repeats`` rounds of drags of
+    ``steps`` steps each. ``probes``: name -> ``(probe, photos, upload timeout in ms)``."""
+    results = {name: {key: [] for key in ROWS} for name in probes}
+    warmups = {}
+    for name, (probe, photos, upload_ms) in probes.items():
+        warmups[name] = probe.upload(photos[0], upload_ms)
         probe.settle()
-    for i in range(repeats + 1):
-        out = probe.click_photo(*CLICK_POINTS[i % len(CLICK_POINTS)])
-        probe.settle()
-        if i:  # the first click warms focus_at up
-            results["click"].append({**out, "ms": out["first_ms"]})
-            results["click_full"].append(out)
     for i in range(repeats):
-        # there and back again: the blur stays in the same range repeat after repeat
-        moves, release = probe.drag(steps, 1 if i % 2 == 0 else -1)
-        results["drag_step"].extend(moves)
-        results["release"].append(release)
-    rows = {}
-    for key, outs in results.items():
-        row = summarize([o["ms"] for o in outs])
-        server = [o["server_ms"] for o in outs if o["server_ms"] is not None]
-        row["server_median_ms"] = statistics.median(server) if server else None
-        row["new_src"] = [o["new_src"] for o in outs]
-        row["picture_diff"] = [o["picture_diff"] for o in outs]
-        row["status"] = [o["status"] for o in outs]
-        rows[key] = row
-    return {"rows": rows, "warmup_upload_ms": warmup["ms"], "warmup_status": warmup["status"]}
+        for name, (probe, photos, upload_ms) in probes.items():
+            out = probe.upload(photos[i + 1], upload_ms)
+            results[name]["upload"].append({**out, "ms": out["first_ms"]})
+            results[name]["upload_full"].append(out)
+            probe.settle()
+    for i in range(repeats + 1):
+        for name, (probe, _, _) in probes.items():
+            out = probe.click_photo(*CLICK_POINTS[i % len(CLICK_POINTS)])
+            probe.settle()
+            if i:  # the first click warms focus_at up
+                results[name]["click"].append({**out, "ms": out["first_ms"]})
+                results[name]["click_full"].append(out)
+    for i in range(repeats):
+        for name, (probe, _, _) in probes.items():
+            # there and back again: the blur stays in the same range repeat after repeat
+            moves, release = probe.drag(steps, 1 if i % 2 == 0 else -1)
+            results[name]["drag_step"].extend(moves)
+            results[name]["release"].append(release)
+    entries = {}
+    for name, by_key in results.items():
+        rows = {}
+        for key, outs in by_key.items():
+            row = summarize([o["ms"] for o in outs])
+            server = [o["server_ms"] for o in outs if o["server_ms"] is not None]
+            row["server_median_ms"] = statistics.median(server) if server else None
+            row["new_src"] = [o["new_src"] for o in outs]
+            row["picture_diff"] = [o["picture_diff"] for o in outs]
+            row["status"] = [o["status"] for o in outs]
+            rows[key] = row
+        warmup = warmups[name]
+        entries[name] = {
+            "rows": rows, "warmup_upload_ms": warmup["ms"], "warmup_status": warmup["status"]
+        }  # fmt: skip
+    return entries
+
+
+def size_ratios(result: dict[str, Any], large: str, small: str) -> dict[str, float]:
+    """Median ms of ``large`` over ``small`` for each of :data:`RATIO_ROWS`."""
+    a, b = result["sizes"][large]["rows"], result["sizes"][small]["rows"]
+    return {key: a[key]["median_ms"] / b[key]["median_ms"] for key in RATIO_ROWS}
 
 
 def run_bench(
-    sizes: list[str] | tuple[str, ...] = ("small", "12mp"),
+    sizes: list[str] | tuple[str, ...] = ("1mp", "12mp"),
     *,
     repeats: int = 3,
     steps: int = 5,
@@ -146,7 +169,8 @@ def run_bench(
     """Run the bench; see the module's docstring.
 
     Args:
-        sizes: ``small`` (800x600), ``12mp`` (4000x3000) or ``WxH``.
+        sizes: ``small`` (800x600), ``1mp`` (1152x864), ``12mp`` (4000x3000) or ``WxH``;
+            timed round by round, each round every size in turn.
         repeats: timed repeats of each figure (``drag_step`` has ``repeats * steps``).
         steps: mouse moves per drag.
         threads: the app's torch threads (default ``$D2F_APP_THREADS`` or 1, as the app).
@@ -195,6 +219,7 @@ def run_bench(
                 )
                 result["chromium"] = browser.version
                 try:
+                    probes, files = {}, {}
                     for name, (w, h) in parsed:
                         photos = write_photos(folder / name, (w, h), repeats + 1)
                         page = browser.new_page(viewport={"width": 1400, "height": 900})
@@ -202,16 +227,13 @@ def run_bench(
                         page.set_default_timeout(timeout_s * 1000)
                         page.goto(server.url)
                         page.wait_for_selector("#blur input[type=range]")
-                        probe = Probe(page, server, timeout_s * 1000)
                         upload_ms = (timeout_s + 10 * w * h / 1e6) * 1000
-                        entry = bench_size(probe, photos, repeats, steps, upload_ms)
-                        entry["size"] = [w, h]
-                        entry["file_mb"] = statistics.mean(p.stat().st_size for p in photos) / (
-                            1 << 20
-                        )
+                        probes[name] = (Probe(page, server, timeout_s * 1000), photos, upload_ms)
+                        files[name] = statistics.mean(p.stat().st_size for p in photos)
+                    for name, entry in bench_sizes(probes, repeats, steps).items():
+                        entry["size"] = list(dict(parsed)[name])
+                        entry["file_mb"] = files[name] / (1 << 20)
                         result["sizes"][name] = entry
-                        page.close()
-                        shutil.rmtree(folder / name, ignore_errors=True)
                 finally:
                     browser.close()
         finally:
@@ -257,6 +279,13 @@ def format_table(result: dict[str, Any]) -> str:
             f"{name}: untimed first upload {entry['warmup_upload_ms']:.0f} ms, "
             f"JPEG {entry['file_mb']:.2f} MB"
         )
+    if {"12mp", "1mp"} <= set(result["sizes"]):
+        lines += ["", "| action | 12 MP / 1 MP (medians, same run, interleaved) | target |",
+                  "| --- | ---: | --- |"]  # fmt: skip
+        for key, ratio in size_ratios(result, "12mp", "1mp").items():
+            verdict = "ok" if ratio <= RATIO_TARGET else "MISSED"
+            lines.append(f"| {ROWS[key]} | {ratio:.2f}x | <= {RATIO_TARGET}x: {verdict} |")
+        lines.append(f"load average (1, 5, 15 min) at the end: {result['loadavg_end']}")
     return "\n".join(lines)
 
 
@@ -266,7 +295,10 @@ def main(argv: list[str] | None = None) -> int:
         prog="python -m app.latency_bench", description=__doc__.splitlines()[0]
     )
     parser.add_argument(
-        "--sizes", default="small,12mp", help="comma-separated: small, 12mp or WxH (%(default)s)"
+        "--sizes",
+        default="1mp,12mp",
+        help="comma-separated: small, 1mp, 12mp or WxH (%(default)s); with 1mp and 12mp the "
+        "ratios of the two are printed",
     )
     parser.add_argument("--repeats", type=int, default=3, help="timed repeats (%(default)s)")
     parser.add_argument("--steps", type=int, default=5, help="mouse moves per drag (%(default)s)")

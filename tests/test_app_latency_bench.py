@@ -74,6 +74,31 @@ def test_table_marks_targets_at_12mp_only():
     assert "at start 1.00 0.50 0.25, at end 2.00 1.00 0.50" in lines[1]
 
 
+def test_table_gives_the_12mp_over_1mp_ratios():
+    def rows(release, click, step):
+        same = {"upload": _row(900), "upload_full": _row(900), "click_full": _row(click)}
+        return {**same, "click": _row(click), "release": _row(release), "drag_step": _row(step)}
+
+    result = {
+        "commit": "abc1234", "chromium": "156", "threads": 1, "repeats": 3, "steps": 5,
+        "loadavg_start": "1.00 0.50 0.25", "loadavg_end": "2.00 1.00 0.50",
+        "targets_ms": dict(latency_bench.TARGETS_MS),
+        "target_pixels": latency_bench.TARGET_PIXELS,
+        "sizes": {
+            "1mp": {"rows": rows(200, 300, 100), "warmup_upload_ms": 1.0, "file_mb": 0.2,
+                    "size": [1152, 864]},
+            "12mp": {"rows": rows(280, 480, 140), "warmup_upload_ms": 1.0, "file_mb": 2.0,
+                     "size": [4000, 3000]},
+        },
+    }  # fmt: skip
+    lines = format_table(result).splitlines()
+    ratios = {line.split(" | ")[0][2:]: line for line in lines if "x | <= 1.5x" in line}
+    assert ratios[ROWS["release"]] == f"| {ROWS['release']} | 1.40x | <= 1.5x: ok |"
+    assert ratios[ROWS["click"]] == f"| {ROWS['click']} | 1.60x | <= 1.5x: MISSED |"
+    assert ratios[ROWS["drag_step"]] == f"| {ROWS['drag_step']} | 1.40x | <= 1.5x: ok |"
+    assert lines[-1] == "load average (1, 5, 15 min) at the end: 2.00 1.00 0.50"
+
+
 @pytest.mark.browser
 @pytest.mark.slow
 def test_bench_in_browser_small(chromium_path, tmp_path, capsys):
