@@ -22,7 +22,7 @@ The renderer alone (:mod:`d2f_core.rendering`), for a photo and a disparity map 
 
 Files (:mod:`d2f_core.io`, the only module that reads and writes them)
     :func:`load_image`, :func:`load_photo` (with its embedded depth), :func:`load_depth`,
-    :func:`save_image`.
+    :func:`load_mask` (a brush's mask), :func:`save_image`.
 
 Errors
     Bad input raises ``ValueError`` naming the problem; :class:`InputTypeError` (a
@@ -80,6 +80,7 @@ _LAZY = {
     # files
     "load_depth": "io",
     "load_image": "io",
+    "load_mask": "io",
     "load_photo": "io",
     "save_image": "io",
     # errors

@@ -57,6 +57,11 @@ def test_python_examples_run(folder):
         env: dict = {}
         exec(compile(code, str(README), "exec"), env)  # noqa: S102
     assert (tmp / "bokeh.jpg").is_file() and (tmp / "bokeh2.jpg").is_file()
+    assert env["small"].bokeh.shape == (150, 200, 3)  # 288x384 at a 200 px screen
+    assert env["loupe"].bokeh.shape == (150, 200, 3)
+    painted = np.asarray(Image.open(tmp / "painted.jpg"), np.float32)  # the painted square
+    original = env["photo"].image[60:140, 60:140] * 255
+    assert np.abs(painted[60:140, 60:140] - original).mean() < 8.0  # sharp (JPEG's noise)
     # the example works on the original photo, not on Google's blurred picture
     assert env["photo"].image.std() > 0.2
     # and with the phone's depth: its map has the near left half nearer than the right
@@ -81,11 +86,13 @@ def test_command_lines_run(folder, capsys, tiny_checkpoint):
     assert len(commands) >= 4
     # as written, from the checkout: the shipped samples and what earlier lines wrote
     samples = Path(__file__).resolve().parents[1] / "assets" / "samples"
+    docs = Path(__file__).resolve().parents[1] / "docs"
     for argv in commands:
         argv = [a.replace("assets/samples", str(samples), 1) for a in argv[1:]]
+        argv = [a.replace("docs/", f"{docs}/", 1) if a.startswith("docs/") else a for a in argv]
         code = cli_main([*argv, "--weights", str(tiny_checkpoint)])
         assert code == 0, (argv, capsys.readouterr().err)
-    for name in ("coffee_bokeh.png", "coffee_cup.jpg", "coffee_own.jpg"):
+    for name in ("coffee_bokeh.png", "coffee_cup.jpg", "coffee_own.jpg", "coffee_cup_sharp.jpg"):
         assert (tmp / name).is_file(), name
     assert (tmp / "maps" / "coffee_bokeh_disparity.png").is_file()
     rendered = sorted(p.name for p in (tmp / "out").iterdir() if p.suffix != ".jsonl")
