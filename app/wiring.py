@@ -205,6 +205,16 @@ class Wiring:
         """Sliders (a preview while dragged, the full render on release) and options."""
         p, logic = self.page, self.logic
         render_full_ui = self.full_render_ui()
+
+        # a value set before a photo is loaded is kept quietly (the upload renders with it);
+        # an option or an API call with no photo still says what is missing
+        def release_ui(state, *values):
+            if state is None:
+                return (*(gr.skip(),) * len(self.shown), gr.skip())
+            return render_full_ui(state, *values)
+
+        release_ui.__signature__ = render_full_ui.__signature__
+        release_ui.__annotations__ = render_full_ui.__annotations__
         # .input only: the user's own moves of a slider, each followed by a release (never
         # .change as well: two concurrent runs break the image). A value set by an event
         # (the load's focus and range, a click's focus and range) is rendered by that event
@@ -221,7 +231,7 @@ class Wiring:
             )
             self.settled(previewed)
             released = slider.release(
-                render_full_ui,
+                release_ui,
                 self.render_inputs,
                 [*self.shown, p.download],
                 api_name=f"render_{slider.elem_id}",

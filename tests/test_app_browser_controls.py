@@ -257,3 +257,39 @@ def test_slow_events_show_progress(app_server, chromium_launch_options, scene_fa
             browser.close()
     log = server.log.read_text()
     assert "Traceback" not in log, log[-3000:]
+
+
+def test_aperture_set_before_an_upload_is_kept_quietly(
+    app_server, chromium_launch_options, scene_factory
+):
+    """An f-number typed before any photo is loaded raises no error; the upload that follows
+    renders with it."""
+    from playwright.sync_api import sync_playwright
+
+    scene = scene_factory(width=WIDTH, height=HEIGHT)
+    server = app_server()
+    errors: list[str] = []
+    with sync_playwright() as p:
+        browser = p.chromium.launch(**chromium_launch_options)
+        try:
+            page = open_app(browser, server.url, errors=errors)
+            box = page.locator("#blur input[data-testid=number-input]")
+            box.click()
+            box.fill("4")
+            box.press("Enter")
+            page.locator("#focus input[data-testid=number-input]").click()  # the box blurs
+            page.wait_for_timeout(1500)  # the release's answer has come back
+            toasts = page.locator(".toast-body").all_inner_texts()
+            assert not any("Upload a photo first" in t for t in toasts), toasts
+            assert page.locator("#info textarea").input_value() == ""
+            assert box.input_value() == "4"
+            page.set_input_files("#input input[type=file]", str(scene.photo))
+            page.wait_for_function(
+                f"() => {STATUS}.includes('full render') && {STATUS}.includes('f/4, blur')",
+                timeout=TIMEOUT_MS,
+            )
+        finally:
+            browser.close()
+    assert not errors, errors
+    log = server.log.read_text()
+    assert "Traceback" not in log and "Upload a photo first" not in log, log[-3000:]
