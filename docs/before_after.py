@@ -4,8 +4,8 @@
     python docs/before_after.py --photo chelsea.jpg --blur 40 --out /tmp/cat.jpg
 
 The photo (left) and d2f's render (right) with the shipped weights and their own depth
-estimate, focused on the subject the disparity map shows (``D2F.subject_focus``), as the
-CLI and the app do when no focus is given.
+estimate, focused on the subject the disparity map shows with the focal range that keeps it
+sharp (``D2F.default_focus``), as the library, the CLI and the app do when no focus is given.
 """
 
 from __future__ import annotations
@@ -35,11 +35,14 @@ def main(argv: list[str] | None = None) -> None:
     photo = load_image(by_name[args.photo])  # H x W x 3 float32 in [0, 1]
     model = D2F.from_pretrained()
     scene = model.prepare(photo)
-    focus, (x, y) = model.subject_focus(scene)
-    bokeh = model.render(scene, focus, args.blur).bokeh  # float32 in [0, 1]
+    focus, focal_range, (x, y), _ = model.default_focus(scene)
+    bokeh = model.render(scene, focus, args.blur, focal_range=focal_range).bokeh  # [0, 1]
     gap = np.ones((photo.shape[0], args.gap, 3), np.float32)
     save_image(args.out, np.concatenate([photo, gap, bokeh], axis=1), quality=88)
-    print(f"{args.out}: {args.photo}, focus {focus:.3f} at ({x:.0f}, {y:.0f}), K = {args.blur:g}")
+    print(
+        f"{args.out}: {args.photo}, focus {focus:.3f} at ({x:.0f}, {y:.0f}), focal range "
+        f"{focal_range:.3f}, K = {args.blur:g}"
+    )
 
 
 if __name__ == "__main__":
