@@ -12,22 +12,23 @@ from PIL import Image
 TIMEOUT_MS = 30_000
 
 
-def result_src(page) -> str | None:
-    return page.evaluate("() => document.querySelector('#result img')?.getAttribute('src')")
+def result_src(page, picture: str = "#result img") -> str | None:
+    return page.evaluate("(sel) => document.querySelector(sel)?.getAttribute('src')", picture)
 
 
-def wait_new_result(page, old: str | None) -> str:
-    """Wait until ``#result img`` shows a different, fully loaded file; return its src."""
+def wait_new_result(page, old: str | None, picture: str = "#result img") -> str:
+    """Wait until ``picture`` (the result's ``#result img`` by default) shows a different,
+    fully loaded file; return its src."""
     page.wait_for_function(
-        """(old) => {
-            const img = document.querySelector('#result img');
+        """([old, sel]) => {
+            const img = document.querySelector(sel);
             return img && img.getAttribute('src') && img.getAttribute('src') !== old
                 && img.complete && img.naturalWidth > 0;
         }""",
-        arg=old,
+        arg=[old, picture],
         timeout=TIMEOUT_MS,
     )
-    return result_src(page)
+    return result_src(page, picture)
 
 
 def wait_full_result(page, old: str | None) -> str:

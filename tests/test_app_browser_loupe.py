@@ -5,12 +5,9 @@ a new aperture renders the loupe's region again."""
 
 from __future__ import annotations
 
-import io
-import urllib.request
-
 import numpy as np
 import pytest
-from _browser import TIMEOUT_MS, open_app, wait_new_result
+from _browser import TIMEOUT_MS, fetch_image, open_app, result_src, wait_new_result
 from PIL import Image
 
 from app.settings import LOUPE_SIZE, SCREEN_SIDE
@@ -47,29 +44,6 @@ def _wait_status(page, *parts: str) -> None:
     page.wait_for_function(
         f"(parts) => parts.every(p => {STATUS}.includes(p))", arg=list(parts), timeout=TIMEOUT_MS
     )
-
-
-def _fetch(page, src: str) -> np.ndarray:
-    url = src if src.startswith("http") else page.url.rstrip("/") + "/" + src.lstrip("/")
-    with urllib.request.urlopen(url, timeout=10) as r:
-        return np.asarray(Image.open(io.BytesIO(r.read())).convert("RGB"))
-
-
-def _loupe_src(page) -> str | None:
-    return page.evaluate("() => document.querySelector('#loupe img')?.getAttribute('src')")
-
-
-def _wait_loupe(page, old: str | None) -> str:
-    page.wait_for_function(
-        """(old) => {
-            const img = document.querySelector('#loupe img');
-            return img && img.getAttribute('src') && img.getAttribute('src') !== old
-                && img.complete && img.naturalWidth > 0;
-        }""",
-        arg=old,
-        timeout=TIMEOUT_MS,
-    )
-    return _loupe_src(page)
 
 
 def _download(page, tmp_path) -> np.ndarray:
@@ -115,12 +89,12 @@ def test_screen_picture_download_and_loupe(app_server, chromium_launch_options, 
 
             # a click on the result at (400, 300) of its 1600x1200 picture: the region around
             # (600, 450) of the photo, at full resolution: the download's pixels there
-            old = _loupe_src(page)
+            old = result_src(page, "#loupe img")
             box = page.locator("#result img").bounding_box()
             x, y = 400.5 * box["width"] / shown[0], 300.5 * box["height"] / shown[1]
             page.locator("#result img").click(position={"x": x, "y": y})
-            src_loupe = _wait_loupe(page, old)
-            loupe = _fetch(page, src_loupe)
+            src_loupe = wait_new_result(page, old, "#loupe img")
+            loupe = fetch_image(page, src_loupe)
             assert loupe.shape == (h, w, 3)
             label = page.locator("#loupe").inner_text()
             assert f"100 % view: {w}x{h} px at" in label
@@ -135,7 +109,7 @@ def test_screen_picture_download_and_loupe(app_server, chromium_launch_options, 
             # focused far away: the result and the loupe follow, the region blurred
             _set(page, "focus", "0.9")
             _wait_status(page, "focus 0.900", "full render")
-            again = _fetch(page, _wait_loupe(page, src_loupe))
+            again = fetch_image(page, wait_new_result(page, src_loupe, "#loupe img"))
             assert np.abs(again.astype(int) - region)[mid].mean() > 10.0
             refreshed = _download(page, tmp_path)
             assert psnr(again / 255.0, refreshed[y0 : y0 + h, x0 : x0 + w] / 255.0) >= 40.0
