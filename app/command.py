@@ -56,6 +56,8 @@ def render_command(
     args += ["--quality", params.quality]
     if not params.highlight_boost:
         args.append("--no-highlight-boost")
+    elif params.highlight_boost != 1.0:
+        args += ["--highlight-boost", f"{params.highlight_boost:g}"]
     if not params.fusion:
         args.append("--no-fusion")
     for key, path in sorted((masks or {}).items(), reverse=True):  # sharp, then blur

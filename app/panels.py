@@ -14,6 +14,7 @@ from app import sources as depth_choice
 from app.handlers import RefocusApp
 from app.painting import BLUR_COLOUR, BRUSH_OPACITY, SHARP_COLOUR
 from app.settings import (
+    BOOST_MAX,
     DEFAULT_F_NUMBER,
     DEPTH_KINDS,
     F_NUMBER_RANGE,
@@ -106,6 +107,15 @@ def lens_controls() -> SimpleNamespace:
     blur_on = gr.Checkbox(
         value=True, label="Blur (untick for the photo as it is)", elem_id="blur_on"
     )
+    # Lightroom's "Boost": how bright the discs of clipped lights come out
+    highlight = gr.Slider(
+        0.0,
+        BOOST_MAX,
+        value=1.0,
+        step=0.05,
+        label="Boost: bright bokeh (0 = none, 1 = as bright as a real lens makes them)",
+        elem_id="hdr",
+    )
     with gr.Accordion("Advanced", open=False):
         blades = gr.Dropdown(
             choices=[("round", 0), *((f"{n} blades", n) for n in range(5, 10))],
@@ -115,9 +125,6 @@ def lens_controls() -> SimpleNamespace:
         )
         rotation = gr.Slider(
             0.0, 180.0, value=0.0, step=1.0, label="Blade rotation (degrees)", elem_id="rotation"
-        )
-        highlight = gr.Checkbox(
-            value=True, label="Highlight boost (bright bokeh balls)", elem_id="hdr"
         )
         fusion = gr.Checkbox(
             value=True, label="Fusion (keep in-focus detail at full resolution)", elem_id="fusion"

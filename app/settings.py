@@ -35,6 +35,10 @@ SCREEN_SIDE = 1600
 #: The loupe's region, full-resolution pixels (width, height).
 LOUPE_SIZE = (480, 360)
 
+#: The Boost slider's top: the strength of the highlight boost (``D2F.render``'s
+#: ``highlight_boost``; 1 makes clipped far lights as bright as a real lens does).
+BOOST_MAX = 3.0
+
 FORMATS = ("PNG", "JPEG")
 DEPTH_KINDS = ("disparity (bright = near)", "depth (bright = far)")
 #: File names of the pictures the app puts in the photo panel (:meth:`RefocusApp.photo_panel`):
@@ -80,6 +84,20 @@ def position_of(disparity: float) -> float:
 #: The CoC (px at the render pass) that the defocus map draws as 1 (the paper's schedule).
 
 
+def _boost(value: Any) -> float:
+    """The Boost slider's strength: a number in [0, :data:`BOOST_MAX`], or the old switch's
+    True (1) and False (0)."""
+    if value is None or isinstance(value, bool):
+        return 1.0 if value in (True, None) else 0.0
+    try:
+        boost = round(float(value), 3)
+    except (TypeError, ValueError):
+        raise user_error(f"Boost must be a number, got {value!r}.") from None
+    if not 0.0 <= boost <= BOOST_MAX:
+        raise user_error(f"Boost must be in [0, {BOOST_MAX:g}], got {value!r}.")
+    return boost
+
+
 @dataclass(frozen=True)
 class RenderParams:
     """What a render depends on besides the scene; equal params give equal pictures.
@@ -95,7 +113,7 @@ class RenderParams:
     blur: float
     blades: int = 0
     rotation: float = 0.0
-    highlight_boost: bool = True
+    highlight_boost: float = 1.0
     fusion: bool = True
     quality: str = "balanced"
     f_number: float | None = None
@@ -153,7 +171,8 @@ class RenderParams:
         if quality not in QUALITIES:
             raise user_error(f"quality must be one of {', '.join(QUALITIES)}, got {quality!r}.")
         on = blur_on not in (False, None, 0, "false", "False")
-        params = cls(disparity_of(position), 0.0, blades_n, r, bool(highlight_boost),
+        boost = _boost(highlight_boost)
+        params = cls(disparity_of(position), 0.0, blades_n, r, boost,
                      bool(fusion), quality, n if on else None, span, paint)  # fmt: skip
         return params.sized(size)
 

@@ -219,7 +219,7 @@ class Wiring:
         # .change as well: two concurrent runs break the image). A value set by an event
         # (the load's focus and range, a click's focus and range) is rendered by that event
         # in full: a preview of it would stay on screen with no release to follow.
-        for slider in (p.focus, p.blur, p.rotation, p.focal_range):
+        for slider in (p.focus, p.blur, p.rotation, p.focal_range, p.highlight):
             # a preview also disables Download until the full render is there to save
             previewed = slider.input(
                 logic.render_preview,
@@ -243,7 +243,6 @@ class Wiring:
         optioned = gr.on(
             [
                 p.blades.change,
-                p.highlight.change,
                 p.fusion.change,
                 p.quality.change,
                 p.blur_on.change,

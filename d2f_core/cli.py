@@ -123,6 +123,16 @@ def _blades(text: str) -> int:
     return value
 
 
+def _boost(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not 0.0 <= value <= 10.0:
+        raise argparse.ArgumentTypeError(f"must be in [0, 10], got {text}")
+    return value
+
+
 def _positive_int(text: str) -> int:
     try:
         value = float(text)  # accepts 12e6
@@ -240,10 +250,18 @@ def build_parser() -> argparse.ArgumentParser:
         "paper (the next smaller behind the focal plane); default: the weights' own (paper "
         "for the shipped ones), nearest without weights",
     )
-    focus.add_argument(
+    boost = focus.add_mutually_exclusive_group()
+    boost.add_argument(
         "--no-highlight-boost",
         action="store_true",
-        help="no HDR boost of saturated pixels (the app's 'Highlight boost' unticked)",
+        help="no HDR boost of saturated pixels (the app's Boost at 0)",
+    )
+    boost.add_argument(
+        "--highlight-boost",
+        type=_boost,
+        metavar="S",
+        help="the strength of the boost of clipped highlights, 0-10 (default 1: far lights' "
+        "discs as bright as a real lens makes them; the app's Boost)",
     )
     focus.add_argument(
         "--no-fusion",

@@ -348,6 +348,8 @@ def render_file(
     options: dict[str, Any] = {"blades": args.aperture_blades, "rotation": args.rotation}
     if getattr(args, "no_highlight_boost", False):
         options["highlight_boost"] = False
+    elif getattr(args, "highlight_boost", None) is not None:
+        options["highlight_boost"] = args.highlight_boost
     if args.placement is not None:
         options["placement"] = args.placement
     model = engine.model()

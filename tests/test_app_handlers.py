@@ -1112,7 +1112,7 @@ class TestBuildDemo:
 
         releases = [d for d in deps if any(t[1] == "release" for t in d["targets"])]
         options = [d for d in deps if d["api_name"] == "render"]
-        assert len(releases) == 4 and len(options) == 1
+        assert len(releases) == 5 and len(options) == 1  # focus, aperture, rotation, range, Boost
         for d in releases + options:
             downloads = [x for x in chain(d["id"]) if x["outputs"] == [by_elem["download"]]]
             assert len(downloads) == 1, d["api_name"]

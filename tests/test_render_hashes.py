@@ -3,8 +3,9 @@
 The SHA-256 of each output tensor's bytes, one torch thread; a change meant to move code
 without changing it must leave every hash as it is. They were recorded on the renderer as it
 stood before the package was restructured (commit c5c5045) and changed on purpose since: by the
-"blend" layer placement made the default (every case but the paper order's), and by the weight
-of a lone saturated spot with no radiance map (every case but the gradients', which give one).
+"blend" layer placement made the default (every case but the paper order's), by the weight
+of a lone saturated spot with no radiance map (every case but the gradients', which give one),
+and by that weight with a radiance map too (the gradients').
 The scenes cover the paths a render can take: a small and a medium frame in depth and paper
 order, the direct convolution with a polygon aperture, the ``behind`` outputs, the 12 MP tiled
 path, float64 and the gradients.
@@ -122,10 +123,10 @@ EXPECTED: dict[str, list[str]] = {
     "12 MP tiled": ["376bdb538c79a6a2c6ae779f2cf5ffc8168f478fded5585edc97875e0bfa65b6"],
     "float64": ["dd55af69caf3403995436e5501428b513b817917f66a49a8180815ef9530933e"],
     "gradient": [
-        "8e581a5cd264b4f4469cc9c578d8e2e9f2f287c75d414241f2960e4d455082b8",
-        "787122c57c9d5fc179c74794b61a3f058a8db757e868664b22155e7306d6305b",
-        "1b5d62544958e6b8140470915456e2eee93c60a1111c260395f662affcbee4d4",
-        "968c31d6b2458c939ec04d6f2fdbb34ea5804c401a6d086033697dc164b97953",
+        "65164be4f32f9d57bd0a3615249169af0d674d8977e2eecca73585692e340494",
+        "034f3ae026911389ad66d9076c40b1ec18417cf085ab225914941cd61134b195",
+        "07e67f6dbcaf0e9a65b1eb471f5794ec2b2256b9ed8fb0599e0c41839d7d5a2a",
+        "04f4425d31bce6dc371204e74639ac9db6831c93362cb088ca1b2cf5e4424f4a",
     ],
     "render_bokeh": ["8941a950b55d73d3ea0da36ba38dcfaedbc1cd72d65cfcf62b9cfdb2118064a2"],
 }

@@ -230,13 +230,21 @@ class TestHighlights:
         off = render(img, disp, 0.0, 23.0, highlight_boost=False, quality="exact")
         own = render(img, disp, 0.0, 23.0, quality="exact")
         disc = (slice(None), slice(None), slice(24, 37), slice(24, 37))
-        # a 3x3 highlight in a 23-px disc (~415 px): with weight 3 the disc mean is
-        # (0.1 * 406 + 3 * 9) / (406 + 27) = 0.156, without (0.1 * 406 + 9) / 415 = 0.120;
-        # with no radiance map a lone spot: 9 of the 400 px around it are saturated, weight
-        # 3 + 9 (1 - 9 / 400)^4 = 11.22, (0.1 * 406 + 11.22 * 9) / (406 + 101) = 0.279
-        assert on[disc].mean().item() == pytest.approx(0.156, abs=0.006)
+        twice = render(img, disp, 0.0, 23.0, highlight_boost=2.0, quality="exact")
+        # a 3x3 highlight in a 23-px disc (~415 px): without the boost the disc mean is
+        # (0.1 * 406 + 9) / 415 = 0.120; a lone spot, with or without a radiance map: 9 of the
+        # 400 px around it are saturated, weight 3 + 9 (1 - 9 / 400)^4 = 11.22,
+        # (0.1 * 406 + 11.22 * 9) / (406 + 101) = 0.279; at strength 2, weight 22.44:
+        # (0.1 * 406 + 22.44 * 9) / (406 + 202) = 0.399
+        assert on[disc].mean().item() == pytest.approx(0.279, abs=0.006)
         assert own[disc].mean().item() == pytest.approx(0.279, abs=0.006)
         assert off[disc].mean().item() == pytest.approx(0.120, abs=0.006)
+        assert twice[disc].mean().item() == pytest.approx(0.399, abs=0.008)
+        none = render(img, disp, 0.0, 23.0, highlight_boost=0.0, quality="exact")
+        torch.testing.assert_close(none, off)
+        for bad in (-1.0, 11.0, float("nan"), "lots"):
+            with pytest.raises(ValueError, match="highlight_boost"):
+                render(img, disp, 0.0, 23.0, highlight_boost=bad)
         # still a disc: the boost changes brightness, not the extent
         assert on[..., 30, :5].max() < 0.11 and on[..., 30, -5:].max() < 0.11
 
@@ -290,10 +298,10 @@ class TestHighlights:
         with pytest.raises(ValueError, match="spot"):
             hdr_boost(img, None, spot=-1.0)
 
-    def test_render_boosts_lone_spots_only_without_a_radiance_map(self):
-        # a small lamp on a far dark wall, focus near: without a radiance map the render
-        # weighs it as hdr_boost's spot weight does, and its disc is brighter than with the
-        # paper's boost, which a radiance map (here ones) keeps
+    def test_render_boosts_lone_spots_with_or_without_a_radiance_map(self):
+        # a small lamp on a far dark wall, focus near: the render weighs it as hdr_boost's
+        # spot weight does, with no radiance map and with one, and its disc is brighter than
+        # with the paper's boost alone
         from d2f_core.rendering.radiance import SPOT_ALPHA
 
         img = torch.full((1, 3, 64, 64), 0.05)
@@ -305,13 +313,18 @@ class TestHighlights:
             img, disp, 1.0, 16.0, quality="exact", radiance=spot, highlight_boost=False
         )
         torch.testing.assert_close(own, weighed)
-        mapped = render(img, disp, 1.0, 16.0, quality="exact", radiance=torch.ones_like(disp))
+        ones = torch.ones_like(disp)
+        mapped = render(img, disp, 1.0, 16.0, quality="exact", radiance=ones)
+        spotted = render(
+            img, disp, 1.0, 16.0, quality="exact", radiance=hdr_boost(img, ones, spot=SPOT_ALPHA),
+            highlight_boost=False,
+        )  # fmt: skip
+        torch.testing.assert_close(mapped, spotted)
         paper = render(
             img, disp, 1.0, 16.0, quality="exact", radiance=hdr_boost(img, None),
             highlight_boost=False,
         )  # fmt: skip
-        torch.testing.assert_close(mapped, paper)
-        assert float(own[0, 0, 32, 36]) > 1.5 * float(mapped[0, 0, 32, 36])
+        assert float(own[0, 0, 32, 36]) > 1.5 * float(paper[0, 0, 32, 36])
 
 
 class TestBands:

@@ -315,6 +315,7 @@ SETTINGS = (
     "quality",
     "placement",
     "no_highlight_boost",
+    "highlight_boost",
     "no_fusion",
     "depth_kind",
     "near",

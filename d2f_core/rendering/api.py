@@ -29,7 +29,7 @@ from .inputs import (
     tracks_grad,
 )
 from .plan import GAMMA, layer_plan
-from .radiance import HDR_THRESHOLD, SPOT_ALPHA, hdr_boost
+from .radiance import HDR_ALPHA, HDR_THRESHOLD, SPOT_ALPHA, boost_strength, hdr_boost
 from .schedule import check_focal_range, fold_focal_range
 from .threads import ThreadChoice
 from .tiled import render_tiled
@@ -72,7 +72,7 @@ def render(
     kernel: str = "soft",
     blades: int = 0,
     rotation: float = 0.0,
-    highlight_boost: bool = True,
+    highlight_boost: bool | float = True,
     method: str = "fft",
     quality: str = "balanced",
     gamma: float = GAMMA,
@@ -97,9 +97,11 @@ def render(
         schedule: ``"growing"`` (paper) or ``"uniform"`` kernel-size schedule.
         kernel: ``"soft"`` (paper's tanh disk) or ``"hard"`` disk aperture.
         blades: aperture blades (0 = round), ``rotation`` in degrees.
-        highlight_boost: apply the HDR boost (alpha 3, beta 5) to saturated pixels; with no
-            ``radiance``, a saturated spot with few saturated pixels around it weighs up to
-            :data:`~d2f_core.rendering.radiance.SPOT_ALPHA` (``hdr_boost``'s ``spot``).
+        highlight_boost: the HDR boost of saturated pixels (alpha 3, beta 5), a saturated
+            spot with few saturated pixels around it weighing up to
+            :data:`~d2f_core.rendering.radiance.SPOT_ALPHA` (``hdr_boost``'s ``spot``):
+            ``True`` (default) or a strength that multiplies both (0 to 10; the app's
+            "Boost"), ``False`` none.
         method: ``"fft"`` or ``"direct"`` convolution for kernels above 7 px.
         quality: ``"exact"``, ``"high"``, ``"balanced"`` or ``"fast"``: how large a kernel
             must be before it is applied at 1/2 or 1/4 resolution.
@@ -211,7 +213,7 @@ def _render(
     kernel: str,
     blades: int,
     rotation: float,
-    highlight_boost: bool,
+    highlight_boost: bool | float,
     method: str,
     quality: str,
     gamma: float,
@@ -265,12 +267,15 @@ def _render(
                 blades=int(blades),
             )
             weights = None
-            if highlight_boost:
+            strength = boost_strength(highlight_boost)
+            if strength > 0:
                 if radiance is not None or image_max >= HDR_THRESHOLD:
-                    # with no radiance map, a lone saturated spot weighs more (a lamp, a
-                    # glint); a radiance map's own boost stays the paper's
-                    spot = SPOT_ALPHA if radiance is None else None
-                    weights = hdr_boost(image, radiance, spot=spot)
+                    # a lone saturated spot weighs more (a lamp, a glint), with or without a
+                    # radiance map: on generated night scenes with true radiance the discs of
+                    # clipped far lights came out at 0.65 of the thin lens's brightness with
+                    # the paper's boost alone, 1.04 with this (docs/accuracy.md)
+                    spot = SPOT_ALPHA * strength
+                    weights = hdr_boost(image, radiance, alpha=HDR_ALPHA * strength, spot=spot)
             elif radiance is not None:
                 weights = radiance
             # a floor keeps the normalisation defined where every weight is 0 (e.g. pure red)

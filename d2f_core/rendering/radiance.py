@@ -20,6 +20,35 @@ SPOT_ALPHA = 12.0
 #: ``SPOT_CELLS x SPOT_CELLS`` cells of ``SPOT_CELL`` px around it (:func:`spot_share`).
 SPOT_CELL = 4
 SPOT_CELLS = 5
+#: The strength ``highlight_boost=True`` stands for (a multiple of ``alpha`` and ``spot``):
+#: :func:`boost_strength`.
+DEFAULT_BOOST = 1.0
+#: The strongest boost a caller may ask for.
+MAX_BOOST = 10.0
+
+
+def boost_strength(highlight_boost) -> float:
+    """The multiple of the HDR boost's weights that ``highlight_boost`` asks for: ``True``
+    :data:`DEFAULT_BOOST`, ``False`` 0 (no boost), a number itself (0 to :data:`MAX_BOOST`).
+
+    Raises:
+        ValueError: a number outside that range, not finite, or not a number.
+    """
+    if highlight_boost is True:
+        return DEFAULT_BOOST
+    if highlight_boost is False or highlight_boost is None:
+        return 0.0
+    try:
+        value = float(highlight_boost)
+    except (TypeError, ValueError):
+        raise ValueError(
+            f"highlight_boost must be True, False or a strength, got {highlight_boost!r}"
+        ) from None
+    if not 0.0 <= value <= MAX_BOOST:
+        raise ValueError(f"highlight_boost must be in [0, {MAX_BOOST:g}], got {highlight_boost!r}")
+    return value
+
+
 # radiance
 # --------------------------------------------------------------------------------------
 
