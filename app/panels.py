@@ -226,7 +226,11 @@ def result_panel() -> SimpleNamespace:
         height=LOUPE_SIZE[1],
         buttons=["fullscreen"],
     )
-    info = gr.Textbox(label="Status", interactive=False, elem_id="info")
+    # the picture in a photographer's words; the status line under it keeps the details
+    summary = gr.Markdown("", elem_id="summary")
+    info = gr.Textbox(
+        label="Details: sizes, times and the d2f command", interactive=False, elem_id="info"
+    )
     with gr.Row():
         fmt = gr.Radio(list(FORMATS), value="JPEG", label="Download format", elem_id="format")
         # nothing to save before the first full render
@@ -235,6 +239,7 @@ def result_panel() -> SimpleNamespace:
     # sends it, and one sent for the photo before is dropped
     photo_id = gr.Textbox("", visible="hidden", interactive=False, elem_id="photo_id")
     return SimpleNamespace(
-        view=view, result=result, compare=compare, legend=legend, loupe=loupe, info=info, fmt=fmt,
+        view=view, result=result, compare=compare, legend=legend, loupe=loupe, summary=summary,
+        info=info, fmt=fmt,
         download=download, photo_id=photo_id,
     )  # fmt: skip

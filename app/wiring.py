@@ -358,8 +358,17 @@ class Wiring:
         )
 
     def views(self) -> None:
-        """The view and the download format: no render."""
+        """The view and the download format: no render; the summary line follows the
+        status line."""
         p, logic = self.page, self.logic
+        p.info.change(
+            logic.summary_line,
+            [p.session, p.info],
+            [p.summary],
+            show_progress="hidden",
+            api_visibility="private",
+            queue=False,
+        )
         p.view.change(
             logic.show_view,
             [p.session, p.view],

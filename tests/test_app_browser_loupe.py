@@ -78,6 +78,12 @@ def test_screen_picture_download_and_loupe(app_server, chromium_launch_options, 
             _wait_status(page, "your disparity map")
             _set(page, "focus", "0.25")
             _wait_status(page, "focus 0.250", "full render")
+            # the same picture in a photographer's words, above the details
+            page.wait_for_function(
+                "() => (document.querySelector('#summary')?.innerText ?? '')"
+                ".includes('Focus 25 % of the way back')"
+            )
+            assert "sharp from" in page.locator("#summary").inner_text()
             wait_new_result(page, None)
             shown = page.evaluate(
                 "() => { const i = document.querySelector('#result img');"

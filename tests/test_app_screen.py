@@ -90,3 +90,27 @@ def test_loupe_is_the_downloads_crop(logic, scene_factory):
     assert loupe_box(session.loupe_point, session.size) == (1920, 1440, 2400, 1800)
     # no photo: nothing to show
     assert logic.loupe(None, [1, 1], *controls).__class__.__name__ != "Error"
+
+
+def test_summary_line_in_a_photographers_words(logic, scene_factory):
+    """Focus, aperture and what is sharp: the depth whose blur stays under a pixel, the
+    focal range and 1/K on each side (slider units: 0 % the nearest, 100 % the farthest)."""
+    from d2f_core.lens import blur_px
+
+    s = scene_factory(width=320, height=240)
+    assert logic.summary_line(None, "x") == ""
+    session = logic.load(str(s.photo), None, "disparity", None, 0.5, 2.0)[0]
+    info = logic.render_full(session, *_controls(0.3, 2.0, 0.1))[3]
+    k = blur_px(2.0, 320)
+    half = 0.05 + 1.0 / k
+    near, far = round(100 * (0.3 - half)), round(100 * (0.3 + half))
+    assert logic.summary_line(session, info) == (
+        f"**Focus** 30 % of the way back · **aperture** f/2 · **sharp** from {near} % to "
+        f"{far} % of the way back (0 % the nearest thing, 100 % the farthest)"
+    )
+    assert (near, far) == (16, 44)
+    off = logic.render_full(session, 0.3, 2.0, 0, 0.0, True, True, "Bokeh", "balanced", False)[3]
+    assert logic.summary_line(session, off) == (
+        "**Focus** 30 % of the way back · **no blur**: the photo as it is"
+    )
+    assert logic.summary_line(session, "Error: notes.jpg: not an image file") == ""
