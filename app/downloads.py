@@ -4,19 +4,22 @@ download button.
 
 from __future__ import annotations
 
+import os
 from typing import Any
 
 import gradio as gr
+import numpy as np
 
 from app import imaging
 from app.reporting import user_error
 from app.sessions import Session, prune_files, reported
-from app.settings import FORMATS
+from app.settings import FORMATS, RenderParams
 
 
 class DownloadEvents:
     """The download event of a :class:`~app.handlers.RefocusApp`: the latest full render
-    written to a file."""
+    written to a file, rendered at full resolution when the page shows it at the screen's
+    size."""
 
     @reported
     def download(self, session: Session | None, fmt: str = "PNG", shown: Any = None) -> Any:
@@ -69,3 +72,30 @@ class DownloadEvents:
             session.download_file = (params, fmt, path)
         h, w = image.shape[:2]
         return gr.update(value=str(path), label=f"Download {fmt} ({w}x{h})", interactive=True)
+
+    def _keep_full_res(self, session: Session, params: RenderParams, bokeh: np.ndarray) -> None:
+        """Keep the full-resolution picture of ``params`` on disk for the download, not in
+        memory (call with the session's lock held)."""
+        folder = self._session_dir(session, "")
+        part = folder / "last_full.part.npy"
+        np.save(part, bokeh)
+        os.replace(part, folder / "last_full.npy")
+        session.full_res_params = params
+
+    def full_res_picture(self, session: Session, params: RenderParams) -> np.ndarray | None:
+        """The full-resolution picture of ``params``, the shown render's: read from disk, or
+        rendered now (the page shows it at the screen's size); ``None`` when the page has
+        moved on to other values meanwhile."""
+        with session.lock:
+            image = session.last_full if session.full_res_params == params else None
+        if image is not None:
+            return image
+        scene = session.scene
+        result = self.model.render(scene, params.focus, params.blur, **params.render_options())
+        del scene
+        bokeh = imaging.to_uint8(result.bokeh)
+        with session.lock:
+            if session.last_full_params != params or session.closed:
+                return None
+            self._keep_full_res(session, params, bokeh)
+        return bokeh

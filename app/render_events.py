@@ -4,7 +4,6 @@ the click that sets the focus.
 
 from __future__ import annotations
 
-import os
 import time
 import uuid
 from collections.abc import Iterator
@@ -218,37 +217,6 @@ class RenderEvents:
         return text + (f" | {extra}" if extra else "")
 
     @staticmethod
-    def summary_line(session: Session | None, status: Any = None) -> str:
-        """The picture the page shows in a photographer's words: where the focus is, the
-        aperture, what is sharp (the depth whose blur stays under a pixel: the focal range
-        and half a pixel's worth of blur on each side of it), and the paint. Empty without
-        a photo, or when the status line is an error."""
-        if not isinstance(session, Session) or session.closed or not status:
-            return ""
-        if str(status).startswith("Error"):
-            return ""
-        with session.lock:
-            params = session.wanted or session.last_full_params
-            brushes = session.brushes
-        if params is None:
-            return ""
-        at = round(100 * params.position)
-        if params.f_number is None:
-            return f"**Focus** {at} % of the way back · **no blur**: the photo as it is"
-        half = params.focal_range / 2 + (1.0 / params.blur if params.blur > 0 else 1.0)
-        near = round(100 * max(0.0, params.position - half))
-        far = round(100 * min(1.0, params.position + half))
-        text = (
-            f"**Focus** {at} % of the way back · **aperture** f/{params.f_number:g} · "
-            f"**sharp** from {near} % to {far} % of the way back (0 % the nearest thing, "
-            "100 % the farthest)"
-        )
-        if brushes is not None and params.paint:
-            sharp, blurred = brushes.coverage()
-            text += f" · **painted**: {100 * sharp:.0f} % kept sharp, {100 * blurred:.0f} % blurred"
-        return text
-
-    @staticmethod
     def _file_params(params: RenderParams) -> str:
         """The settings part of a download's name: the focus slider's position, the
         f-number and K (``focus0.310_f2.8_K14.9``), or ``focus0.310_noblur``."""
@@ -344,33 +312,6 @@ class RenderEvents:
                 self._keep_full_res(session, params, bokeh)
             self._store_views(session, result, bokeh)
         return (*self.view_outputs(session, view), info)
-
-    def _keep_full_res(self, session: Session, params: RenderParams, bokeh: np.ndarray) -> None:
-        """Keep the full-resolution picture of ``params`` on disk for the download, not in
-        memory (call with the session's lock held)."""
-        folder = self._session_dir(session, "")
-        part = folder / "last_full.part.npy"
-        np.save(part, bokeh)
-        os.replace(part, folder / "last_full.npy")
-        session.full_res_params = params
-
-    def full_res_picture(self, session: Session, params: RenderParams) -> np.ndarray | None:
-        """The full-resolution picture of ``params``, the shown render's: read from disk, or
-        rendered now (the page shows it at the screen's size); ``None`` when the page has
-        moved on to other values meanwhile."""
-        with session.lock:
-            image = session.last_full if session.full_res_params == params else None
-        if image is not None:
-            return image
-        scene = session.scene
-        result = self.model.render(scene, params.focus, params.blur, **params.render_options())
-        del scene
-        bokeh = imaging.to_uint8(result.bokeh)
-        with session.lock:
-            if session.last_full_params != params or session.closed:
-                return None
-            self._keep_full_res(session, params, bokeh)
-        return bokeh
 
     def _render_small(
         self, scene: Any, params: RenderParams, max_side: int

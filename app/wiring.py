@@ -12,6 +12,7 @@ import gradio as gr
 
 from app import sources as depth_choice
 from app.handlers import RefocusApp
+from app.summary import summary_line
 
 
 def holding_download(outputs: tuple) -> tuple:
@@ -362,7 +363,7 @@ class Wiring:
         status line."""
         p, logic = self.page, self.logic
         p.info.change(
-            logic.summary_line,
+            summary_line,
             [p.session, p.info],
             [p.summary],
             show_progress="hidden",

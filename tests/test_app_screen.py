@@ -17,6 +17,7 @@ from app.cache import SceneCache
 from app.handlers import RefocusApp
 from app.loupe import loupe_box
 from app.settings import LOUPE_SIZE, SCREEN_SIDE
+from app.summary import summary_line
 from d2f_core import cli
 from d2f_core.metrics import psnr
 from d2f_core.pipeline import D2F
@@ -98,19 +99,19 @@ def test_summary_line_in_a_photographers_words(logic, scene_factory):
     from d2f_core.lens import blur_px
 
     s = scene_factory(width=320, height=240)
-    assert logic.summary_line(None, "x") == ""
+    assert summary_line(None, "x") == ""
     session = logic.load(str(s.photo), None, "disparity", None, 0.5, 2.0)[0]
     info = logic.render_full(session, *_controls(0.3, 2.0, 0.1))[3]
     k = blur_px(2.0, 320)
     half = 0.05 + 1.0 / k
     near, far = round(100 * (0.3 - half)), round(100 * (0.3 + half))
-    assert logic.summary_line(session, info) == (
+    assert summary_line(session, info) == (
         f"**Focus** 30 % of the way back · **aperture** f/2 · **sharp** from {near} % to "
         f"{far} % of the way back (0 % the nearest thing, 100 % the farthest)"
     )
     assert (near, far) == (16, 44)
     off = logic.render_full(session, 0.3, 2.0, 0, 0.0, True, True, "Bokeh", "balanced", False)[3]
-    assert logic.summary_line(session, off) == (
+    assert summary_line(session, off) == (
         "**Focus** 30 % of the way back · **no blur**: the photo as it is"
     )
-    assert logic.summary_line(session, "Error: notes.jpg: not an image file") == ""
+    assert summary_line(session, "Error: notes.jpg: not an image file") == ""
