@@ -87,9 +87,14 @@ def test_large_upload_first_look_then_full(app_server, chromium_launch_options, 
     assert "full render" in last["status"] and "first look" not in last["status"]
     assert f"({WIDTH}x{HEIGHT})" in label
     first, last = clicks[0], clicks[-1]
-    assert first["w"] == FIRST_LOOK_MAX_SIDE and "first look render" in first["status"]
-    assert "focused on the click" in first["status"] and first["download"] is False
+    # a click's picture at the screen's size follows its first look within a few tenths of
+    # a second, and may replace it before the browser has loaded it: the first look, when
+    # it is seen, is the pass's size and says so
+    if len(clicks) > 1 or first["w"] == FIRST_LOOK_MAX_SIDE:
+        assert first["w"] == FIRST_LOOK_MAX_SIDE and "first look render" in first["status"]
+        assert "focused on the click" in first["status"] and first["download"] is False
     assert last["w"] == DISPLAY_MAX_SIDE and "full render" in last["status"]
+    assert "focused on the click" in last["status"]
     assert server.log.read_text().count("Traceback") == 0
 
 
