@@ -90,3 +90,11 @@ def click_photo_at(page, x: int, y: int) -> None:
     oy = (box["h"] - box["nh"] * scale) / 2
     pos = {"x": ox + (x + 0.5) * scale, "y": oy + (y + 0.5) * scale}
     page.locator("#input img").click(position=pos)
+
+
+def type_value(page, elem: str, value: str) -> None:
+    """Type ``value`` into slider ``#elem``'s number box and press Enter (its release)."""
+    box = page.locator(f"#{elem} input[data-testid=number-input]")
+    box.click()
+    box.fill(value)
+    box.press("Enter")

@@ -20,6 +20,7 @@ from _browser import (
     fetch_image,
     open_app,
     result_src,
+    type_value,
     wait_new_result,
 )
 from PIL import Image
@@ -59,13 +60,6 @@ def wait_note(page, text: str) -> None:
         arg=text,
         timeout=TIMEOUT_MS,
     )
-
-
-def type_value(page, elem: str, value: str) -> None:
-    box = page.locator(f"#{elem} input[data-testid=number-input]")
-    box.click()
-    box.fill(value)
-    box.press("Enter")
 
 
 def wait_status(page, *parts: str) -> str:

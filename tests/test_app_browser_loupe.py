@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from _browser import TIMEOUT_MS, fetch_image, open_app, result_src, wait_new_result
+from _browser import TIMEOUT_MS, fetch_image, open_app, result_src, type_value, wait_new_result
 from PIL import Image
 
 from app.settings import LOUPE_SIZE, SCREEN_SIDE
@@ -31,13 +31,6 @@ def _write_photo(folder):
     depth = folder / "large_disparity.png"
     Image.fromarray((ramp * 65535).round().astype(np.uint16)).save(depth)
     return path, depth, image
-
-
-def _set(page, elem: str, value: str) -> None:
-    number = page.locator(f"#{elem} input[data-testid=number-input]")
-    number.click()
-    number.fill(value)
-    number.press("Enter")
 
 
 def _wait_status(page, *parts: str) -> None:
@@ -76,7 +69,7 @@ def test_screen_picture_download_and_loupe(app_server, chromium_launch_options, 
             page.get_by_text("Your own depth map (optional)").click()
             page.set_input_files("#depth input[type=file]", str(depth))
             _wait_status(page, "your disparity map")
-            _set(page, "focus", "0.25")
+            type_value(page, "focus", "0.25")
             _wait_status(page, "focus 0.250", "full render")
             # the same picture in a photographer's words, above the details
             page.wait_for_function(
@@ -113,7 +106,7 @@ def test_screen_picture_download_and_loupe(app_server, chromium_launch_options, 
             assert np.abs(loupe.astype(int) - region)[mid].mean() < 3.0
 
             # focused far away: the result and the loupe follow, the region blurred
-            _set(page, "focus", "0.9")
+            type_value(page, "focus", "0.9")
             _wait_status(page, "focus 0.900", "full render")
             again = fetch_image(page, wait_new_result(page, src_loupe, "#loupe img"))
             assert np.abs(again.astype(int) - region)[mid].mean() > 10.0
