@@ -49,14 +49,20 @@ PROG = "d2f"
 # --------------------------------------------------------------------------- argument types
 
 
-def _unit_float(text: str) -> float:
+def _number_in(text: str, low: float, high: float) -> float:
+    """``text`` as a number in ``[low, high]`` (NaN is not in it)."""
+    bad = f"expected a number in [{low:g}, {high:g}], got {text!r}"
     try:
         value = float(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number in [0, 1], got {text!r}") from None
-    if not 0.0 <= value <= 1.0:
-        raise argparse.ArgumentTypeError(f"expected a number in [0, 1], got {text!r}")
+        raise argparse.ArgumentTypeError(bad) from None
+    if not low <= value <= high:
+        raise argparse.ArgumentTypeError(bad)
     return value
+
+
+def _unit_float(text: str) -> float:
+    return _number_in(text, 0.0, 1.0)
 
 
 def _non_negative_float(text: str) -> float:
@@ -124,13 +130,8 @@ def _blades(text: str) -> int:
 
 
 def _boost(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not 0.0 <= value <= 10.0:
-        raise argparse.ArgumentTypeError(f"must be in [0, 10], got {text}")
-    return value
+    # the library's bound (rendering.radiance.MAX_BOOST: torch is imported lazily here)
+    return _number_in(text, 0.0, 10.0)
 
 
 def _positive_int(text: str) -> int:
@@ -182,8 +183,8 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{PROG}: error: {message} (see '{self.prog} --help')\n")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    common = _Parser(add_help=False)
+def _focus_arguments(common: argparse.ArgumentParser) -> None:
+    """The focus, blur, aperture and renderer options of ``render`` and ``batch``."""
     focus = common.add_argument_group("focus and blur")
     where = focus.add_mutually_exclusive_group()
     where.add_argument(
@@ -235,6 +236,12 @@ def build_parser() -> argparse.ArgumentParser:
     focus.add_argument(
         "--rotation", type=_finite_float, default=0.0, metavar="DEG", help="aperture rotation"
     )
+    _renderer_arguments(focus)
+
+
+def _renderer_arguments(focus: Any) -> None:
+    """The renderer's own options, in the "focus and blur" group ``focus``: quality, kernel
+    placement, the highlight boost, fusion."""
     focus.add_argument(
         "--quality",
         choices=("high", "balanced", "fast"),
@@ -268,6 +275,10 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="skip the full-resolution fusion (plain upsampling of the bokeh pass)",
     )
+
+
+def _depth_arguments(common: argparse.ArgumentParser) -> None:
+    """Where the depth comes from, and how a map is read."""
     depth = common.add_argument_group("depth")
     depth.add_argument(
         "--depth",
@@ -316,6 +327,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="keep the depth map as its source gave it (default: its edges are refined to "
         "the photo's)",
     )
+
+
+def _output_arguments(common: argparse.ArgumentParser) -> None:
+    """The saved maps, the encoder, the weights, the limits and the messages."""
     out = common.add_argument_group("output")
     out.add_argument(
         "--save-maps",
@@ -347,6 +362,12 @@ def build_parser() -> argparse.ArgumentParser:
         "-v", "--verbose", action="count", default=0, help="more detail (-vv for debug)"
     )
 
+
+def build_parser() -> argparse.ArgumentParser:
+    common = _Parser(add_help=False)
+    _focus_arguments(common)
+    _depth_arguments(common)
+    _output_arguments(common)
     parser = _Parser(
         prog=PROG,
         description="Single-image bokeh rendering and refocusing with D2F (Defocus to Focus).",
