@@ -40,14 +40,10 @@ def masks_from_layers(layers: Any) -> tuple[np.ndarray | None, np.ndarray | None
             raise user_error(f"The paint layer must be an RGBA picture, got shape {a.shape}.")
         painted = a[..., 3] > 0
         green = a[..., 1].astype(np.int16) > a[..., 0].astype(np.int16)
-        for kind, where in (("sharp", painted & green), ("blur", painted & ~green)):
-            if not where.any():
-                continue
-            if kind == "sharp":
-                sharp = where if sharp is None else (sharp | where)
-            else:
-                blur = where if blur is None else (blur | where)
-    return tuple(None if m is None else m.astype(np.float32) for m in (sharp, blur))
+        here_sharp, here_blur = painted & green, painted & ~green
+        sharp = here_sharp if sharp is None else sharp | here_sharp
+        blur = here_blur if blur is None else blur | here_blur
+    return tuple(m.astype(np.float32) if m is not None and m.any() else None for m in (sharp, blur))
 
 
 def paint_id(sharp: np.ndarray | None, blur: np.ndarray | None, edges: bool) -> str:
@@ -56,7 +52,7 @@ def paint_id(sharp: np.ndarray | None, blur: np.ndarray | None, edges: bool) -> 
         return ""
     h = hashlib.sha1(str(bool(edges)).encode())
     for m in (sharp, blur):
-        h.update(b"-" if m is None else m.shape.__repr__().encode() + np.packbits(m > 0).tobytes())
+        h.update(b"-" if m is None else str(m.shape).encode() + np.packbits(m > 0).tobytes())
     return h.hexdigest()[:12]
 
 

@@ -12,6 +12,7 @@ from typing import Any
 
 import torch
 
+from ..depth.brushes import Brushes
 from ..errors import InputTypeError
 from ..sizing import resize, scaled_size
 from .outputs import Result, Scene
@@ -94,8 +95,6 @@ class ViewStage:
             cache={"disparity_full": d},
         )
         if scene.brushes is not None:  # the paint of that part, at full resolution
-            from ..depth.brushes import Brushes
-
             cut = [
                 None if m is None else m[full] for m in (scene.brushes.sharp, scene.brushes.blur)
             ]
