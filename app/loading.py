@@ -223,20 +223,9 @@ class LoadEvents:
         )
         source = sources.describe(scene, source)
         t_prepare = time.perf_counter()
-        subject = ""
-        # the focal range the load sets: the subject's with the automatic focus, else the
-        # thin lens (the camera's focal plane, or the slider's focus on a map of one's own)
-        params = dataclasses.replace(params, focal_range=0.0)
-        if search:  # D2F.default_focus: the subject, with the range that keeps it sharp
-            t_search = time.perf_counter()
-            focus_found, auto_range, (sx, sy), _ = self.model.default_focus(scene)
-            ms_search = 1000 * (time.perf_counter() - t_search)
-            new_focus = position_of(focus_found)
-            auto_range = round(min(auto_range, FOCAL_RANGE_MAX), 3)
-            params = dataclasses.replace(
-                params, focus=disparity_of(new_focus), focal_range=auto_range
-            )
-            subject = f" | focus on the subject at ({sx:.0f}, {sy:.0f}) in {ms_search:.0f} ms"
+        params, found, subject = self._loaded_focus(scene, params, search)
+        if found is not None:
+            new_focus = found
         new = Session(
             key=key,
             get_scene=no_scene,  # set below, once the upload is kept
@@ -273,6 +262,27 @@ class LoadEvents:
         except Exception:
             session.close()
             raise
+
+    def _loaded_focus(self, scene: Any, params: RenderParams, search: bool) -> tuple:
+        """``(params, position, note)``: the focus and focal range a load sets. With
+        ``search``, the automatic focus (``D2F.default_focus``: the subject, with the range
+        that keeps it sharp), its focus slider position and a note for the status line;
+        else the thin lens at ``params``' focus (the camera's focal plane, or the slider's on
+        a map of one's own), ``None`` and no note."""
+        params = dataclasses.replace(params, focal_range=0.0)
+        if not search:
+            return params, None, ""
+        t0 = time.perf_counter()
+        focus, auto_range, (sx, sy), _ = self.model.default_focus(scene)
+        ms = 1000 * (time.perf_counter() - t0)
+        position = position_of(focus)
+        params = dataclasses.replace(
+            params,
+            focus=disparity_of(position),
+            focal_range=round(min(auto_range, FOCAL_RANGE_MAX), 3),
+        )
+        note = f" | focus on the subject at ({sx:.0f}, {sy:.0f}) in {ms:.0f} ms"
+        return params, position, note
 
     def _decode(
         self,
