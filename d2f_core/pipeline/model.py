@@ -370,10 +370,6 @@ class D2F(DepthStage, FusionStage, FocusStage, ViewStage, TrainingStage, nn.Modu
         )
         if max_side is not None:
             max_side = whole_number(max_side, "max_side", 1)
-        if screen is not None and max_side is None:
-            small = self.screen_scene(scene, whole_number(screen, "screen", 1))
-            blur *= size_ratio(small.size, scene.size)  # K in the screen's pixels
-            scene = small
         pick = (
             budget is not None
             and render_options["order"] == "depth"
@@ -383,13 +379,11 @@ class D2F(DepthStage, FusionStage, FocusStage, ViewStage, TrainingStage, nn.Modu
         timings: dict[str, float] = {}
         t_all = time.perf_counter()
 
-        # 1. inputs of the rendering pass (preview: its own size, cached per size), the map
-        # edited by the brushes for this focus (the full-size steps see the full map edited)
-        image_lr, disparity_lr, radiance_lr = self._pass_inputs(scene, max_side)
-        if scene.brushes is not None:
-            disparity_lr = scene.brushes.apply(disparity_lr, focus)
-            if max_side is None:
-                scene = scene.brushed(focus)
+        # 1. the scene as rendered (at the screen's size, the paint applied) and the inputs
+        # of the rendering pass (preview: its own size, cached per size)
+        scene, blur, (image_lr, disparity_lr, radiance_lr) = self._pass_inputs(
+            scene, max_side, screen, focus, blur
+        )
         # a focal range folded into the map: every later step sees its CoCs
         disparity_lr = fold_focal_range(disparity_lr, focus, focal_range)  # [1,1,h,w]
         lr_size = (int(image_lr.shape[-2]), int(image_lr.shape[-1]))
@@ -454,12 +448,31 @@ class D2F(DepthStage, FusionStage, FocusStage, ViewStage, TrainingStage, nn.Modu
         timings["total"] = ms_since(t_all)
         return result
 
-    def _pass_inputs(self, scene: Scene, max_side: int | None) -> tuple[Tensor, Tensor, Tensor]:
-        """The photo, map and radiance of the rendering pass: the scene's own, or a
-        preview's at ``max_side`` (cached per size)."""
+    def _pass_inputs(
+        self, scene: Scene, max_side: int | None, screen: int | None, focus: float, blur: float
+    ) -> tuple[Scene, float, tuple[Tensor, Tensor, Tensor]]:
+        """``(scene, blur, (photo, map, radiance))``: the scene the full-size steps see (at
+        ``screen``'s size, with K in its pixels, when a screen is given and it is no
+        preview; its full map edited by the paint for ``focus``), and the inputs of the
+        rendering pass: the scene's own, or a preview's at ``max_side`` (cached per size),
+        the map edited by the paint."""
+        if screen is not None and max_side is None:
+            small = self.screen_scene(scene, whole_number(screen, "screen", 1))
+            blur *= size_ratio(small.size, scene.size)  # K in the screen's pixels
+            scene = small
         if max_side is not None:
-            return self._preview_inputs(scene, int(max_side))
-        return scene.image_lr, scene.disparity_lr, scene.radiance_lr
+            image_lr, disparity_lr, radiance_lr = self._preview_inputs(scene, int(max_side))
+        else:
+            image_lr, disparity_lr, radiance_lr = (
+                scene.image_lr,
+                scene.disparity_lr,
+                scene.radiance_lr,
+            )
+        if scene.brushes is not None:
+            disparity_lr = scene.brushes.apply(disparity_lr, focus)
+            if max_side is None:
+                scene = scene.brushed(focus)
+        return scene, blur, (image_lr, disparity_lr, radiance_lr)
 
     def _render_args(
         self,
