@@ -44,7 +44,14 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from app.latency_probe import CHROMIUM, CHROMIUM_ARGS, CLICK_POINTS, PAGE_PROBE, Probe
+from app.latency_probe import (
+    CHROMIUM,
+    CHROMIUM_ARGS,
+    CLICK_POINTS,
+    PAGE_PROBE,
+    Probe,
+    show_details,
+)
 from app.latency_server import BenchError, commit, loadavg, start_app, write_photos
 
 #: Named photo sizes, width x height.
@@ -227,6 +234,7 @@ def run_bench(
                         page.set_default_timeout(timeout_s * 1000)
                         page.goto(server.url)
                         page.wait_for_selector("#blur input[type=range]")
+                        show_details(page)
                         upload_ms = (timeout_s + 10 * w * h / 1e6) * 1000
                         probes[name] = (Probe(page, server, timeout_s * 1000), photos, upload_ms)
                         files[name] = statistics.mean(p.stat().st_size for p in photos)

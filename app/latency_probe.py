@@ -39,6 +39,19 @@ MS_RE = re.compile(r"(\d+(?:\.\d+)?) ms\b")
 CLICK_POINTS = ((0.5, 0.55), (0.08, 0.1), (0.35, 0.92), (0.93, 0.35))
 
 
+#: The "Advanced" accordion's toggle over the status line (``#info``), closed on a new page:
+#: the status line is in the page only while it is open.
+DETAILS_TOGGLE = "#details > button.label-wrap"
+
+
+def show_details(page) -> None:
+    """Open the "Advanced" accordion of a new page, so that its status line can be read, and
+    scroll back to the top, where the click scrolled from."""
+    page.locator(DETAILS_TOGGLE).click()
+    page.wait_for_selector("#info textarea")
+    page.evaluate("() => window.scrollTo(0, 0)")
+
+
 #: Size (W, H) of the thumbnails of the result picture that tell whether an action changed
 #: it: the mean absolute difference of the grey levels is ``picture_diff``.
 THUMB_SIZE = (64, 48)

@@ -226,11 +226,11 @@ def result_panel() -> SimpleNamespace:
         height=LOUPE_SIZE[1],
         buttons=["fullscreen"],
     )
-    # the picture in a photographer's words; the status line under it keeps the details
+    # the picture in a photographer's words; the details (sizes, times, the command that makes
+    # the same file) wait behind "Advanced", closed
     summary = gr.Markdown("", elem_id="summary")
-    info = gr.Textbox(
-        label="Details: sizes, times and the d2f command", interactive=False, elem_id="info"
-    )
+    with gr.Accordion("Advanced: sizes, times and the d2f command", open=False, elem_id="details"):
+        info = gr.Textbox(show_label=False, interactive=False, elem_id="info")
     with gr.Row():
         fmt = gr.Radio(list(FORMATS), value="JPEG", label="Download format", elem_id="format")
         # nothing to save before the first full render

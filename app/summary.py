@@ -1,5 +1,6 @@
-"""The summary line over the status line: the picture the page shows in a photographer's
-words (where the focus is, the aperture, what is sharp from near to far, the paint)."""
+"""The summary line over the status line, which waits closed behind "Advanced": the picture
+the page shows in a photographer's words (where the focus is, the aperture, what is sharp from
+near to far, the paint), or the error."""
 
 from __future__ import annotations
 
@@ -12,10 +13,11 @@ def summary_line(session: Session | None, status: Any = None) -> str:
     """The picture the page shows in a photographer's words: where the focus is, the
     aperture, what is sharp (the depth whose blur stays under a pixel: the focal range
     and half a pixel's worth of blur on each side of it), and the paint. Empty without
-    a photo, or when the status line is an error."""
+    a photo. An error is said here as the status line says it, since the status line waits
+    closed behind "Advanced"."""
+    if str(status or "").startswith("Error"):
+        return "**Error**" + str(status)[len("Error") :]
     if not isinstance(session, Session) or session.closed or not status:
-        return ""
-    if str(status).startswith("Error"):
         return ""
     with session.lock:
         params = session.wanted or session.last_full_params

@@ -9,6 +9,8 @@ import urllib.request
 import numpy as np
 from PIL import Image
 
+from app.latency_probe import show_details
+
 TIMEOUT_MS = 30_000
 
 
@@ -63,8 +65,17 @@ def fetch_image(page, src: str) -> np.ndarray:
         return np.asarray(Image.open(io.BytesIO(r.read())).convert("RGB"), np.int16)
 
 
-def open_app(browser, url: str, *, height: int = 900, errors: list | None = None, **options):
-    """A new page, 1400 x ``height``, on the app at ``url`` once its sliders are there; the
+def open_app(
+    browser,
+    url: str,
+    *,
+    height: int = 900,
+    errors: list | None = None,
+    details: bool = True,
+    **options,
+):
+    """A new page, 1400 x ``height``, on the app at ``url`` once its sliders are there, with
+    the "Advanced" details (the status line ``#info``) opened unless ``details`` is false; the
     page's script errors are appended to ``errors`` when given. ``options`` go to
     ``browser.new_page``."""
     page = browser.new_page(viewport={"width": 1400, "height": height}, **options)
@@ -73,6 +84,8 @@ def open_app(browser, url: str, *, height: int = 900, errors: list | None = None
     page.set_default_timeout(TIMEOUT_MS)
     page.goto(url)
     page.wait_for_selector("#focus input[type=range]")
+    if details:
+        show_details(page)
     return page
 
 

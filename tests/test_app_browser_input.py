@@ -218,6 +218,8 @@ def test_failed_upload_leaves_one_state(
             page.wait_for_function(f"() => JSON.stringify(({PHOTO_SIZE})()) === '[320,240]'")
             status = status_line(page)
             assert "not an image" in status and "Still showing scene" in status
+            # the summary says it too: the status line waits behind "Advanced"
+            assert page.locator("#summary").inner_text().startswith("Error: notes.jpg")
             assert result_src == page.evaluate(
                 "() => document.querySelector('#result img')?.getAttribute('src')"
             )
@@ -229,10 +231,15 @@ def test_failed_upload_leaves_one_state(
             box.press("Enter")
             page.wait_for_function(f"() => {STATUS}.includes('focus 0.200 (0 = near')")
 
-            # a fresh page: nothing loaded, so nothing is shown but the error
-            page = open_app(browser, server.url)
+            # a fresh page, "Advanced" closed as a user finds it: nothing loaded, so nothing is
+            # shown but the error, in the summary
+            page = open_app(browser, server.url, details=False)
+            assert page.locator("#info textarea").count() == 0
             page.set_input_files("#input input[type=file]", str(bad))
-            page.wait_for_function(f"() => {STATUS}.startsWith('Error: notes.jpg')")
+            page.wait_for_function(
+                "() => (document.querySelector('#summary')?.innerText ?? '')"
+                ".startsWith('Error: notes.jpg')"
+            )
             page.wait_for_function("() => !document.querySelector('#input img[src]')")
             assert page.locator("button#download, #download button").first.is_disabled()
         finally:

@@ -114,4 +114,11 @@ def test_summary_line_in_a_photographers_words(logic, scene_factory):
     assert summary_line(session, off) == (
         "**Focus** 30 % of the way back · **no blur**: the photo as it is"
     )
-    assert summary_line(session, "Error: notes.jpg: not an image file") == ""
+    # an error is said in the summary too: the status line waits closed behind "Advanced"
+    error = "Error: notes.jpg: not an image file. Still showing a.png."
+    assert summary_line(session, error) == (
+        "**Error**: notes.jpg: not an image file. Still showing a.png."
+    )
+    assert summary_line(None, "Error: notes.jpg: not an image file") == (
+        "**Error**: notes.jpg: not an image file"
+    )
