@@ -8,6 +8,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import os
+from typing import Any
 
 import numpy as np
 import torch
@@ -130,25 +131,9 @@ def render(
         ``share * colour + (the layers in front)``. Where nothing is in front of the
         focal plane (and in the paper order) ``share`` is ones and ``colour`` the image.
     """
-    image_max = check_tensor("image", image, 3)[1]
-    disparity_range = check_tensor("disparity", disparity, 1)
-    if disparity.shape[0] != image.shape[0] or disparity.shape[-2:] != image.shape[-2:]:
-        raise ValueError(
-            f"disparity shape {tuple(disparity.shape)} does not match image {tuple(image.shape)}"
-        )
-    if radiance is not None:
-        check_tensor("radiance", radiance, 1)
-        if radiance.shape[-2:] != image.shape[-2:] or radiance.shape[0] != image.shape[0]:
-            raise ValueError(
-                f"radiance shape {tuple(radiance.shape)} does not match image {tuple(image.shape)}"
-            )
-    if method not in ("fft", "direct"):
-        raise ValueError(f"method must be 'fft' or 'direct', got {method!r}")
-    if quality not in QUALITY_PRESETS:
-        raise ValueError(f"quality must be one of {sorted(QUALITY_PRESETS)}, got {quality!r}")
-    if kernel not in ("soft", "hard"):
-        raise ValueError(f"kernel must be 'soft' or 'hard', got {kernel!r}")
-    check_placement(placement)
+    image_max, disparity_range = _checked_inputs(
+        image, disparity, radiance, method, quality, kernel, placement
+    )
     num_layers = whole_number(num_layers, "num_layers", 1)
     f = focus_tensor(focus, image.shape[0], image, check=not checked)
     blur = float(blur) if checked else check_blur(blur)
@@ -196,6 +181,43 @@ def render(
     if behind:
         return tuple(torch.cat([p[i] for p in parts]) for i in range(3))
     return torch.cat(parts)
+
+
+def _checked_inputs(
+    image: torch.Tensor,
+    disparity: torch.Tensor,
+    radiance: torch.Tensor | None,
+    method: str,
+    quality: str,
+    kernel: str,
+    placement: str,
+) -> tuple[float, tuple[float, float]]:
+    """:func:`render`'s tensors and named options checked; returns the image's largest value
+    and the disparity's extremes.
+
+    Raises:
+        ValueError: naming the bad input.
+    """
+    image_max = check_tensor("image", image, 3)[1]
+    disparity_range = check_tensor("disparity", disparity, 1)
+    if disparity.shape[0] != image.shape[0] or disparity.shape[-2:] != image.shape[-2:]:
+        raise ValueError(
+            f"disparity shape {tuple(disparity.shape)} does not match image {tuple(image.shape)}"
+        )
+    if radiance is not None:
+        check_tensor("radiance", radiance, 1)
+        if radiance.shape[-2:] != image.shape[-2:] or radiance.shape[0] != image.shape[0]:
+            raise ValueError(
+                f"radiance shape {tuple(radiance.shape)} does not match image {tuple(image.shape)}"
+            )
+    if method not in ("fft", "direct"):
+        raise ValueError(f"method must be 'fft' or 'direct', got {method!r}")
+    if quality not in QUALITY_PRESETS:
+        raise ValueError(f"quality must be one of {sorted(QUALITY_PRESETS)}, got {quality!r}")
+    if kernel not in ("soft", "hard"):
+        raise ValueError(f"kernel must be 'soft' or 'hard', got {kernel!r}")
+    check_placement(placement)
+    return image_max, disparity_range
 
 
 def _render(
@@ -266,36 +288,8 @@ def _render(
                 kernel=kernel,
                 blades=int(blades),
             )
-            weights = None
-            strength = boost_strength(highlight_boost)
-            if strength > 0:
-                if radiance is not None or image_max >= HDR_THRESHOLD:
-                    # a lone saturated spot weighs more (a lamp, a glint), with or without a
-                    # radiance map: on generated night scenes with true radiance the discs of
-                    # clipped far lights came out at 0.65 of the thin lens's brightness with
-                    # the paper's boost alone, 1.04 with this (docs/accuracy.md)
-                    spot = SPOT_ALPHA * strength
-                    weights = hdr_boost(image, radiance, alpha=HDR_ALPHA * strength, spot=spot)
-            elif radiance is not None:
-                weights = radiance
-            # a floor keeps the normalisation defined where every weight is 0 (e.g. pure red)
-            if tiled:
-                x = None  # read tile by tile and band by band by render_tiled
-                if weights is not None:
-                    # the floor in place (a copy of a caller's radiance)
-                    weights = weights + 1e-4 if weights is radiance else weights.add_(1e-4)
-            elif weights is None:
-                x = image if grad else with_ones(image)
-            elif grad:
-                weights = weights + 1e-4
-                x = torch.cat([weights * image, weights], dim=1)  # [B,3+Cr,H,W]
-            else:
-                # [1, w I, w] built in place: the layers are then mask * x in one product
-                cw = weights.shape[1]
-                x = image.new_empty(image.shape[0], 4 + cw, *image.shape[2:])
-                x[:, :1] = 1
-                torch.add(weights, 1e-4, out=x[:, 4:])
-                torch.mul(image, x[:, 4:], out=x[:, 1:4])
+            weights = _pixel_weights(image, radiance, highlight_boost, image_max)
+            x, weights = _layer_input(image, weights, radiance, grad, tiled)
 
             if tiled and any(size > 1 for _, size in plan.order):
                 spec = KernelSpec(kernel, int(blades), float(rotation))
@@ -307,10 +301,7 @@ def _render(
                 under = None
                 if hidden and plan.signed:
                     under = hidden_surface(input_pixels(x, grad), plan)
-                acc, alpha, split = composite_layers(
-                    x,
-                    plan,
-                    spec,
+                options = dict(
                     method=method,
                     quality=quality,
                     full_frame=full_frame,
@@ -319,27 +310,110 @@ def _render(
                     threads=threads,
                     hidden=under,
                 )
-                norm, floor = (alpha, 1e-6) if weights is None else (acc[:, 3:], 1e-8)
-                # pixels no layer reached (cannot happen with soft masks, but stay defined) keep
-                # the input
-                covered = norm > 1e-6
-                norm = norm.clamp(min=floor) if grad else norm.clamp_(min=floor)
+                layers = _composited(x, plan, spec, weights, grad, options)
         if not blurred:
             return _with_behind(image.clamp(0, 1), behind)
-        out = acc[:, :3] / norm
-        if not bool(covered.all()):
-            out = torch.where(covered, out, image)
-        out = out.clamp(0, 1) if grad else out.clamp_(0, 1)
-        if not behind:
-            return out
-        if split is None:
-            return _with_behind(out, True)
-        back, transmit = split  # back: alpha, colour (weighted), then the weight if any
-        back_norm = back[:, :1] if weights is None else back[:, 4:]
-        # the back layers' share of the normalised result, and their own normalised colour
-        share = (back_norm * transmit / norm).clamp(0, 1)
-        colour = (back[:, 1:4] / back_norm.clamp(min=floor)).clamp(0, 1)
-        return out, share, torch.where(back_norm > 1e-6, colour, out)
+        return _normalised(image, *layers, weights, grad, behind)
+
+
+def _composited(
+    x: torch.Tensor,
+    plan: Any,
+    spec: KernelSpec,
+    weights: torch.Tensor | None,
+    grad: bool,
+    options: dict[str, Any],
+) -> tuple[torch.Tensor, torch.Tensor, float, torch.Tensor, Any]:
+    """The layers composited (:func:`composite_layers` with ``options``): ``(acc, norm,
+    floor, covered, split)``, ``norm`` the weight each pixel got, at least ``floor``, and
+    ``covered`` where some layer reached (every pixel, with soft masks)."""
+    acc, alpha, split = composite_layers(x, plan, spec, **options)
+    norm, floor = (alpha, 1e-6) if weights is None else (acc[:, 3:], 1e-8)
+    # pixels no layer reached (cannot happen with soft masks, but stay defined) keep the input
+    covered = norm > 1e-6
+    norm = norm.clamp(min=floor) if grad else norm.clamp_(min=floor)
+    return acc, norm, floor, covered, split
+
+
+def _pixel_weights(
+    image: torch.Tensor,
+    radiance: torch.Tensor | None,
+    highlight_boost: bool | float,
+    image_max: float,
+) -> torch.Tensor | None:
+    """Each pixel's weight in the layers (``None``: all equal): the HDR boost of saturated
+    pixels at the boost's strength (with the radiance map when there is one), the radiance
+    map alone when the boost is off."""
+    strength = boost_strength(highlight_boost)
+    if strength > 0:
+        if radiance is not None or image_max >= HDR_THRESHOLD:
+            # a lone saturated spot weighs more (a lamp, a glint), with or without a
+            # radiance map: on generated night scenes with true radiance the discs of
+            # clipped far lights came out at 0.65 of the thin lens's brightness with
+            # the paper's boost alone, 1.04 with this (docs/accuracy.md)
+            spot = SPOT_ALPHA * strength
+            return hdr_boost(image, radiance, alpha=HDR_ALPHA * strength, spot=spot)
+        return None
+    return radiance
+
+
+def _layer_input(
+    image: torch.Tensor,
+    weights: torch.Tensor | None,
+    radiance: torch.Tensor | None,
+    grad: bool,
+    tiled: bool,
+) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+    """``(x, weights)``: what the layers cut out, ``[1, I]`` without weights (``I`` with
+    gradients), ``[w I, w]`` with them (``[1, w I, w]`` without gradients), or ``None`` for a
+    tiled render, which reads the image band by band; the weights with their floor of 1e-4,
+    which keeps the normalisation defined where every weight is 0 (e.g. pure red)."""
+    if tiled:
+        if weights is not None:
+            # the floor in place (a copy of a caller's radiance)
+            weights = weights + 1e-4 if weights is radiance else weights.add_(1e-4)
+        return None, weights
+    if weights is None:
+        return (image if grad else with_ones(image)), None
+    if grad:
+        weights = weights + 1e-4
+        return torch.cat([weights * image, weights], dim=1), weights  # [B,3+Cr,H,W]
+    # [1, w I, w] built in place: the layers are then mask * x in one product
+    cw = weights.shape[1]
+    x = image.new_empty(image.shape[0], 4 + cw, *image.shape[2:])
+    x[:, :1] = 1
+    torch.add(weights, 1e-4, out=x[:, 4:])
+    torch.mul(image, x[:, 4:], out=x[:, 1:4])
+    return x, weights
+
+
+def _normalised(
+    image: torch.Tensor,
+    acc: torch.Tensor,
+    norm: torch.Tensor,
+    floor: float,
+    covered: torch.Tensor,
+    split: Any,
+    weights: torch.Tensor | None,
+    grad: bool,
+    behind: bool,
+):
+    """The composite divided by its weight (pixels no layer reached keep the input), and
+    with ``behind`` what the layers at and behind the focal plane make of each pixel."""
+    out = acc[:, :3] / norm
+    if not bool(covered.all()):
+        out = torch.where(covered, out, image)
+    out = out.clamp(0, 1) if grad else out.clamp_(0, 1)
+    if not behind:
+        return out
+    if split is None:
+        return _with_behind(out, True)
+    back, transmit = split  # back: alpha, colour (weighted), then the weight if any
+    back_norm = back[:, :1] if weights is None else back[:, 4:]
+    # the back layers' share of the normalised result, and their own normalised colour
+    share = (back_norm * transmit / norm).clamp(0, 1)
+    colour = (back[:, 1:4] / back_norm.clamp(min=floor)).clamp(0, 1)
+    return out, share, torch.where(back_norm > 1e-6, colour, out)
 
 
 def _with_behind(out: torch.Tensor, behind: bool):
