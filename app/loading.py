@@ -97,6 +97,40 @@ def _remember_load_error(fn: Callable) -> Callable:
     return wrapper
 
 
+@dataclasses.dataclass
+class _Upload:
+    """An upload decoded (:meth:`LoadEvents._decoded_upload`): the photo, the map it renders
+    from (``None``: the chosen source predicts one), its description and source, the
+    render's parameters at the photo's size, the focus slider's new position (or a skip),
+    whether to search for the subject, and the files' paths and names."""
+
+    photo: Any
+    disparity: Any
+    source: str
+    chosen: str
+    params: RenderParams
+    new_focus: Any
+    search: bool
+    path: str
+    photo_name: str
+    depth_path: str | None
+    depth_name: str
+
+
+def _check_texts(view: Any, depth_kind: Any, hub_model: Any, depth_source: Any) -> None:
+    """The load event takes raw payloads (Gradio does not check them): its texts checked.
+
+    Raises:
+        gr.Error: naming the bad value.
+    """
+    if view not in VIEWS:
+        raise user_error(f"Unknown view {view!r}; expected one of {', '.join(VIEWS)}.")
+    for what, value in (("depth map kind", depth_kind), ("Hugging Face model", hub_model)):
+        if value is not None and not isinstance(value, str):
+            raise user_error(f"The {what} must be text, got {type(value).__name__}.")
+    sources.check_choice(depth_source, hub_model)  # a hub model: offered, cached (ms)
+
+
 class LoadEvents:
     """The upload events of a :class:`~app.handlers.RefocusApp`: a photo and its depth
     source loaded into a session."""
@@ -162,14 +196,76 @@ class LoadEvents:
             focus, f_number, blades, rotation, highlight_boost, fusion, quality, blur_on,
             size=None,
         )  # fmt: skip
-        # this event takes raw payloads (Gradio does not check them): the texts are checked here
-        if view not in VIEWS:
-            raise user_error(f"Unknown view {view!r}; expected one of {', '.join(VIEWS)}.")
-        for what, value in (("depth map kind", depth_kind), ("Hugging Face model", hub_model)):
-            if value is not None and not isinstance(value, str):
-                raise user_error(f"The {what} must be text, got {type(value).__name__}.")
-        sources.check_choice(depth_source, hub_model)  # a hub model: offered, cached (ms)
+        _check_texts(view, depth_kind, hub_model, depth_source)
         t0 = time.perf_counter()
+        upload = self._decoded_upload(session, image, path, depth, depth_kind, depth_source,
+                                      hub_model, params)  # fmt: skip
+        photo, chosen, params = upload.photo, upload.chosen, upload.params
+        t_decode = time.perf_counter()
+        self._admit(session)
+        key = sources.scene_key(content_key(photo.image, upload.disparity), chosen)
+        scene, cached = self.cache.get_or_prepare(
+            self.model,
+            key,
+            lambda: sources.prepare(self.model, photo.image, upload.disparity, chosen),
+        )
+        source = sources.describe(scene, upload.source)
+        t_prepare = time.perf_counter()
+        params, found, subject = self._loaded_focus(scene, params, upload.search)
+        new_focus = upload.new_focus if found is None else found
+        new = Session(
+            key=key,
+            get_scene=no_scene,  # set below, once the upload is kept
+            name=_payload_name(upload.photo_name),
+            shown_size=photo.shown_size,
+            size=photo.size,
+            before=imaging.fit_display(imaging.to_uint8(photo.image)),
+            icc_profile=photo.icc_profile,
+            exif=photo.exif,
+            owner=getattr(request, "session_hash", None),
+            auto_range=params.focal_range,
+        )
+        new.get_scene = self._scene_source(new, key, upload.path, upload.photo_name,
+                                           upload.depth_path, depth_kind, upload.depth_name,
+                                           chosen)  # fmt: skip
+        # closed once the new session has its own copy of the upload (which may be the old
+        # session's copy, when the panel showed the app's picture)
+        if session is not None:
+            session.close()
+        if photo.from_original or not photo.browser_shows:
+            self._write_panel(new)
+        self._register(new)
+        session = new
+        prep = "cached scene" if cached else f"prepare {1000 * (t_prepare - t_decode):.0f} ms"
+        log.info(
+            "loaded %s (%dx%d), depth: %s, %s %r", session.name, *session.size, source, prep, image
+        )
+        loaded = f" | decode {1000 * (t_decode - t0):.0f} ms | {prep} | depth: {source}{subject}"
+        steps = self._render_shown(session, params, view, scene, loaded, first_look)
+        del scene
+        try:
+            for outputs in steps:
+                yield (session, new_focus, *outputs)
+                new_focus = gr.skip()  # set by the first picture (the user may move it since)
+        except Exception:
+            session.close()
+            raise
+
+    def _decoded_upload(
+        self,
+        session: Session | None,
+        image: Any,
+        path: str,
+        depth: Any,
+        depth_kind: str,
+        depth_source: Any,
+        hub_model: Any,
+        params: RenderParams,
+    ) -> _Upload:
+        """The upload's files checked and decoded, the depth source chosen (the "Depth
+        source" control, :mod:`app.sources`), the notes said (a resized map, the depth used),
+        and the focus the photo brings: the camera's focal plane, or a search for the
+        subject where there is none (a map of one's own keeps the slider's focus)."""
         photo_name = _payload_name(image, ext=True)
         behind = self._upload_behind_panel(session, path)
         if behind is not None:  # the panel shows the app's picture: load what it stands for
@@ -214,54 +310,19 @@ class LoadEvents:
         # no focal plane from the camera (none recorded with the phone's depth, or no depth):
         # focus on the subject; a map of the user's own keeps the slider's focus
         search = not own_map and (disparity is None or photo.focus is None)
-        params = params.sized(photo.size)
-        t_decode = time.perf_counter()
-        self._admit(session)
-        key = sources.scene_key(content_key(photo.image, disparity), chosen)
-        scene, cached = self.cache.get_or_prepare(
-            self.model, key, lambda: sources.prepare(self.model, photo.image, disparity, chosen)
+        return _Upload(
+            photo=photo,
+            disparity=disparity,
+            source=source,
+            chosen=chosen,
+            params=params.sized(photo.size),
+            new_focus=new_focus,
+            search=search,
+            path=path,
+            photo_name=photo_name,
+            depth_path=depth_path,
+            depth_name=depth_name,
         )
-        source = sources.describe(scene, source)
-        t_prepare = time.perf_counter()
-        params, found, subject = self._loaded_focus(scene, params, search)
-        if found is not None:
-            new_focus = found
-        new = Session(
-            key=key,
-            get_scene=no_scene,  # set below, once the upload is kept
-            name=_payload_name(photo_name),
-            shown_size=photo.shown_size,
-            size=photo.size,
-            before=imaging.fit_display(imaging.to_uint8(photo.image)),
-            icc_profile=photo.icc_profile,
-            exif=photo.exif,
-            owner=getattr(request, "session_hash", None),
-            auto_range=params.focal_range,
-        )
-        new.get_scene = self._scene_source(new, key, path, photo_name, depth_path, depth_kind,
-                                           depth_name, chosen)  # fmt: skip
-        # closed once the new session has its own copy of the upload (which may be the old
-        # session's copy, when the panel showed the app's picture)
-        if session is not None:
-            session.close()
-        if photo.from_original or not photo.browser_shows:
-            self._write_panel(new)
-        self._register(new)
-        session = new
-        prep = "cached scene" if cached else f"prepare {1000 * (t_prepare - t_decode):.0f} ms"
-        log.info(
-            "loaded %s (%dx%d), depth: %s, %s %r", session.name, *session.size, source, prep, image
-        )
-        loaded = f" | decode {1000 * (t_decode - t0):.0f} ms | {prep} | depth: {source}{subject}"
-        steps = self._render_shown(session, params, view, scene, loaded, first_look)
-        del scene
-        try:
-            for outputs in steps:
-                yield (session, new_focus, *outputs)
-                new_focus = gr.skip()  # set by the first picture (the user may move it since)
-        except Exception:
-            session.close()
-            raise
 
     def _loaded_focus(self, scene: Any, params: RenderParams, search: bool) -> tuple:
         """``(params, position, note)``: the focus and focal range a load sets. With
