@@ -319,98 +319,20 @@ def render_file(
             src, ow, oh, ow * oh / 1e6, w, h, DEFAULT_MAX_PIXELS / 1e6,
         )  # fmt: skip
     blur = _blur_of(args, (h, w))
-    focus = args.focus
-    if getattr(args, "focus_position", None) is not None:
-        from .lens import focus_of_position
-
-        focus = focus_of_position(args.focus_position)
     focal_range = getattr(args, "focal_range", None)
     masks = _load_masks(args, (h, w))
     depth = _choose_depth(src, photo, args, depth_file, engine)
-    if depth is not None and depth.focus is not None:
-        if focus is None and args.focus_at is None:
-            focus = float(depth.focus)
-            logger.info("%s: focus %.3f from the photo's metadata", src, focus)
+    focus, point = _focus_asked(src, args, photo, depth, (h, w))
     disparity = None if depth is None else depth.disparity
-
-    point = None
-    if focus is None:
-        oh, ow = photo.info.original_size
-        if args.focus_at is not None:
-            x, y = args.focus_at
-            if x > ow - 1 or y > oh - 1:
-                raise ValueError(f"--focus-at {x:g},{y:g} is outside the {ow}x{oh} photo {src}")
-            # into the loaded (possibly downscaled) frame, pixel area onto pixel area
-            point = ((x + 0.5) * w / ow - 0.5, (y + 0.5) * h / oh - 0.5)
-        else:
-            point = "subject"
-
-    options: dict[str, Any] = {"blades": args.aperture_blades, "rotation": args.rotation}
-    if getattr(args, "no_highlight_boost", False):
-        options["highlight_boost"] = False
-    elif getattr(args, "highlight_boost", None) is not None:
-        options["highlight_boost"] = args.highlight_boost
-    if args.placement is not None:
-        options["placement"] = args.placement
+    options = _render_options(args)
     model = engine.model()
     if model is not None:
-        scene = model.prepare(image, depth=depth, refine=not args.no_refine_depth)
-        if depth is None:
-            logger.info("%s: depth from %s (the weights' own source)", src, scene.disparity_source)
-        if masks:
-            scene = model.paint(scene, **masks)
-        if point == "subject":  # the library's default focus, the app's too
-            focus, auto_range, point, _ = model.default_focus(scene)
-            focal_range = auto_range if focal_range is None else focal_range
-            if point is not None:
-                _say_subject(args, src, photo, point, focus)
-        elif point is not None and focal_range is None:
-            focus, focal_range = model.focus_at(scene, *point, with_range=True)
-        elif point is not None:
-            focus = model.focus_at(scene, *point)
-        focal_range = focal_range or 0.0
-        result = model.render(
-            scene,
-            focus=focus,
-            blur=blur,
-            fusion=not args.no_fusion,
-            budget=args.quality,
-            focal_range=focal_range,
-            **options,
-        )
-        if result.settings is not None:
-            logger.info("%s: %s", src, result.settings.describe())
-        rendered = Rendered(
-            bokeh=result.bokeh,
-            maps={
-                "disparity": scene.disparity_full(),
-                "defocus": result.defocus,
-                "fusion_mask": result.fusion_mask,
-            },
+        rendered, focus, focal_range, point = _render_with_model(
+            model, src, args, photo, depth, masks, (focus, point, focal_range), blur, options
         )
     elif disparity is not None:
-        if point == "subject":  # D2F.default_focus on the bare map: the subject's range too
-            focus, point = subject_in_map(disparity)
-            _say_subject(args, src, photo, point, focus)
-            if focal_range is None:
-                focal_range = range_in_map(disparity, *point, focus)
-        elif point is not None:
-            focus = focus_in_map(disparity, *point)
-            if focal_range is None:
-                focal_range = range_in_map(disparity, *point, focus)
-        focal_range = focal_range or 0.0
-        if masks:
-            disparity = _painted_map(image, disparity, focus, masks)
-        logger.info("%s: rendering with the depth map only (no D2F weights)", src)
-        rendered = render_with_depth_only(
-            image,
-            disparity,
-            focus,
-            blur,
-            fusion=not args.no_fusion,
-            focal_range=focal_range,
-            quality=args.quality,  # the renderer preset of the same name
-            **options,
+        rendered, focus, focal_range, point = _render_with_map(
+            src, args, photo, disparity, masks, (focus, point, focal_range), blur, options
         )
     else:
         raise RenderError(
@@ -419,8 +341,149 @@ def render_file(
             "--depth FILE, --depth-model transformers:MODEL or --weights CKPT"
         )
     logger.info("%s: focus %.3f, blur %g px, focal range %g", src, focus, blur, focal_range)
+    _save_outputs(dst, args, photo, rendered, [src] if depth_file is None else [src, depth_file])
+    if point is not None:  # back into the input photo's pixels
+        oh, ow = photo.info.original_size
+        point = (round(point[0] * ow / w, 1), round(point[1] * oh / h, 1))
+    source = "d2f" if depth is None else depth.describe()
+    return RenderInfo(dst, (w, h), source, float(focus), point, float(blur), float(focal_range))
 
-    protect = [src] + ([depth_file] if depth_file is not None else [])
+
+def _focus_asked(
+    src: Path, args: argparse.Namespace, photo: Any, depth: Any, size: tuple[int, int]
+) -> tuple[float | None, Any]:
+    """``(focus, point)`` as asked: the focal disparity when given (``--focus``,
+    ``--focus-position``, or the photo's recorded focal plane), else the point to focus at
+    in the loaded frame (``--focus-at``) or ``"subject"`` (the automatic focus)."""
+    h, w = size
+    focus = args.focus
+    if getattr(args, "focus_position", None) is not None:
+        from .lens import focus_of_position
+
+        focus = focus_of_position(args.focus_position)
+    if depth is not None and depth.focus is not None:
+        if focus is None and args.focus_at is None:
+            focus = float(depth.focus)
+            logger.info("%s: focus %.3f from the photo's metadata", src, focus)
+    if focus is not None:
+        return focus, None
+    if args.focus_at is None:
+        return None, "subject"
+    oh, ow = photo.info.original_size
+    x, y = args.focus_at
+    if x > ow - 1 or y > oh - 1:
+        raise ValueError(f"--focus-at {x:g},{y:g} is outside the {ow}x{oh} photo {src}")
+    # into the loaded (possibly downscaled) frame, pixel area onto pixel area
+    return None, ((x + 0.5) * w / ow - 0.5, (y + 0.5) * h / oh - 0.5)
+
+
+def _render_options(args: argparse.Namespace) -> dict[str, Any]:
+    """The renderer's options the command line sets: the aperture's blades and rotation,
+    the highlight boost, the placement."""
+    options: dict[str, Any] = {"blades": args.aperture_blades, "rotation": args.rotation}
+    if getattr(args, "no_highlight_boost", False):
+        options["highlight_boost"] = False
+    elif getattr(args, "highlight_boost", None) is not None:
+        options["highlight_boost"] = args.highlight_boost
+    if args.placement is not None:
+        options["placement"] = args.placement
+    return options
+
+
+def _render_with_model(
+    model: Any,
+    src: Path,
+    args: argparse.Namespace,
+    photo: Any,
+    depth: Any,
+    masks: dict[str, Any],
+    asked: tuple[float | None, Any, float | None],
+    blur: float,
+    options: dict[str, Any],
+) -> tuple[Rendered, float, float, Any]:
+    """``(rendered, focus, focal_range, point)`` with the D2F weights: the scene prepared
+    from ``depth`` (or the weights' own source), painted, focused as ``asked`` (``(focus,
+    point, focal_range)``: a point gets its subject's range unless one is given), rendered."""
+    focus, point, focal_range = asked
+    scene = model.prepare(photo.image, depth=depth, refine=not args.no_refine_depth)
+    if depth is None:
+        logger.info("%s: depth from %s (the weights' own source)", src, scene.disparity_source)
+    if masks:
+        scene = model.paint(scene, **masks)
+    if point == "subject":  # the library's default focus, the app's too
+        focus, auto_range, point, _ = model.default_focus(scene)
+        focal_range = auto_range if focal_range is None else focal_range
+        if point is not None:
+            _say_subject(args, src, photo, point, focus)
+    elif point is not None and focal_range is None:
+        focus, focal_range = model.focus_at(scene, *point, with_range=True)
+    elif point is not None:
+        focus = model.focus_at(scene, *point)
+    focal_range = focal_range or 0.0
+    result = model.render(
+        scene,
+        focus=focus,
+        blur=blur,
+        fusion=not args.no_fusion,
+        budget=args.quality,
+        focal_range=focal_range,
+        **options,
+    )
+    if result.settings is not None:
+        logger.info("%s: %s", src, result.settings.describe())
+    maps = {
+        "disparity": scene.disparity_full(),
+        "defocus": result.defocus,
+        "fusion_mask": result.fusion_mask,
+    }
+    return Rendered(bokeh=result.bokeh, maps=maps), focus, focal_range, point
+
+
+def _render_with_map(
+    src: Path,
+    args: argparse.Namespace,
+    photo: Any,
+    disparity: np.ndarray,
+    masks: dict[str, Any],
+    asked: tuple[float | None, Any, float | None],
+    blur: float,
+    options: dict[str, Any],
+) -> tuple[Rendered, float, float, Any]:
+    """:func:`_render_with_model` without weights: the depth map alone, focused by the same
+    rules on the bare map (:func:`subject_in_map`, :func:`focus_in_map`)."""
+    focus, point, focal_range = asked
+    if point == "subject":  # D2F.default_focus on the bare map: the subject's range too
+        focus, point = subject_in_map(disparity)
+        _say_subject(args, src, photo, point, focus)
+        if focal_range is None:
+            focal_range = range_in_map(disparity, *point, focus)
+    elif point is not None:
+        focus = focus_in_map(disparity, *point)
+        if focal_range is None:
+            focal_range = range_in_map(disparity, *point, focus)
+    focal_range = focal_range or 0.0
+    if masks:
+        disparity = _painted_map(photo.image, disparity, focus, masks)
+    logger.info("%s: rendering with the depth map only (no D2F weights)", src)
+    rendered = render_with_depth_only(
+        photo.image,
+        disparity,
+        focus,
+        blur,
+        fusion=not args.no_fusion,
+        focal_range=focal_range,
+        quality=args.quality,  # the renderer preset of the same name
+        **options,
+    )
+    return rendered, focus, focal_range, point
+
+
+def _save_outputs(
+    dst: Path, args: argparse.Namespace, photo: Any, rendered: Rendered, protect: list[Path]
+) -> None:
+    """Write the render to ``dst`` with the photo's colour profile and EXIF, and the maps
+    ``--save-maps`` asks for; no output may replace an input (``protect``: the photo and the
+    depth map, with the masks and a ``file:`` depth source added here)."""
     protect += [getattr(args, f) for f in ("sharp_mask", "blur_mask") if getattr(args, f, None)]
     if args.depth_model is not None and args.depth_model.kind == "file":
         protect.append(Path(args.depth_model.arg))
@@ -441,11 +504,6 @@ def render_file(
             save_depth(target, np.clip(arr, 0.0, 1.0))
         except (OSError, ValueError) as exc:
             raise RenderError(f"{dst} was written, but not its map {target}: {exc}") from exc
-    if point is not None:  # back into the input photo's pixels
-        oh, ow = photo.info.original_size
-        point = (round(point[0] * ow / w, 1), round(point[1] * oh / h, 1))
-    source = "d2f" if depth is None else depth.describe()
-    return RenderInfo(dst, (w, h), source, float(focus), point, float(blur), float(focal_range))
 
 
 def map_targets(
