@@ -126,6 +126,21 @@ def test_ade20k_finds_the_sky_over_the_rocket(ade):
     assert (labels[:40] == ADE_SKY).mean() > 0.85
 
 
+@pytest.mark.parametrize("side", [321, 513])
+@pytest.mark.parametrize("name, size", [("rocket.jpg", (256, 171)), ("coffee.jpg", (97, 61))])
+def test_ade20k_labels_are_the_argmax_of_the_resized_logits(ade, name, side, size):
+    """The labels, computed only at the pixels PIL's nearest neighbour reads and only across
+    a change of class, are the argmax of the logits resized to the input's size, resized by
+    PIL: the same but on ties."""
+    rgb = _sample(name)
+    full = D.ade20k_logits(rgb, ade, side).argmax(dim=-1).to(torch.uint8).numpy()
+    want = np.asarray(Image.fromarray(full).resize(size, Image.NEAREST))
+    got = D.ade20k_labels(rgb, size, ade, side=side)
+    assert got.shape == want.shape == size[::-1] and got.dtype == np.uint8
+    assert (got == want).mean() >= 0.999
+    assert len(np.unique(want)) >= 3  # a parse with changes of class to cross
+
+
 def test_voc_finds_the_cat(voc):
     """chelsea.jpg is a cat filling the middle of the frame."""
     rgb = _sample("chelsea.jpg")

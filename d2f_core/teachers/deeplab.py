@@ -337,13 +337,18 @@ class DeepLab(nn.Module):
                 raise ValueError(f"quantized names no convolution of this DeepLab: {name!r}")
             layers[name].quantize = True
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        size = x.shape[-2:]
+    def coarse_logits(self, x: torch.Tensor) -> torch.Tensor:
+        """The logits at the network's own stride (``B x C x h x w``), before the resize to
+        the input's size that :meth:`forward` adds."""
         low, feats = self.backbone(x.contiguous(memory_format=torch.channels_last))
         y = self.aspp(feats)
         if self.decoder is not None:
             y = self.decoder(y, low)
-        y = self.logits(y)
+        return self.logits(y)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        size = x.shape[-2:]
+        y = self.coarse_logits(x)
         if self.resize == "align_corners":
             return F.interpolate(y, size=size, mode="bilinear", align_corners=True)
         return _resize_asymmetric(y, size)
@@ -450,8 +455,59 @@ def ade20k_labels(
         ValueError: a bad ``image`` or ``size``.
     """
     size = _size(size)
-    cls = ade20k_logits(image, model, side).argmax(dim=-1).to(torch.uint8).numpy()
-    return np.asarray(Image.fromarray(cls).resize(size, Image.NEAREST))
+    net = _shipped(ADE20K) if model is None else model
+    if net.resize != "align_corners":
+        raise ValueError("ade20k_labels needs the ADE20K graph (its align-corners resize)")
+    x, (rh, rw) = ade20k_input(image, side)
+    with torch.inference_mode():
+        t = torch.from_numpy(np.ascontiguousarray(x)).permute(2, 0, 1)[None]
+        coarse = net.coarse_logits(t)[0].float().permute(1, 2, 0)  # h x w x C
+        # PIL's nearest neighbour reads one pixel of the resized logits per label; each
+        # such pixel mixes four coarse ones
+        r0, r1, rf = _align_corners_taps(coarse.shape[0], side, _nearest_index(rh, size[1]))
+        c0, c1, cf = _align_corners_taps(coarse.shape[1], side, _nearest_index(rw, size[0]))
+        return _mixed_argmax(coarse, (r0, r1, rf), (c0, c1, cf)).to(torch.uint8).numpy()
+
+
+def _mixed_argmax(coarse: torch.Tensor, rows: tuple, cols: tuple) -> torch.Tensor:
+    """The argmax class of each bilinear mix of ``coarse`` (``h x w x C``) at the taps
+    ``rows`` and ``cols`` (:func:`_align_corners_taps`), ``len(rows) x len(cols)``.
+
+    Where the four pixels mixed have the same argmax class, a weighted mean of them with
+    weights >= 0 has it too, so only the mixes across a change of class are computed."""
+    r0, r1, rf = rows
+    c0, c1, cf = cols
+    cls = coarse.argmax(dim=-1)
+    a, b = cls[r0][:, c0], cls[r0][:, c1]
+    c, d = cls[r1][:, c0], cls[r1][:, c1]
+    out = a.clone()
+    yi, xi = torch.nonzero((a != b) | (a != c) | (a != d), as_tuple=True)
+    if len(yi):
+        fy, fx = rf[yi, None], cf[xi, None]
+        top = torch.lerp(coarse[r0[yi], c0[xi]], coarse[r0[yi], c1[xi]], fx)
+        bottom = torch.lerp(coarse[r1[yi], c0[xi]], coarse[r1[yi], c1[xi]], fx)
+        out[yi, xi] = torch.lerp(top, bottom, fy).argmax(dim=-1)
+    return out
+
+
+def _nearest_index(n_in: int, n_out: int) -> torch.Tensor:
+    """The source index of each of ``n_out`` pixels of PIL's nearest-neighbour resize of a
+    line of ``n_in`` pixels (PIL's own rule, read from a resized line of indices)."""
+    line = Image.fromarray(np.arange(n_in, dtype=np.int32)[None, :])
+    return torch.from_numpy(np.asarray(line.resize((n_out, 1), Image.NEAREST), np.int64)[0])
+
+
+def _align_corners_taps(
+    n_in: int, n_out: int, index: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(i0, i1, frac)``: the two input samples and the weight of the second that a
+    bilinear align-corners resize from ``n_in`` to ``n_out`` samples reads for its output
+    samples ``index`` (as ``F.interpolate`` computes them)."""
+    scale = (n_in - 1) / (n_out - 1) if n_out > 1 else 0.0
+    pos = index.to(torch.float32) * scale
+    i0 = pos.floor().to(torch.int64).clamp_(0, n_in - 1)
+    i1 = (i0 + 1).clamp_(max=n_in - 1)
+    return i0, i1, (pos - i0).clamp_(0.0, 1.0)
 
 
 def _size(size: tuple[int, int]) -> tuple[int, int]:
