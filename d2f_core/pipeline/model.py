@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import numbers
 import time
 from pathlib import Path
 from typing import Any
@@ -20,23 +19,20 @@ from ..depth.brushes import Brushes
 from ..errors import InputTypeError, whole_number
 from ..io.depth import check_aspect
 from ..io.embedded import Photo
-from ..lens import blur_px
 from ..networks import build_defocus_net, build_fusion_net, build_radiance_net, read_torch_file
 from ..rendering import adaptive
-from ..rendering.kernels import check_rotation
 from ..rendering.schedule import (
-    check_focal_range,
     coc_to_defocus,
     defocus_to_coc,
     fold_focal_range,
-    outside_range,
 )
 from ..sizing import resize, scaled_size, size_ratio
 from .config import CHECKPOINT_VERSION, D2FConfig, default_weights_path
 from .depth_stage import DepthStage
 from .focus import FocusStage
-from .fusion import FUSION_TILE, FusionStage, ms_since, to_numpy_image
+from .fusion import FusionStage, ms_since, to_numpy_image
 from .outputs import Result, Scene
+from .render_steps import RenderSteps
 from .training import TrainingStage
 from .views import ViewStage
 
@@ -51,7 +47,7 @@ def _recorded_focus(value: Any) -> float | None:
     return min(max(f, 0.0), 1.0) if math.isfinite(f) else None
 
 
-class D2F(DepthStage, FusionStage, FocusStage, ViewStage, TrainingStage, nn.Module):
+class D2F(DepthStage, FusionStage, FocusStage, ViewStage, RenderSteps, TrainingStage, nn.Module):
     """Defocus-to-Focus: defocus, radiance and fusion networks plus the layered renderer.
 
     Use :meth:`from_pretrained`, :meth:`from_checkpoint` or :meth:`from_config`; all return
@@ -295,19 +291,6 @@ class D2F(DepthStage, FusionStage, FocusStage, ViewStage, TrainingStage, nn.Modu
         brushes = Brushes.painted(scene.image, sharp, blur, edges=edges)
         return dataclasses.replace(scene, brushes=brushes)
 
-    def _preview_inputs(self, scene: Scene, max_side: int) -> tuple[Tensor, Tensor, Tensor]:
-        size = scaled_size(scene.size, 1.0, max_side)
-        key = ("preview", size)
-        if key not in scene.cache:
-            lr_size = tuple(scene.image_lr.shape[-2:])
-            src = scene.image_lr if size[0] <= lr_size[0] else scene.image
-            scene.cache[key] = (
-                resize(src, size).clamp(0, 1),
-                resize(scene.disparity_lr, size).clamp(0, 1),
-                resize(scene.radiance_lr, size),
-            )
-        return scene.cache[key]
-
     @torch.no_grad()
     def render(
         self,
@@ -410,13 +393,9 @@ class D2F(DepthStage, FusionStage, FocusStage, ViewStage, TrainingStage, nn.Modu
             and (settings is None or settings.fusion)
         )
         t0 = time.perf_counter()
-        if identity:
-            bokeh_lr, behind_lr = image_lr, None  # every CoC is under a pixel of the output
-        else:
-            options = render_options | (settings.render_options() if settings else {})
-            bokeh_lr, behind_lr = self._render_pass(
-                image_lr, disparity_lr, radiance_lr, focus, blur_lr, fuse, options
-            )
+        bokeh_lr, behind_lr = self._pass_or_identity(
+            (image_lr, disparity_lr, radiance_lr), focus, blur_lr, fuse, settings, render_options
+        )
         timings["render_lr"] = ms_since(t0)
         defocus_lr = coc_to_defocus(blur_lr * (disparity_lr - focus).abs())
 
@@ -447,201 +426,3 @@ class D2F(DepthStage, FusionStage, FocusStage, ViewStage, TrainingStage, nn.Modu
         timings["to_numpy"] = ms_since(t0)
         timings["total"] = ms_since(t_all)
         return result
-
-    def _pass_inputs(
-        self, scene: Scene, max_side: int | None, screen: int | None, focus: float, blur: float
-    ) -> tuple[Scene, float, tuple[Tensor, Tensor, Tensor]]:
-        """``(scene, blur, (photo, map, radiance))``: the scene the full-size steps see (at
-        ``screen``'s size, with K in its pixels, when a screen is given and it is no
-        preview; its full map edited by the paint for ``focus``), and the inputs of the
-        rendering pass: the scene's own, or a preview's at ``max_side`` (cached per size),
-        the map edited by the paint."""
-        if screen is not None and max_side is None:
-            small = self.screen_scene(scene, whole_number(screen, "screen", 1))
-            blur *= size_ratio(small.size, scene.size)  # K in the screen's pixels
-            scene = small
-        if max_side is not None:
-            image_lr, disparity_lr, radiance_lr = self._preview_inputs(scene, int(max_side))
-        else:
-            image_lr, disparity_lr, radiance_lr = (
-                scene.image_lr,
-                scene.disparity_lr,
-                scene.radiance_lr,
-            )
-        if scene.brushes is not None:
-            disparity_lr = scene.brushes.apply(disparity_lr, focus)
-            if max_side is None:
-                scene = scene.brushed(focus)
-        return scene, blur, (image_lr, disparity_lr, radiance_lr)
-
-    def _render_args(
-        self,
-        scene: Any,
-        focus: float | None,
-        blur: float | None,
-        f_number: float | None,
-        focal_range: float | None,
-        budget: Any,
-        render_options: dict[str, Any],
-    ) -> tuple[float, float, float, str | float | None]:
-        """:meth:`render`'s arguments checked: ``(focus, blur, focal_range, budget)``, the
-        default focus found and ``render_options`` given the model's order and placement.
-
-        Raises:
-            ValueError: naming the bad argument.
-        """
-        if not isinstance(scene, Scene):
-            kind = type(scene).__name__
-            raise InputTypeError(f"scene must be a Scene from prepare(), got {kind}")
-        if f_number is not None:
-            if blur is not None:
-                raise ValueError("give blur or f_number, not both")
-            if isinstance(f_number, bool) or not isinstance(f_number, numbers.Real):
-                raise ValueError(f"f_number must be a number, got {f_number!r}")
-            blur = blur_px(float(f_number), max(scene.size))
-        if focus is None:
-            focus, auto_range, _, _ = self.default_focus(scene)
-            focal_range = auto_range if focal_range is None else focal_range
-        focal_range = 0.0 if focal_range is None else focal_range
-        focus, blur = rendering.check_focus_blur(focus, 40.0 if blur is None else blur)
-        focal_range = check_focal_range(focal_range)
-        if "rotation" in render_options:  # named even when no kernel needs it
-            render_options["rotation"] = check_rotation(render_options["rotation"])
-        if "radiance" in render_options:
-            raise ValueError("render_options must not contain 'radiance' (it comes from scene)")
-        if "checked" in render_options:
-            raise ValueError("render_options must not contain 'checked' (D2F.render sets it)")
-        render_options.setdefault("order", self.config.order)
-        render_options.setdefault("placement", self.config.placement)
-        if isinstance(budget, str):
-            if budget not in adaptive.BUDGETS:
-                names = sorted(adaptive.BUDGETS)
-                raise ValueError(
-                    f"budget must be one of {names}, a dB value or None, got {budget!r}"
-                )
-        elif budget is not None:
-            bad = f"budget must be a name, a dB value or None, got {budget!r}"
-            if isinstance(budget, bool):
-                raise ValueError(bad)
-            try:
-                budget = float(budget)
-            except (TypeError, ValueError):
-                raise ValueError(bad) from None
-            if not math.isfinite(budget):
-                raise ValueError(f"budget must be finite, got {budget}")
-        return focus, blur, focal_range, budget
-
-    def _pick_settings(
-        self,
-        scene: Scene,
-        disparity_lr: Tensor,
-        focus: float,
-        blur: float,
-        lr_ratio: float,
-        budget: str | float,
-        focal_range: float,
-        gate_coc: float,
-        render_options: dict[str, Any],
-        full: bool,
-    ) -> adaptive.RenderSettings:
-        """The adaptive settings for this focus and blur (:func:`adaptive.choose_settings`
-        on the pass's map); for a ``full`` render, identity and fusion then decided from the
-        full-resolution map."""
-        named = isinstance(budget, str)
-        settings = adaptive.choose_settings(
-            disparity_lr,
-            focus,
-            blur * lr_ratio,
-            budget_db=None if named else budget,
-            quality=budget if named else adaptive.DEFAULT_QUALITY,
-            schedule=render_options.get("schedule", "growing"),
-            placement=render_options["placement"],
-            full_scale=1.0 / lr_ratio if full else 1.0,
-            fusion_coc=gate_coc,
-            checked=True,  # focus and blur were checked by _render_args; blur_lr <= blur
-        )
-        if full:
-            self._full_size_decisions(scene, settings, focus, blur, focal_range, gate_coc)
-        return settings
-
-    def _full_size_decisions(
-        self,
-        scene: Scene,
-        settings: adaptive.RenderSettings,
-        focus: float,
-        blur: float,
-        focal_range: float,
-        gate_coc: float,
-    ) -> None:
-        """Decide ``settings.identity`` and ``settings.fusion`` from the full-resolution map
-        (a given map can hold finer extremes than its low-res copy): identity when every
-        output CoC is under a pixel, fusion when some pixel is near enough to focus for
-        :meth:`_fuse_tiled` to touch it."""
-        lo, hi = scene.disparity_tile_range(FUSION_TILE)
-        far = float(torch.maximum((hi - focus).abs(), (lo - focus).abs()).max())
-        near = float(torch.clamp(torch.maximum(lo - focus, focus - hi), min=0.0).min())
-        far, near = (outside_range(v, focal_range) for v in (far, near))
-        settings.identity = blur * far < 1.0
-        settings.fusion = blur * near < max(gate_coc, 2.0 * self.config.sharp_coc)
-
-    def _render_pass(
-        self,
-        image_lr: Tensor,
-        disparity_lr: Tensor,
-        radiance_lr: Tensor,
-        focus: float,
-        blur_lr: float,
-        fuse: bool,
-        options: dict[str, Any],
-    ) -> tuple[Tensor, tuple[Tensor, Tensor] | None]:
-        """The layered render at the pass's size, ``(bokeh_lr, behind_lr)``: with ``fuse``,
-        ``behind_lr`` is what the layers behind the blurred foreground make of each pixel
-        (share and colour; ``None`` where nothing is in front), the only part fusion
-        sharpens."""
-        out = rendering.render(
-            image_lr,
-            disparity_lr,
-            focus,
-            blur_lr,
-            radiance=radiance_lr,
-            behind=fuse,
-            # foreground layers blurred past the fusion gate: fusion never sharpens them, and
-            # must not paste what lies behind them over their blur
-            front_size=defocus_to_coc(self.config.fusion_gate),
-            checked=True,
-            **options,
-        )  # [1,3,h,w]
-        if not fuse:
-            return out, None
-        bokeh_lr, share_lr, colour_lr = out
-        behind = (share_lr, colour_lr) if bool((share_lr < 1.0 - 1e-4).any()) else None
-        return bokeh_lr, behind
-
-    def _full_size(
-        self,
-        scene: Scene,
-        bokeh_lr: Tensor,
-        behind_lr: tuple[Tensor, Tensor] | None,
-        fuse: bool,
-        focus: float,
-        blur: float,
-        lr_ratio: float,
-        focal_range: float,
-        timings: dict[str, float],
-    ) -> tuple[Tensor, Tensor]:
-        """Paper step 6: the pass upsampled to the photo's size and, with ``fuse``, deep
-        Poisson fusion; ``(bokeh, mask)`` at full resolution."""
-        t0 = time.perf_counter()
-        bokeh = resize(bokeh_lr, scene.size)  # [1,3,H,W]
-        if bokeh is bokeh_lr:
-            bokeh = bokeh.clone()  # fusion writes into it; bokeh_lr is returned too
-        timings["upsample"] = ms_since(t0)
-        if not fuse:
-            return bokeh, torch.zeros((1, 1, *scene.size), device=bokeh.device)
-        t0 = time.perf_counter()
-        behind = None
-        if behind_lr is not None:
-            behind = tuple(resize(t, scene.size).clamp_(0, 1) for t in behind_lr)
-        bokeh, mask = self._fuse_tiled(scene, bokeh, focus, blur, lr_ratio, behind, focal_range)
-        timings["fusion"] = ms_since(t0)
-        return bokeh, mask
