@@ -230,17 +230,9 @@ def _optimizer_to(optimizer: torch.optim.Optimizer, device) -> None:
                 state[k] = v.to(device)
 
 
-def train(args: argparse.Namespace) -> TrainResult:
-    """Run one training stage described by parsed ``d2f-train`` arguments."""
-    stage = 1 if args.stage == "stage1" else 2
-    ddp, device = _init_distributed(args.device)
-    out_dir = Path(args.out)
-    if ddp.main:
-        out_dir.mkdir(parents=True, exist_ok=True)
-    torch.manual_seed(args.seed)
-
-    # 1. model: resume > init checkpoint > fresh config
-    resume = None
+def _stage_model(args: argparse.Namespace, stage: int) -> tuple[D2F, dict | None]:
+    """``(model, resume)``: the model a stage trains, from ``--resume`` (whose checkpoint,
+    checked to be this stage's, is returned too), ``--init``, or a fresh config."""
     if args.resume is not None:
         resume = read_torch_file(
             args.resume,
@@ -252,40 +244,31 @@ def train(args: argparse.Namespace) -> TrainResult:
                 f"--resume {args.resume} is a stage-{resume.get('stage')} checkpoint, "
                 f"not stage {stage}"
             )
-        model = D2F.from_checkpoint(args.resume)
-    elif args.init is not None:
-        model = D2F.from_checkpoint(args.init)
-    else:
-        if stage == 2:
-            logger.warning("stage 2 without --init: the defocus/radiance networks are random")
-        model = D2F.from_config(
-            {
-                "defocus": args.variant,
-                "fusion": args.fusion,
-                "render_scale": args.render_scale,
-                "placement": args.placement,
-            }
-        )
-        if args.imagenet is not None:
-            model.defocus_net.load_imagenet(args.imagenet)
-    model.to(device).train()
-    params = _trainable(model, stage)
-    optimizer = torch.optim.Adam(params, lr=args.lr)
-    step = 0
-    if resume is not None:
-        optimizer.load_state_dict(resume["optimizer"])
-        _optimizer_to(optimizer, device)
-        step = int(resume["step"])
-    criterion = D2FLoss(args.vgg_weights, theta=model.config.fusion_theta).to(device)
-    forward: nn.Module = _StageForward(model, stage)
-    if ddp.world > 1:
-        forward = nn.parallel.DistributedDataParallel(
-            forward, device_ids=[device.index] if device.type == "cuda" else None
-        )
+        return D2F.from_checkpoint(args.resume), resume
+    if args.init is not None:
+        return D2F.from_checkpoint(args.init), None
+    if stage == 2:
+        logger.warning("stage 2 without --init: the defocus/radiance networks are random")
+    model = D2F.from_config(
+        {
+            "defocus": args.variant,
+            "fusion": args.fusion,
+            "render_scale": args.render_scale,
+            "placement": args.placement,
+        }
+    )
+    if args.imagenet is not None:
+        model.defocus_net.load_imagenet(args.imagenet)
+    return model, None
 
-    # 2. data
-    crop = args.crop
-    train_set = EBBDataset(args.data, split=args.split, crop=crop, flip=True, seed=args.seed)
+
+def _stage_data(
+    args: argparse.Namespace, ddp: Any, device: torch.device, step: int
+) -> tuple[EBBDataset, EBBDataset | None, _SkipSampler, DataLoader, int]:
+    """``(train_set, val_set, sampler, loader, epoch)``: the training pairs, shuffled per
+    epoch and shared among the processes, starting at ``step`` (the batches of its epoch
+    already seen are skipped); the validation pairs when ``--val-every`` asks for them."""
+    train_set = EBBDataset(args.data, split=args.split, crop=args.crop, flip=True, seed=args.seed)
     val_set = EBBDataset(args.data, split=args.val_split) if args.val_every > 0 else None
     if len(train_set) < args.batch_size * ddp.world:
         raise ValueError(
@@ -311,6 +294,37 @@ def train(args: argparse.Namespace) -> TrainResult:
         pin_memory=device.type == "cuda",
         generator=generator,
     )
+    return train_set, val_set, sampler, loader, epoch
+
+
+def train(args: argparse.Namespace) -> TrainResult:
+    """Run one training stage described by parsed ``d2f-train`` arguments."""
+    stage = 1 if args.stage == "stage1" else 2
+    ddp, device = _init_distributed(args.device)
+    out_dir = Path(args.out)
+    if ddp.main:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    torch.manual_seed(args.seed)
+
+    # 1. model: resume > init checkpoint > fresh config
+    model, resume = _stage_model(args, stage)
+    model.to(device).train()
+    params = _trainable(model, stage)
+    optimizer = torch.optim.Adam(params, lr=args.lr)
+    step = 0
+    if resume is not None:
+        optimizer.load_state_dict(resume["optimizer"])
+        _optimizer_to(optimizer, device)
+        step = int(resume["step"])
+    criterion = D2FLoss(args.vgg_weights, theta=model.config.fusion_theta).to(device)
+    forward: nn.Module = _StageForward(model, stage)
+    if ddp.world > 1:
+        forward = nn.parallel.DistributedDataParallel(
+            forward, device_ids=[device.index] if device.type == "cuda" else None
+        )
+
+    # 2. data, from where a resumed run stopped
+    train_set, val_set, sampler, loader, epoch = _stage_data(args, ddp, device, step)
 
     # 3. logs
     log_path = out_dir / f"train_stage{stage}.csv"
