@@ -11,7 +11,16 @@ from __future__ import annotations
 import importlib.resources
 from pathlib import Path
 
-__all__ = ["ASSETS_PACKAGE", "SAMPLE_SUFFIXES", "assets_dir", "sample_photos", "shipped_weights"]
+import numpy as np
+
+__all__ = [
+    "ASSETS_PACKAGE",
+    "SAMPLE_SUFFIXES",
+    "assets_dir",
+    "coffee_cup_mask",
+    "sample_photos",
+    "shipped_weights",
+]
 
 #: The package the top-level ``assets/`` folder is installed as.
 ASSETS_PACKAGE = "d2f_core.assets"
@@ -51,3 +60,20 @@ def sample_photos() -> list[Path]:
     """The bundled sample photos (``assets/samples/``), sorted by name."""
     folder = assets_dir() / "samples"
     return sorted(p for p in folder.iterdir() if p.suffix.lower() in SAMPLE_SUFFIXES)
+
+
+def coffee_cup_mask(width: int = 600, height: int = 400) -> np.ndarray:
+    """The cup of the sample ``coffee.jpg`` (600x400; its rim, body and handle, by
+    ellipses placed by hand), ``height x width`` uint8, 255 on the cup: the README's
+    ``--sharp-mask`` example and ``d2f-bench standing``'s cup seen from above."""
+    sy, sx = height / 400, width / 600
+    yy, xx = np.mgrid[0:height, 0:width]
+    yy, xx = yy / sy, xx / sx
+
+    def ellipse(cx: float, cy: float, rx: float, ry: float) -> np.ndarray:
+        return ((xx - cx) / rx) ** 2 + ((yy - cy) / ry) ** 2 <= 1.0
+
+    rim = ellipse(291, 112, 121, 96)
+    body = ellipse(291, 190, 112, 95) & (yy >= 112)
+    handle = ellipse(228, 268, 36, 40)
+    return ((rim | body | handle) * 255).astype(np.uint8)

@@ -53,6 +53,32 @@ def test_a_close_up_keeps_the_old_layout():
     np.testing.assert_array_equal(layout, old)
 
 
+def test_ground_inside_a_thing_is_part_of_it():
+    """A patch of ground classes that something surrounds (the coffee in a cup seen from
+    above, parsed as floor) is no ground: it stands with the thing round it, where that
+    meets the ground; ground that reaches the frame's edge is ground."""
+    from d2f_core.depth.layout import open_ground
+
+    plate = 143
+    ade = np.full((60, 80), FLOOR, np.uint8)  # a table top seen from above, read as floor
+    ade[10:40, 20:60] = plate  # a cup on it
+    ade[18:32, 30:50] = FLOOR  # the coffee in the cup, read as floor too
+    ground = open_ground(ade)
+    assert ground[:10].all() and ground[40:].all() and ground[:, :20].all()
+    assert not ground[10:40, 20:60].any()
+    layout, strength = scene_targets.scene_layout(ade, scene_targets.ramp(60, 80))
+    assert strength == 1.0
+    # the cup and its coffee stand where the cup meets the table (row 40): one disparity,
+    # nearer than the table seen behind the cup
+    np.testing.assert_allclose(layout[10:40, 40], layout[40, 40], atol=1e-6)
+    assert layout[10:40, 40].min() > layout[5, 40] + 0.5
+    # ground touching the frame's edge stays ground, however it is shaped
+    edge = ade.copy()
+    edge[18:32, 30:60] = FLOOR  # the patch now runs out of the cup... still inside it
+    edge[18:32, 59:] = FLOOR  # ...and on to the frame's edge
+    assert open_ground(edge)[20, 40]
+
+
 def test_horizon_row():
     # the ground's top is row 40, the sky's lowest row 19: the horizon cannot be below the
     # sky, so it is there (less a margin)

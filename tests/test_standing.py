@@ -104,6 +104,21 @@ def test_shipped_weights_put_generated_subjects_in_front(shipped, one_thread):
     assert summary["generated post"]["focused"] >= 0.875
 
 
+def test_shipped_weights_put_the_cup_seen_from_above_in_front(shipped, one_thread):
+    """The bundled case: the cup of ``coffee.jpg`` on its saucer, seen from above on a table
+    (the parse reads the table and the coffee in the cup as floor). The scene source, the
+    default, stood the coffee's "floor" on a plane: the rim came out behind the saucer
+    (margin -0.11, before 2026-12-07); with the ground only where it reaches the frame's edge
+    the cup is in front (+0.23), and the automatic focus lands on it."""
+    cases = standing.bundled_cases()
+    assert [(c[0], c[1]) for c in cases] == [("coffee-cup", "photo seen from above")]
+    image, mask = cases[0][2], cases[0][3]
+    assert mask.shape == image.shape[:2] == (400, 600) and 0.2 < mask.mean() < 0.35
+    row = standing.score({"shipped": shipped}, cases)["cases"]["coffee-cup"]["shipped"]
+    assert row["in_front"] and row["margin"] > 0.1, row
+    assert row["focused"], row
+
+
 @pytest.mark.slow
 @pytest.mark.shared_data
 def test_shipped_weights_put_tall_held_out_subjects_in_front(shipped, one_thread):

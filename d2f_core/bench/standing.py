@@ -6,6 +6,9 @@ The cases where "the bottom of the frame is near" fails, held out of training:
   that training never uses (:data:`SEED_BASE` on): a near post crossing the frame from top to
   bottom, a subject over water or a floor whose bottom rows are far, a near subject in front
   of far lights at night. Their subject mask and disparity are exact.
+- **Bundled** (always available): the sample ``coffee.jpg``, a cup on a saucer seen from
+  above on a table (:func:`~d2f_core.bundled.coffee_cup_mask` marks the cup); seen from
+  above, the ground is all round the subject and its top is nearest.
 - **Held-out photos** (``../shared/datasets``, skipped when absent): the held-out masked photos
   whose subject is tall (its box spans :data:`TALL` of the frame's height, a post, a person, a
   bottle standing across the frame) or, when the ADE20K teacher is given (``--teachers``),
@@ -30,7 +33,16 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["SEED_BASE", "TALL", "generated_cases", "in_front", "main", "photo_cases", "score"]
+__all__ = [
+    "SEED_BASE",
+    "TALL",
+    "bundled_cases",
+    "generated_cases",
+    "in_front",
+    "main",
+    "photo_cases",
+    "score",
+]
 
 #: generated scenes for this check use seeds from here on (training draws below 2**30)
 SEED_BASE = 1 << 31
@@ -52,6 +64,17 @@ def generated_cases(n: int = 24, size: tuple[int, int] = (256, 384)) -> list[Cas
         image = linear_to_srgb(np.clip(radiance, 0.0, 1.0)).astype(np.float32)
         out.append((f"generated-{kind}-{i}", f"generated {kind}", image, subject_mask(scene) > 0.5))
     return out
+
+
+def bundled_cases() -> list[Case]:
+    """The bundled sample's case: the cup of ``coffee.jpg`` seen from above."""
+    from ..bundled import coffee_cup_mask, sample_photos
+    from ..io import load_image
+
+    path = next(p for p in sample_photos() if p.name == "coffee.jpg")
+    image = load_image(path)
+    mask = coffee_cup_mask(image.shape[1], image.shape[0]) > 0
+    return [("coffee-cup", "photo seen from above", image, mask)]
 
 
 def photo_cases(root: str | Path, teachers: str | Path | None = None) -> list[Case]:
@@ -257,6 +280,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 1
     cases = generated_cases(args.generated)
     if not args.no_photos:
+        cases += bundled_cases()
         if args.datasets.is_dir():
             cases += photo_cases(args.datasets, args.teachers)
         else:

@@ -41,6 +41,7 @@ __all__ = [
     "is_room",
     "normalise",
     "occluder_alpha",
+    "open_ground",
     "ramp",
     "scene_layout",
     "scene_strength",
@@ -160,10 +161,22 @@ def ground_plane(height: int, width: int, horizon: float) -> np.ndarray:
     return np.broadcast_to(plane, (height, width)).astype(np.float32)
 
 
+def open_ground(ade: np.ndarray) -> np.ndarray:
+    """The ground a scene stands on, ``H x W`` bool: the ground classes where they reach
+    the frame's edge. A patch of "ground" that something surrounds (the coffee in a cup seen
+    from above, read as floor) is part of that thing, not a floor in the distance."""
+    from scipy.ndimage import label
+
+    ground = in_classes(ade, GROUND)
+    parts, _ = label(ground)
+    edge = np.concatenate([parts[0], parts[-1], parts[:, 0], parts[:, -1]])
+    return np.isin(parts, edge[edge > 0])
+
+
 def _standing(ade: np.ndarray, plane: np.ndarray) -> np.ndarray:
     """Every pixel's disparity where its column next meets the ground below it (the frame's
     bottom, 1, when it never does): things stand where they touch the ground."""
-    ground = in_classes(ade, GROUND)
+    ground = open_ground(ade)
     h, w = ade.shape
     out = np.empty((h, w), np.float32)
     cur = np.ones(w, np.float32)
@@ -198,7 +211,7 @@ def scene_layout(
     """
     h, w = ade.shape
     sky = in_classes(ade, SKY)
-    ground = in_classes(ade, GROUND)
+    ground = open_ground(ade)
     strength = scene_strength(ade, teacher_weight)
     if strength <= 0.0:
         return old_layout.astype(np.float32), 0.0

@@ -9,7 +9,9 @@ per photo (0 = farthest, 1 = nearest), the target the defocus network learns in 
 
 1. **Ground** (floor, road, grass, sidewalk, earth, water, sand, field...) is a plane seen by a
    level camera: its disparity grows linearly from the horizon row to the bottom of the frame
-   (for a flat ground at camera height ``h``, depth ``Z = f h / (y - y_h)``).
+   (for a flat ground at camera height ``h``, depth ``Z = f h / (y - y_h)``). Only ground that
+   reaches the frame's edge counts (:func:`~d2f_core.depth.layout.open_ground`): a patch that
+   something surrounds (the coffee in a cup seen from above, read as floor) is part of it.
 2. **Sky** is the farthest thing in the frame.
 3. **Everything else stands** on the ground where it touches it: each pixel takes the
    ground's disparity at the first ground pixel below it in its column (a building, a tree, a
