@@ -297,6 +297,34 @@ def _stage_data(
     return train_set, val_set, sampler, loader, epoch
 
 
+def _stage_logs(
+    out_dir: Path, stage: int, *, writes: bool, resumed: bool
+) -> tuple[Path, Path, Path, Path, list]:
+    """``(log, val, checkpoint, best, columns)``: a stage's files in ``out_dir`` and its
+    training log's columns. The process that ``writes`` starts the two CSV logs with their
+    headers, unless a resumed run has its log to append to."""
+    log_path = out_dir / f"train_stage{stage}.csv"
+    val_path = out_dir / f"val_stage{stage}.csv"
+    columns = ["step", *_LOSS_COLUMNS[: 5 if stage == 1 else 6], "lr", "time_s"]
+    if writes and (not resumed or not log_path.exists()):
+        with log_path.open("w", newline="") as fh:
+            csv.writer(fh).writerow(columns)
+        with val_path.open("w", newline="") as fh:
+            csv.writer(fh).writerow(["step", "psnr", "ssim", "images"])
+    ckpt_path, best_path = out_dir / f"stage{stage}.pt", out_dir / f"stage{stage}_best.pt"
+    return log_path, val_path, ckpt_path, best_path, columns
+
+
+def _log_step(
+    log_path: Path, columns: list, step: int, values: dict, lr: float, seconds: float
+) -> None:
+    """One row of the training log: the step, each loss term, the learning rate, the time."""
+    row = [step, *(f"{values.get(c, 0.0):.6f}" for c in columns[1:-2])]
+    row += [f"{lr:.3g}", f"{seconds:.2f}"]
+    with log_path.open("a", newline="") as fh:
+        csv.writer(fh).writerow(row)
+
+
 def train(args: argparse.Namespace) -> TrainResult:
     """Run one training stage described by parsed ``d2f-train`` arguments."""
     stage = 1 if args.stage == "stage1" else 2
@@ -327,16 +355,9 @@ def train(args: argparse.Namespace) -> TrainResult:
     train_set, val_set, sampler, loader, epoch = _stage_data(args, ddp, device, step)
 
     # 3. logs
-    log_path = out_dir / f"train_stage{stage}.csv"
-    val_path = out_dir / f"val_stage{stage}.csv"
-    ckpt_path = out_dir / f"stage{stage}.pt"
-    best_path = out_dir / f"stage{stage}_best.pt"
-    columns = ["step", *_LOSS_COLUMNS[: 5 if stage == 1 else 6], "lr", "time_s"]
-    if ddp.main and (resume is None or not log_path.exists()):
-        with log_path.open("w", newline="") as fh:
-            csv.writer(fh).writerow(columns)
-        with val_path.open("w", newline="") as fh:
-            csv.writer(fh).writerow(["step", "psnr", "ssim", "images"])
+    log_path, val_path, ckpt_path, best_path, columns = _stage_logs(
+        out_dir, stage, writes=ddp.main, resumed=resume is not None
+    )
     best = float(resume.get("best_psnr", -math.inf)) if resume is not None else -math.inf
     run_args = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}
 
@@ -378,13 +399,8 @@ def train(args: argparse.Namespace) -> TrainResult:
             if ddp.main and (step % args.log_every == 0 or step == args.steps or step == 1):
                 values = {k: float(v.detach()) for k, v in terms.items()}
                 bar.set_postfix(loss=f"{values['total']:.4f}")
-                row = [step, *(f"{values.get(c, 0.0):.6f}" for c in columns[1:-2])]
-                row += [
-                    f"{optimizer.param_groups[0]['lr']:.3g}",
-                    f"{time.perf_counter() - start:.2f}",
-                ]
-                with log_path.open("a", newline="") as fh:
-                    csv.writer(fh).writerow(row)
+                lr = optimizer.param_groups[0]["lr"]
+                _log_step(log_path, columns, step, values, lr, time.perf_counter() - start)
             if args.val_every > 0 and step % args.val_every == 0:
                 val_scores = run_validation() or val_scores
             if ddp.main and (step % args.save_every == 0 or step == args.steps):
