@@ -169,14 +169,12 @@ def _real_data(args: argparse.Namespace) -> RealDepthData:
     )
 
 
-def train_depth(args: argparse.Namespace) -> Path:
-    """Run (or resume) stage 0; returns the path of the last checkpoint."""
-    torch.set_num_threads(args.threads)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    last = out / "depth_last.pt"
-    resuming = last.is_file() and not args.restart
-    # the options alone, before the photos are scanned
+def _check_options(args: argparse.Namespace, resuming: bool) -> None:
+    """Stage 0's options checked against each other, before any photo is read.
+
+    Raises:
+        ValueError: naming the option and what it needs.
+    """
     if args.head_only and args.init is None and not resuming:
         raise ValueError("--head-only needs --init: the network whose disparity stays as it is")
     if args.head_only and (args.keep is not None or args.distill is not None):
@@ -212,6 +210,62 @@ def train_depth(args: argparse.Namespace) -> Path:
         )
     if args.minutes is not None and args.minutes <= 0:
         raise ValueError(f"--minutes must be positive, got {args.minutes}")
+
+
+def _save_depth_state(
+    out: Path,
+    args: argparse.Namespace,
+    step: int,
+    final: bool,
+    net: torch.nn.Module,
+    opt: torch.optim.Optimizer,
+    ema: dict | None,
+    distiller: Distiller | None,
+    elapsed: float,
+) -> None:
+    """Write stage 0's checkpoints at ``step``: the kept weights (and their average) every
+    ``--keep-every`` steps and at the end, then ``depth_last.pt``, the state a run resumes
+    from, replaced in one step."""
+    weights = _on_cpu(net.state_dict())
+    averaged = None if ema is None else _on_cpu(ema)
+    # the kept files first: a run stopped between them and depth_last.pt resumes from the
+    # step before and writes them again (the other way round, it resumed at its last step
+    # and never wrote them)
+    if step % args.keep_every == 0 or final:
+        torch.save(
+            {"state_dict": weights, "step": step, "variant": args.variant},
+            out / f"depth_{step:06d}.pt",
+        )
+        if averaged is not None:
+            torch.save(
+                {"state_dict": averaged, "step": step, "variant": args.variant, "ema": args.ema},
+                out / f"depth_{step:06d}_ema.pt",
+            )
+    state = {
+        "state_dict": weights,
+        "elapsed_s": elapsed,
+        "optimizer": optimizer_state_on_cpu(opt.state_dict()),
+        "step": step,
+        "variant": args.variant,
+    }
+    if distiller is not None:
+        state["distiller"] = _on_cpu(distiller.state_dict())
+    if averaged is not None:
+        state["ema"] = averaged
+    last = out / "depth_last.pt"
+    tmp = last.with_suffix(".tmp")
+    torch.save(state, tmp)
+    tmp.replace(last)
+
+
+def train_depth(args: argparse.Namespace) -> Path:
+    """Run (or resume) stage 0; returns the path of the last checkpoint."""
+    torch.set_num_threads(args.threads)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    last = out / "depth_last.pt"
+    resuming = last.is_file() and not args.restart
+    _check_options(args, resuming)  # the options alone, before the photos are scanned
     device = torch.device(args.device)
     if device.type == "cuda" and not torch.cuda.is_available():
         raise ValueError("--device cuda: no CUDA device here")
@@ -390,40 +444,8 @@ def train_depth(args: argparse.Namespace) -> Path:
             logger.info("step %d loss %.4f %s", step, loss.item(), parts)
         final = done = progress() >= 1.0
         if step % args.save_every == 0 or final:
-            weights = _on_cpu(net.state_dict())
-            averaged = None if ema is None else _on_cpu(ema)
-            # the kept files first: a run stopped between them and depth_last.pt resumes
-            # from the step before and writes them again (the other way round, it resumed
-            # at its last step and never wrote them)
-            if step % args.keep_every == 0 or final:
-                torch.save(
-                    {"state_dict": weights, "step": step, "variant": args.variant},
-                    out / f"depth_{step:06d}.pt",
-                )
-                if averaged is not None:
-                    torch.save(
-                        {
-                            "state_dict": averaged,
-                            "step": step,
-                            "variant": args.variant,
-                            "ema": args.ema,
-                        },  # fmt: skip
-                        out / f"depth_{step:06d}_ema.pt",
-                    )
-            state = {
-                "state_dict": weights,
-                "elapsed_s": spent + time.perf_counter() - t0,
-                "optimizer": optimizer_state_on_cpu(opt.state_dict()),
-                "step": step,
-                "variant": args.variant,
-            }
-            if distiller is not None:
-                state["distiller"] = _on_cpu(distiller.state_dict())
-            if averaged is not None:
-                state["ema"] = averaged
-            tmp = last.with_suffix(".tmp")
-            torch.save(state, tmp)
-            tmp.replace(last)
+            elapsed = spent + time.perf_counter() - t0
+            _save_depth_state(out, args, step, final, net, opt, ema, distiller, elapsed)
     log.close()
     return last
 
