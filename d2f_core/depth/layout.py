@@ -173,11 +173,10 @@ def open_ground(ade: np.ndarray) -> np.ndarray:
     return np.isin(parts, edge[edge > 0])
 
 
-def _standing(ade: np.ndarray, plane: np.ndarray) -> np.ndarray:
-    """Every pixel's disparity where its column next meets the ground below it (the frame's
-    bottom, 1, when it never does): things stand where they touch the ground."""
-    ground = open_ground(ade)
-    h, w = ade.shape
+def _standing(ground: np.ndarray, plane: np.ndarray) -> np.ndarray:
+    """Every pixel's disparity where its column next meets the ``ground`` below it (the
+    frame's bottom, 1, when it never does): things stand where they touch the ground."""
+    h, w = ground.shape
     out = np.empty((h, w), np.float32)
     cur = np.ones(w, np.float32)
     for y in range(h - 1, -1, -1):
@@ -216,7 +215,7 @@ def scene_layout(
     if strength <= 0.0:
         return old_layout.astype(np.float32), 0.0
     plane = ground_plane(h, w, horizon_row(ade))
-    model = _standing(ade, plane)
+    model = _standing(ground, plane)
     model = np.where(ground, plane, model)
     model = np.where(sky, 0.0, np.maximum(model, 0.05))
     # columns meet the ground at different rows behind clutter: smooth across, keep the sky
