@@ -17,7 +17,15 @@ from PIL import Image
 from d2f_core.bench import depth_bench
 from d2f_core.depth.refine import box_mean, harden_edges, snap_edges
 from d2f_core.pipeline import D2F, find_subject
-from d2f_core.train import depth_data, depth_losses, depth_train, distill, scene_targets, teachers
+from d2f_core.train import (
+    depth_cli,
+    depth_data,
+    depth_losses,
+    depth_train,
+    distill,
+    scene_targets,
+    teachers,
+)
 
 # ------------------------------------------------------------------------------ metrics
 
@@ -624,7 +632,7 @@ def test_samples_and_short_training_roundtrip(tmp_path, tiny_checkpoint, one_thr
         assert maps.shape == (n, 2, h, w) and (maps == -1).all()  # no scene head: unknown
         assert n == max(2, round(4 * 48 * 64 / (h * w)))
 
-    args = depth_train.build_parser().parse_args(
+    args = depth_cli.build_parser().parse_args(
         ["--data", str(root), "--labels", str(labels), "--out", str(tmp_path / "run"),
          "--steps", "3", "--batch-size", "2", "--crop", "64", "--save-every", "2",
          "--keep-every", "2", "--workers", "0", "--threads", "1", "--log-every", "1",
@@ -647,7 +655,7 @@ def test_samples_and_short_training_roundtrip(tmp_path, tiny_checkpoint, one_thr
     assert moved and set(avg) == set(raw) and set(state["ema"]) == set(raw)
     for k in moved:  # after two steps at 0.5 the average still holds a quarter of the start
         assert not torch.equal(avg[k], raw[k])
-    bad = depth_train.build_parser().parse_args(
+    bad = depth_cli.build_parser().parse_args(
         ["--data", str(root), "--labels", str(labels), "--out", str(tmp_path / "x"), "--ema", "1.5"]
     )  # fmt: skip
     with pytest.raises(ValueError, match="--ema"):
@@ -685,7 +693,7 @@ def test_training_stopped_while_saving_resumes_and_keeps_every_file(
     root, labels = tmp_path / "datasets", tmp_path / "labels"
     _tiny_datasets(root, labels)
     run = tmp_path / "run"
-    args = depth_train.build_parser().parse_args(
+    args = depth_cli.build_parser().parse_args(
         ["--data", str(root), "--labels", str(labels), "--out", str(run), "--steps", "2",
          "--batch-size", "2", "--crop", "64", "--save-every", "1", "--keep-every", "2",
          "--workers", "0", "--threads", "1", "--log-every", "1", "--variant", "lite",
@@ -734,21 +742,21 @@ def test_training_with_feature_distillation(tmp_path, tiny_checkpoint, one_threa
             "--workers", "0", "--threads", "1", "--log-every", "1", "--variant", "lite",
             "--init", str(tiny_checkpoint), "--distill", str(tmp_path / "t.onnx"),
             "--distill-channels", "4"]  # fmt: skip
-    last = depth_train.train_depth(depth_train.build_parser().parse_args(argv))
+    last = depth_train.train_depth(depth_cli.build_parser().parse_args(argv))
     state = torch.load(last, map_location="cpu", weights_only=True)
     assert state["step"] == 2 and bool(state["distiller"]["ready"])
     log = (tmp_path / "run" / "depth_log.jsonl").read_text().splitlines()
     first = json.loads(log[0])
     assert first["distill"] == pytest.approx(1.0, abs=1e-3)  # zero projection, its own batch
     argv[argv.index("--steps") + 1] = "3"
-    again = depth_train.train_depth(depth_train.build_parser().parse_args(argv))
+    again = depth_train.train_depth(depth_cli.build_parser().parse_args(argv))
     assert torch.load(again, weights_only=True)["step"] == 3
     state = torch.load(again, weights_only=True)
     state.pop("distiller")
     torch.save(state, again)
     argv[argv.index("--steps") + 1] = "4"
     with pytest.raises(ValueError, match="without --distill"):
-        depth_train.train_depth(depth_train.build_parser().parse_args(argv))
+        depth_train.train_depth(depth_cli.build_parser().parse_args(argv))
 
 
 def test_scene_weight_draws_scenes_more_often(tmp_path):
@@ -1202,7 +1210,7 @@ def test_frame_match_draws_photos_of_the_frames_orientation(tmp_path, capsys):
     # every batch a square crop: nothing to match, said so
     argv = ["--data", str(root), "--labels", str(labels), "--out", str(tmp_path / "run"),
             "--frame-match", "0.5", "--steps", "1"]  # fmt: skip
-    assert depth_train.main(argv) == 2
+    assert depth_cli.main(argv) == 2
     assert "--frame-match needs --sides" in capsys.readouterr().err
 
 
@@ -1224,7 +1232,7 @@ def test_training_from_a_pack_on_a_time_budget(tmp_path, tiny_checkpoint, one_th
             "1000", "--variant", "lite-ctx", "--init", str(tiny_checkpoint), "--ema", "0.9",
             "--synth", "0.5", "--jitter", "strong", "--rank-weight", "1.0",
             "--rank-edge", "0.5"]  # fmt: skip
-    last = depth_train.train_depth(depth_train.build_parser().parse_args(argv))
+    last = depth_train.train_depth(depth_cli.build_parser().parse_args(argv))
     state = torch.load(last, weights_only=True)
     step = state["step"]
     assert 2 <= step < 1000 and state["elapsed_s"] >= 0.05 * 60
@@ -1234,7 +1242,7 @@ def test_training_from_a_pack_on_a_time_budget(tmp_path, tiny_checkpoint, one_th
     assert all(r["rank"] >= 0 and math.isfinite(r["rank"]) for r in log)  # the ranking term
     # the schedule followed the time spent: by steps alone it would still be near its top
     assert log[0]["lr"] > 0.99e-3 and log[-1]["lr"] < 0.5e-3
-    again = depth_train.train_depth(depth_train.build_parser().parse_args(argv))
+    again = depth_train.train_depth(depth_cli.build_parser().parse_args(argv))
     assert torch.load(again, weights_only=True)["step"] == step
     # the pack or the photos, not both or neither; no CUDA device, a clear error
     for extra, match in (
@@ -1247,20 +1255,20 @@ def test_training_from_a_pack_on_a_time_budget(tmp_path, tiny_checkpoint, one_th
         (["--scene-targets"], "when it was written"),
         (["--layout-teacher", "-1"], "when it was written"),
     ):
-        args = depth_train.build_parser().parse_args(argv + extra + ["--restart"])
+        args = depth_cli.build_parser().parse_args(argv + extra + ["--restart"])
         with pytest.raises(ValueError, match=match):
             depth_train.train_depth(args)
     bare = ["--out", str(tmp_path / "y")]
     with pytest.raises(ValueError, match="--pack"):
-        depth_train.train_depth(depth_train.build_parser().parse_args(bare))
+        depth_train.train_depth(depth_cli.build_parser().parse_args(bare))
     if not torch.cuda.is_available():
-        cuda = depth_train.build_parser().parse_args(argv + ["--device", "cuda", "--restart"])
+        cuda = depth_cli.build_parser().parse_args(argv + ["--device", "cuda", "--restart"])
         with pytest.raises(ValueError, match="no CUDA"):
             depth_train.train_depth(cuda)
     # the command line says what is wrong in one line and exits 2
     capsys.readouterr()
     nothing = ["--pack", str(tmp_path / "nothing"), "--out", str(tmp_path / "z")]
-    assert depth_train.main(nothing) == 2
+    assert depth_cli.main(nothing) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "no pack_*.npz" in err and "Traceback" not in err
 

@@ -241,7 +241,7 @@ def test_depth_training_resumes_weights_only(tmp_path, monkeypatch):
     before it runs."""
     import torch
 
-    from d2f_core.train import depth_train
+    from d2f_core.train import depth_cli, depth_train
 
     marker = tmp_path / "ran"
 
@@ -253,7 +253,7 @@ def test_depth_training_resumes_weights_only(tmp_path, monkeypatch):
     out.mkdir()
     torch.save({"state_dict": Payload(), "step": 1}, out / "depth_last.pt")
     monkeypatch.setattr(depth_train, "RealDepthData", lambda *a, **k: object())
-    args = depth_train.build_parser().parse_args(
+    args = depth_cli.build_parser().parse_args(
         ["--data", str(tmp_path), "--labels", str(tmp_path), "--out", str(out), "--threads", "1"]
     )
     with pytest.raises(Exception, match="(?i)weights only|unpickl|unsupported"):

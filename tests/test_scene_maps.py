@@ -17,7 +17,7 @@ from d2f_core.depth.scene import stand_subjects
 from d2f_core.io import load_image
 from d2f_core.networks import SCENE_MAPS, DefocusNet, build_defocus_net, count_parameters
 from d2f_core.pipeline import D2F
-from d2f_core.train import depth_train
+from d2f_core.train import depth_cli, depth_train
 from d2f_core.train.depth_losses import scene_map_loss
 from d2f_core.train.teachers import read_mask
 
@@ -243,7 +243,7 @@ def test_scene_map_targets_follow_the_depth_targets(tmp_path):
 
 def test_scene_variant_trains_exports_and_stands_its_subjects(tmp_path, tiny_checkpoint):
     root, labels = _scene_labelled(tmp_path)
-    args = depth_train.build_parser().parse_args(
+    args = depth_cli.build_parser().parse_args(
         ["--data", str(root), "--labels", str(labels), "--out", str(tmp_path / "run"),
          "--steps", "2", "--batch-size", "2", "--crop", "64", "--save-every", "2",
          "--keep-every", "2", "--workers", "0", "--threads", "1", "--log-every", "1",
@@ -285,7 +285,7 @@ def test_scene_variant_trains_exports_and_stands_its_subjects(tmp_path, tiny_che
     with pytest.raises(ValueError, match="subject_shift must be in"):
         dataclasses.replace(model.config, subject_shift=1.5)
     # --head-only: the scene head learns, the disparity network stays as it started
-    head = depth_train.build_parser().parse_args(
+    head = depth_cli.build_parser().parse_args(
         ["--data", str(root), "--labels", str(labels), "--out", str(tmp_path / "head"),
          "--steps", "2", "--batch-size", "2", "--crop", "64", "--save-every", "2",
          "--keep-every", "2", "--workers", "0", "--threads", "1", "--log-every", "1",

@@ -39,7 +39,6 @@ import json
 import logging
 import math
 import random
-import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -53,7 +52,7 @@ from ..networks import (
     optimizer_state_on_cpu,
     read_torch_file,
 )
-from .depth_data import JITTERS, DepthSample, RealDepthData, resize_array
+from .depth_data import DepthSample, RealDepthData, resize_array
 from .depth_losses import (
     depth_loss,
     gradient_matching_loss,
@@ -258,6 +257,100 @@ def _save_depth_state(
     tmp.replace(last)
 
 
+def _param_groups(net: torch.nn.Module, args: argparse.Namespace) -> list[dict]:
+    """The optimiser's parameter groups: the network's trunk (frozen with ``--head-only``,
+    the disparity then staying the initial network's) and its scene head, which starts
+    untrained on a trained decoder and learns ten times faster."""
+    head = [] if net.scene_head is None else list(net.scene_head.parameters())
+    if args.head_only and not head:
+        raise ValueError(f"--head-only needs a '-scene' --variant, got {args.variant!r}")
+    ids = {id(q) for q in head}
+    trunk = [q for q in net.parameters() if id(q) not in ids]
+    groups = [] if args.head_only else [{"params": trunk, "lr_scale": 1.0}]
+    if args.head_only:
+        for q in trunk:
+            q.requires_grad_(False)
+    if head:
+        groups.append({"params": head, "lr_scale": 10.0})
+    return groups
+
+
+def _resumed(
+    last: Path,
+    net: torch.nn.Module,
+    opt: torch.optim.Optimizer,
+    distiller: Distiller | None,
+    device: torch.device,
+) -> tuple[int, float, dict | None]:
+    """``(step, seconds, ema)``: the state of ``last`` loaded into the network, the optimiser
+    and the distiller; the step and the training seconds it had reached, and its weight
+    average (on ``device``) if it kept one."""
+    state = torch.load(last, map_location="cpu", weights_only=True)
+    net.load_state_dict(state["state_dict"])
+    opt.load_state_dict(state["optimizer"])
+    ema = state.get("ema")
+    if ema is not None:
+        ema = {k: v.to(device) for k, v in ema.items()}
+    if distiller is not None:
+        if "distiller" not in state:
+            raise ValueError(f"{last} was trained without --distill; use --restart")
+        distiller.load_state_dict(state["distiller"])
+    step = int(state["step"])
+    logger.info("resumed from %s at step %d", last, step)
+    return step, float(state.get("elapsed_s", 0.0)), ema
+
+
+def _step_loss(
+    net: torch.nn.Module,
+    batch: list[Tensor],
+    args: argparse.Namespace,
+    keeper: torch.nn.Module | None,
+    distiller: Distiller | None,
+    encoder_feats: list[Tensor],
+) -> tuple[Tensor, dict[str, float]]:
+    """One batch's loss and its terms: the depth loss, the ranking term, the scene head's
+    maps, the keep term towards ``keeper`` and the distillation of the encoder's features
+    (``encoder_feats``, filled by its hook) towards the teacher's, as the options ask."""
+    images, targets, relative, keep, maps, *teacher = batch
+    if net.scene_head is None:
+        pred = net(images)
+    else:
+        pred, logits = net.forward_scene(images)
+    loss, parts = depth_loss(pred, targets, relative, args.absolute_weight)
+    if args.rank_weight:
+        ranked = rank_loss(pred, targets, edge=args.rank_edge)
+        loss = loss + args.rank_weight * ranked
+        parts["rank"] = ranked.item()
+    if net.scene_head is not None:
+        scene = scene_map_loss(logits, maps)
+        loss = loss + args.scene_map_weight * scene
+        parts["maps"] = scene.item()
+    if keeper is not None:
+        with torch.no_grad():
+            reference = keeper(images)
+        kept = keep_loss(pred, reference, keep)
+        loss = loss + args.keep_weight * kept
+        parts["keep"] = kept.item()
+    if distiller is not None:
+        if not bool(distiller.ready):
+            distiller.fix_statistics(teacher[0])
+        distill = distiller(encoder_feats.pop(), teacher[0])
+        encoder_feats.clear()
+        loss = loss + args.distill_weight * distill
+        parts["distill"] = distill.item()
+    return loss, parts
+
+
+def _update_average(ema: dict[str, Tensor], net: torch.nn.Module, decay: float) -> None:
+    """The weights' moving average one step on (buffers that are no floats copied)."""
+    with torch.no_grad():
+        for k, v in net.state_dict().items():
+            if v.is_floating_point():
+                ema[k].lerp_(v, 1.0 - decay)
+            else:
+                ema[k].copy_(v)
+
+
 def train_depth(args: argparse.Namespace) -> Path:
     """Run (or resume) stage 0; returns the path of the last checkpoint."""
     torch.set_num_threads(args.threads)
@@ -294,24 +387,13 @@ def train_depth(args: argparse.Namespace) -> Path:
         _load_defocus(net, args.init)
         logger.info("defocus network initialised from %s", args.init)
     distiller = None
-    head = [] if net.scene_head is None else list(net.scene_head.parameters())
-    if args.head_only and not head:
-        raise ValueError(f"--head-only needs a '-scene' --variant, got {args.variant!r}")
-    ids = {id(q) for q in head}
-    trunk = [q for q in net.parameters() if id(q) not in ids]
-    groups = [] if args.head_only else [{"params": trunk, "lr_scale": 1.0}]
-    if args.head_only:  # the disparity stays exactly the initial network's
-        for q in trunk:
-            q.requires_grad_(False)
-    if head:
-        # the scene head starts untrained on a trained decoder: it learns ten times faster
-        groups.append({"params": head, "lr_scale": 10.0})
+    encoder_feats: list[Tensor] = []  # the encoder's output, kept by a hook for --distill
+    groups = _param_groups(net, args)
     if args.distill is not None:
         distiller = Distiller(net.encoder.channels, args.distill_channels)
         # the projection starts at zero and must catch up with a trained encoder before
         # its gradient says anything to it: it learns ten times faster
         groups.append({"params": list(distiller.parameters()), "lr_scale": 10.0})
-        encoder_feats: list[Tensor] = []
         net.encoder.register_forward_hook(lambda _m, _i, out: encoder_feats.append(out))
     keeper = None
     if args.keep is not None:
@@ -324,23 +406,8 @@ def train_depth(args: argparse.Namespace) -> Path:
     if distiller is not None:
         distiller.to(device)
     opt = torch.optim.AdamW(groups, lr=args.lr, weight_decay=1e-4)
-    spent = 0.0  # seconds of training before this run (resumed), for --minutes
-    step = 0
-    ema = None
-    if resuming:
-        state = torch.load(last, map_location="cpu", weights_only=True)
-        net.load_state_dict(state["state_dict"])
-        opt.load_state_dict(state["optimizer"])
-        ema = state.get("ema")
-        if ema is not None:
-            ema = {k: v.to(device) for k, v in ema.items()}
-        if distiller is not None:
-            if "distiller" not in state:
-                raise ValueError(f"{last} was trained without --distill; use --restart")
-            distiller.load_state_dict(state["distiller"])
-        step = int(state["step"])
-        spent = float(state.get("elapsed_s", 0.0))
-        logger.info("resumed from %s at step %d", last, step)
+    # the step, the seconds of training before this run (for --minutes) and the average
+    step, spent, ema = _resumed(last, net, opt, distiller, device) if resuming else (0, 0.0, None)
     if not args.ema:
         ema = None
     elif ema is None:  # the average starts at the weights training starts from
@@ -390,47 +457,15 @@ def train_depth(args: argparse.Namespace) -> Path:
         warm = min(1.0, (step + 1) / 200)
         for g in opt.param_groups:
             g["lr"] = lr * warm * g.get("lr_scale", 1.0)
-        images, targets, relative, keep, maps, *teacher = (
-            t.to(device, non_blocking=True) for t in next(loader)
-        )
-        if net.scene_head is None:
-            pred = net(images)
-        else:
-            pred, logits = net.forward_scene(images)
-        loss, parts = depth_loss(pred, targets, relative, args.absolute_weight)
-        if args.rank_weight:
-            ranked = rank_loss(pred, targets, edge=args.rank_edge)
-            loss = loss + args.rank_weight * ranked
-            parts["rank"] = ranked.item()
-        if net.scene_head is not None:
-            scene = scene_map_loss(logits, maps)
-            loss = loss + args.scene_map_weight * scene
-            parts["maps"] = scene.item()
-        if keeper is not None:
-            with torch.no_grad():
-                reference = keeper(images)
-            kept = keep_loss(pred, reference, keep)
-            loss = loss + args.keep_weight * kept
-            parts["keep"] = kept.item()
-        if distiller is not None:
-            if not bool(distiller.ready):
-                distiller.fix_statistics(teacher[0])
-            distill = distiller(encoder_feats.pop(), teacher[0])
-            encoder_feats.clear()
-            loss = loss + args.distill_weight * distill
-            parts["distill"] = distill.item()
+        batch = [t.to(device, non_blocking=True) for t in next(loader)]
+        loss, parts = _step_loss(net, batch, args, keeper, distiller, encoder_feats)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)
         opt.step()
         step += 1
         if ema is not None:
-            with torch.no_grad():
-                for k, v in net.state_dict().items():
-                    if v.is_floating_point():
-                        ema[k].lerp_(v, 1.0 - args.ema)
-                    else:
-                        ema[k].copy_(v)
+            _update_average(ema, net, args.ema)
         if step % args.log_every == 0:
             rec = {
                 "step": step,
@@ -478,186 +513,3 @@ def export_checkpoint(
     fresh.defocus_net.load_state_dict(state["state_dict"])
     fresh.save(out)
     return Path(out)
-
-
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="d2f-train depth",
-        description="stage 0: train the defocus network on real photos with depth targets",
-    )
-    p.add_argument("--data", type=Path, default=None, help="datasets folder")
-    p.add_argument("--labels", type=Path, default=None, help="teacher labels (d2f-train label)")
-    p.add_argument(
-        "--pack",
-        type=Path,
-        default=None,
-        help="train on a pack of the photos and their targets (d2f-train depth-pack) instead "
-        "of --data and --labels",
-    )
-    p.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
-    p.add_argument(
-        "--minutes",
-        type=float,
-        default=None,
-        help="a time budget: the learning-rate schedule follows the time spent or the steps "
-        "done, whichever is further along, and training ends at either",
-    )
-    p.add_argument("--out", type=Path, required=True)
-    p.add_argument("--variant", default="lite")
-    p.add_argument("--steps", type=int, default=6000)
-    p.add_argument("--batch-size", type=int, default=8)
-    p.add_argument("--crop", type=int, default=256)
-    p.add_argument(
-        "--sides",
-        type=lambda v: [int(x) for x in v.split(",")],
-        default=None,
-        metavar="A,B,...",
-        help="multi-scale: long sides of the batches (square, 4:3 and 3:4 frames; "
-        "each batch holds --batch-size crops of --crop in pixels)",
-    )
-    p.add_argument("--lr", type=float, default=1e-3)
-    p.add_argument("--paste", type=float, default=0.4)
-    p.add_argument(
-        "--jitter", choices=JITTERS, default="mild",
-        help="photometric jitter of the photos: mild (exposure) or strong (also white "
-        "balance, saturation, blur and noise)",
-    )  # fmt: skip
-    p.add_argument(
-        "--frame-match", type=float, default=0.0, metavar="SHARE",
-        help="share of the photo samples drawn landscape in a landscape frame and portrait in "
-        "a portrait one, as the network reads whole photos",
-    )  # fmt: skip
-    p.add_argument("--synth", type=float, default=0.15)
-    p.add_argument(
-        "--layout-teacher",
-        type=float,
-        default=LAYOUT_TEACHER,
-        help="weight of the depth teacher in the layout; -1: per photo, by its agreement "
-        "with the ramp (teacher_weight)",
-    )
-    p.add_argument("--absolute-weight", type=float, default=0.25)
-    p.add_argument(
-        "--rank-weight",
-        type=float,
-        default=0.0,
-        help="weight of the pairwise ranking term (pixel pairs kept in their targets' order)",
-    )
-    p.add_argument(
-        "--rank-edge",
-        type=float,
-        default=0.0,
-        help="share of the ranking term's close pairs that start on a target edge",
-    )
-    p.add_argument(
-        "--scene-weight",
-        type=float,
-        default=1.0,
-        help="draw the photos of whole scenes (SUN, Urban100, BSDS) this many times as often",
-    )
-    p.add_argument(
-        "--scene-targets",
-        action="store_true",
-        help="targets from the scene model (d2f_core.train.scene_targets) on photos whose labels "
-        "hold the scene teachers' maps (d2f-train label-scene)",
-    )
-    p.add_argument(
-        "--standing",
-        type=float,
-        default=0.0,
-        help="share of the generated scenes drawn from d2f_core.train.synth.standing (a near post "
-        "across the frame, a subject over a far floor, far lights at night)",
-    )
-    p.add_argument(
-        "--rescan-every",
-        type=int,
-        default=0,
-        metavar="N",
-        help="look for new label files every N samples (labelling still running)",
-    )
-    p.add_argument(
-        "--distill",
-        type=Path,
-        default=None,
-        metavar="ONNX",
-        help="feature distillation from this teacher (the VOC teacher's ASPP features)",
-    )
-    p.add_argument("--distill-weight", type=float, default=0.2)
-    p.add_argument(
-        "--keep",
-        type=Path,
-        default=None,
-        metavar="D2F_CHECKPOINT",
-        help="hold the network to this checkpoint's relative depth where a photo's target "
-        "knows nothing new (outside its subjects, their margins and the sky)",
-    )
-    p.add_argument("--keep-weight", type=float, default=1.0)
-    p.add_argument(
-        "--head-only",
-        action="store_true",
-        help="train the scene head alone; the rest of the network, and its disparity, stay "
-        "as --init has them",
-    )
-    p.add_argument(
-        "--scene-map-weight",
-        type=float,
-        default=0.5,
-        help="weight of the scene head's cross-entropy (a '-scene' --variant: subjects, sky)",
-    )
-    p.add_argument(
-        "--keep-on",
-        choices=("background", "plain"),
-        default="background",
-        help="background: every photo outside its subjects, their margins and the sky; "
-        "plain: only photos with no subject, weighted by how little sky and ground they show",
-    )
-    p.add_argument(
-        "--ema",
-        type=float,
-        default=0.0,
-        metavar="DECAY",
-        help="also keep an exponential moving average of the weights (e.g. 0.99), saved "
-        "beside every kept checkpoint as depth_<step>_ema.pt",
-    )
-    p.add_argument("--distill-channels", type=int, default=256)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--threads", type=int, default=2)
-    p.add_argument("--log-every", type=int, default=20)
-    p.add_argument("--save-every", type=int, default=100)
-    p.add_argument("--keep-every", type=int, default=1000)
-    p.add_argument("--workers", type=int, default=1, help="data-loading processes")
-    p.add_argument("--init", type=Path, default=None, help="D2F checkpoint to start from")
-    p.add_argument("--restart", action="store_true", help="ignore an existing depth_last.pt")
-    return p
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
-    if argv[:1] == ["export"]:
-        e = argparse.ArgumentParser(
-            prog="d2f-train depth export",
-            description="a D2F checkpoint from a base checkpoint and stage-0 weights",
-        )
-        e.add_argument("depth", type=Path)
-        e.add_argument("base", type=Path)
-        e.add_argument("out", type=Path)
-        e.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
-        a = e.parse_args(argv[1:])
-        try:
-            print(export_checkpoint(a.depth, a.base, a.out, a.set))
-        except (ValueError, FileNotFoundError, KeyError) as exc:
-            print(f"d2f-train depth export: error: {exc}", file=sys.stderr)
-            return 2
-        return 0
-    args = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
-    try:
-        path = train_depth(args)
-    except (ValueError, FileNotFoundError) as exc:
-        print(f"d2f-train depth: error: {exc}", file=sys.stderr)
-        return 2
-    print(f"stage 0 checkpoint: {path}")
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -521,7 +521,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         return port_main(argv[1:])
     if argv[:1] == ["depth"]:  # stage 0: depth from real photos
-        from .depth_train import main as depth_main
+        from .depth_cli import main as depth_main
 
         return depth_main(argv[1:])
     args = build_parser().parse_args(argv)
