@@ -22,15 +22,13 @@ from ..io.embedded import Photo
 from ..networks import build_defocus_net, build_fusion_net, build_radiance_net, read_torch_file
 from ..rendering import adaptive
 from ..rendering.schedule import (
-    coc_to_defocus,
-    defocus_to_coc,
     fold_focal_range,
 )
 from ..sizing import resize, scaled_size, size_ratio
 from .config import CHECKPOINT_VERSION, D2FConfig, default_weights_path
 from .depth_stage import DepthStage
 from .focus import FocusStage
-from .fusion import FusionStage, ms_since, to_numpy_image
+from .fusion import FusionStage, ms_since
 from .outputs import Result, Scene
 from .render_steps import RenderSteps
 from .training import TrainingStage
@@ -371,58 +369,18 @@ class D2F(DepthStage, FusionStage, FocusStage, ViewStage, RenderSteps, TrainingS
         disparity_lr = fold_focal_range(disparity_lr, focus, focal_range)  # [1,1,h,w]
         lr_size = (int(image_lr.shape[-2]), int(image_lr.shape[-1]))
         lr_ratio = size_ratio(lr_size, scene.size)
-        blur_lr = blur * lr_ratio
-        # full-res CoC under which the fusion gate can open (see _fuse_tiled)
-        gate_coc = defocus_to_coc(self.config.fusion_gate) / lr_ratio * 1.01
 
         # 2. adaptive settings, then layered rendering at low resolution (HDR boost inside)
-        settings = None
-        if pick:
-            t0 = time.perf_counter()
-            settings = self._pick_settings(
-                scene, disparity_lr, focus, blur, lr_ratio, budget, focal_range, gate_coc,
-                render_options, full=max_side is None,
-            )  # fmt: skip
-            timings["pick"] = ms_since(t0)
-        identity = settings is not None and settings.identity
-        fuse = (
-            fusion
-            and max_side is None
-            and lr_size != tuple(scene.size)  # a full-size pass lost no detail to restore
-            and not identity
-            and (settings is None or settings.fusion)
-        )
-        t0 = time.perf_counter()
-        bokeh_lr, behind_lr = self._pass_or_identity(
-            (image_lr, disparity_lr, radiance_lr), focus, blur_lr, fuse, settings, render_options
-        )
-        timings["render_lr"] = ms_since(t0)
-        defocus_lr = coc_to_defocus(blur_lr * (disparity_lr - focus).abs())
+        preview = max_side is not None
+        settings, fuse, bokeh_lr, behind_lr = self._adaptive_pass(
+            scene, (image_lr, disparity_lr, radiance_lr), focus, blur, lr_ratio, focal_range,
+            budget if pick else None, fusion and not preview, preview, render_options, timings,
+        )  # fmt: skip
 
-        # 3. upsample + deep Poisson fusion at full resolution
-        if max_side is not None:
-            bokeh, mask = bokeh_lr, torch.zeros_like(disparity_lr)
-        elif identity:
-            bokeh = scene.image.clone()
-            mask = torch.ones((1, 1, *scene.size), device=bokeh.device)
-        else:
-            bokeh, mask = self._full_size(
-                scene, bokeh_lr, behind_lr if fuse else None, fuse, focus, blur, lr_ratio,
-                focal_range, timings,
-            )  # fmt: skip
-
-        t0 = time.perf_counter()
-        result = Result(
-            bokeh=to_numpy_image(bokeh.clamp_(0, 1)),
-            bokeh_lr=to_numpy_image(bokeh_lr),
-            disparity=disparity_lr[0, 0].cpu().numpy(),
-            defocus=defocus_lr[0, 0].cpu().numpy(),
-            fusion_mask=mask[0, 0].cpu().numpy(),
-            timings=timings,
-            settings=settings,
-            focus=float(focus),
-            focal_range=float(focal_range),
-        )
-        timings["to_numpy"] = ms_since(t0)
+        # 3. upsample + deep Poisson fusion at full resolution, the result as numpy arrays
+        result = self._result(
+            scene, (bokeh_lr, behind_lr, disparity_lr), settings, fuse, focus, blur, lr_ratio,
+            focal_range, preview, timings,
+        )  # fmt: skip
         timings["total"] = ms_since(t_all)
         return result

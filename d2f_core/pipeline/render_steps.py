@@ -18,14 +18,106 @@ from ..errors import InputTypeError, whole_number
 from ..lens import blur_px
 from ..rendering import adaptive
 from ..rendering.kernels import check_rotation
-from ..rendering.schedule import check_focal_range, defocus_to_coc, outside_range
+from ..rendering.schedule import (
+    check_focal_range,
+    coc_to_defocus,
+    defocus_to_coc,
+    outside_range,
+)
 from ..sizing import resize, scaled_size, size_ratio
-from .fusion import FUSION_TILE, ms_since
-from .outputs import Scene
+from .fusion import FUSION_TILE, ms_since, to_numpy_image
+from .outputs import Result, Scene
 
 
 class RenderSteps:
     """:meth:`D2F.render`'s steps, on the model (its config, networks and renderer)."""
+
+    def _adaptive_pass(
+        self,
+        scene: Scene,
+        inputs: tuple[Tensor, Tensor, Tensor],
+        focus: float,
+        blur: float,
+        lr_ratio: float,
+        focal_range: float,
+        budget: str | float | None,
+        fusion: bool,
+        preview: bool,
+        render_options: dict[str, Any],
+        timings: dict[str, float],
+    ) -> tuple[adaptive.RenderSettings | None, bool, Tensor, Any]:
+        """``(settings, fuse, bokeh_lr, behind_lr)``: the adaptive settings for ``budget``
+        (``None``: the settings as given), whether fusion runs (asked for, a pass smaller
+        than the scene, something near enough to the focal plane), and the pass (or the
+        identity)."""
+        image_lr, disparity_lr, _ = inputs
+        lr_size = (int(image_lr.shape[-2]), int(image_lr.shape[-1]))
+        settings = None
+        if budget is not None:
+            t0 = time.perf_counter()
+            # the full-res CoC under which the fusion gate can open (see _fuse_tiled)
+            gate_coc = defocus_to_coc(self.config.fusion_gate) / lr_ratio * 1.01
+            settings = self._pick_settings(
+                scene, disparity_lr, focus, blur, lr_ratio, budget, focal_range, gate_coc,
+                render_options, full=not preview,
+            )  # fmt: skip
+            timings["pick"] = ms_since(t0)
+        identity = settings is not None and settings.identity
+        fuse = (
+            fusion
+            and lr_size != tuple(scene.size)  # a full-size pass lost no detail to restore
+            and not identity
+            and (settings is None or settings.fusion)
+        )
+        t0 = time.perf_counter()
+        bokeh_lr, behind_lr = self._pass_or_identity(
+            inputs, focus, blur * lr_ratio, fuse, settings, render_options
+        )
+        timings["render_lr"] = ms_since(t0)
+        return settings, fuse, bokeh_lr, behind_lr
+
+    def _result(
+        self,
+        scene: Scene,
+        passed: tuple[Tensor, Any, Tensor],
+        settings: adaptive.RenderSettings | None,
+        fuse: bool,
+        focus: float,
+        blur: float,
+        lr_ratio: float,
+        focal_range: float,
+        preview: bool,
+        timings: dict[str, float],
+    ) -> Result:
+        """The :class:`Result` of a pass (``(bokeh_lr, behind_lr, disparity_lr)``): a
+        preview as it is, the identity as the photo, else brought to full size (upsampled,
+        fused where ``fuse``); every map as a numpy array."""
+        bokeh_lr, behind_lr, disparity_lr = passed
+        if preview:
+            bokeh, mask = bokeh_lr, torch.zeros_like(disparity_lr)
+        elif settings is not None and settings.identity:
+            bokeh = scene.image.clone()
+            mask = torch.ones((1, 1, *scene.size), device=bokeh.device)
+        else:
+            bokeh, mask = self._full_size(
+                scene, bokeh_lr, behind_lr if fuse else None, fuse, focus, blur, lr_ratio,
+                focal_range, timings,
+            )  # fmt: skip
+        t0 = time.perf_counter()
+        defocus_lr = coc_to_defocus(blur * lr_ratio * (disparity_lr - focus).abs())
+        result = Result(
+            bokeh=to_numpy_image(bokeh.clamp_(0, 1)),
+            bokeh_lr=to_numpy_image(bokeh_lr),
+            disparity=disparity_lr[0, 0].cpu().numpy(),
+            defocus=defocus_lr[0, 0].cpu().numpy(),
+            fusion_mask=mask[0, 0].cpu().numpy(),
+            timings=timings,
+            settings=settings,
+            focus=float(focus),
+            focal_range=float(focal_range),
+        )
+        timings["to_numpy"] = ms_since(t0)
+        return result
 
     def _preview_inputs(self, scene: Scene, max_side: int) -> tuple[Tensor, Tensor, Tensor]:
         size = scaled_size(scene.size, 1.0, max_side)

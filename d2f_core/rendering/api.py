@@ -160,8 +160,20 @@ def render(
     )
     if image.shape[0] <= 1:
         return _render(image, disparity, f, blur, image_max, disparity_range, radiance, **options)
-    # one layer plan per image: the kernel schedule and the support boxes follow each
-    # image's own CoCs, so a batch renders exactly as its images do one by one
+    return _render_each(image, disparity, f, blur, radiance, options)
+
+
+def _render_each(
+    image: torch.Tensor,
+    disparity: torch.Tensor,
+    f: torch.Tensor,
+    blur: float,
+    radiance: torch.Tensor | None,
+    options: dict[str, Any],
+):
+    """:func:`_render` of a batch, image by image: the kernel schedule and the support boxes
+    follow each image's own CoCs (one layer plan each), so a batch renders exactly as its
+    images do one by one."""
     parts = []
     for i in range(image.shape[0]):
         one, disp = image[i : i + 1], disparity[i : i + 1]
@@ -178,7 +190,7 @@ def render(
                 **options,
             )
         )
-    if behind:
+    if options["behind"]:
         return tuple(torch.cat([p[i] for p in parts]) for i in range(3))
     return torch.cat(parts)
 
