@@ -399,11 +399,15 @@ def _rgb(image: Image.Image | np.ndarray) -> Image.Image:
     return Image.fromarray(np.ascontiguousarray(arr))
 
 
+def _batch(x: np.ndarray) -> torch.Tensor:
+    """One ``H x W x 3`` input as the graph's ``1 x 3 x H x W`` batch."""
+    return torch.from_numpy(np.ascontiguousarray(x)).permute(2, 0, 1)[None]
+
+
 def _run(model: DeepLab, x: np.ndarray) -> torch.Tensor:
     """Logits ``H x W x C`` of one ``H x W x 3`` input in [-1, 1]."""
     with torch.inference_mode():
-        t = torch.from_numpy(np.ascontiguousarray(x)).permute(2, 0, 1)[None]
-        return model(t)[0].permute(1, 2, 0)
+        return model(_batch(x))[0].permute(1, 2, 0)
 
 
 def ade20k_input(
@@ -460,8 +464,7 @@ def ade20k_labels(
         raise ValueError("ade20k_labels needs the ADE20K graph (its align-corners resize)")
     x, (rh, rw) = ade20k_input(image, side)
     with torch.inference_mode():
-        t = torch.from_numpy(np.ascontiguousarray(x)).permute(2, 0, 1)[None]
-        coarse = net.coarse_logits(t)[0].float().permute(1, 2, 0)  # h x w x C
+        coarse = net.coarse_logits(_batch(x))[0].float().permute(1, 2, 0)  # h x w x C
         # PIL's nearest neighbour reads one pixel of the resized logits per label; each
         # such pixel mixes four coarse ones
         r0, r1, rf = _align_corners_taps(coarse.shape[0], side, _nearest_index(rh, size[1]))
