@@ -270,16 +270,47 @@ def colorize(values: np.ndarray, cmap: str = "viridis") -> np.ndarray:
     return _LUTS[cmap][idx]
 
 
-def map_to_grey(values: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    """Resize an ``(h, w)`` map in [0, 1] to ``size = (width, height)`` as ``(H, W)`` uint8
-    (NaN as 0), kept grey and coloured when shown (:func:`colorize`). Resizing the float map
-    first keeps a full-resolution map (the 12 MP fusion mask) from being converted pixel by
-    pixel, and interpolates values rather than colours; 11 ms for a 600x800 map shown at
-    1600x1200 (29 ms through a grey colour table before)."""
-    a = np.ascontiguousarray(values, dtype=np.float32)
-    if (a.shape[1], a.shape[0]) != tuple(size):
-        a = np.asarray(_shrink(Image.fromarray(a), size))  # mode F
-    return to_uint8(np.nan_to_num(a, nan=0.0))
+class DisplayViews:
+    """The last render's pictures by view name (``"Bokeh"`` and the maps), at display size.
+
+    The bokeh is kept as given. A map is kept grey (one byte a pixel, NaN as 0) at the size
+    it was rendered at, and brought to the bokeh's size the first time its view is shown
+    (bilinearly, by whole cells first where it shrinks by 2x or more, so a 12 MP map keeps
+    its mean): most renders are never looked at as maps, and resizing the three maps of a
+    12 MP photo's 1024x768 pass to 1600x1200 cost about 22 ms of every render on one thread.
+    """
+
+    def __init__(self, bokeh: np.ndarray, maps: dict[str, np.ndarray]) -> None:
+        self._size = (int(bokeh.shape[1]), int(bokeh.shape[0]))
+        self._shown: dict[str, np.ndarray] = {"Bokeh": bokeh}
+        self._grey = {
+            name: to_uint8(np.nan_to_num(np.asarray(a, np.float32), nan=0.0))
+            for name, a in maps.items()
+        }
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        if name not in self._shown:
+            grey = self._grey.pop(name)  # KeyError for a view it does not hold
+            if (grey.shape[1], grey.shape[0]) != self._size:
+                grey = np.asarray(_shrink(Image.fromarray(grey), self._size))
+            self._shown[name] = grey
+        return self._shown[name]
+
+    def get(self, name: str, default: np.ndarray | None = None) -> np.ndarray | None:
+        return self[name] if name in self else default
+
+    def __contains__(self, name: object) -> bool:
+        return name in self._shown or name in self._grey
+
+    def __len__(self) -> int:
+        return len(self._shown) + len(self._grey)
+
+    def keys(self) -> list[str]:
+        return [*self._shown, *self._grey]
+
+    def values(self) -> list[np.ndarray]:
+        """Every view at display size (the maps resized now)."""
+        return [self[name] for name in self.keys()]
 
 
 def legend_html(cmap: str, low: str, high: str, title: str) -> str:

@@ -126,16 +126,18 @@ class RenderEvents:
 
     def _store_views(self, session: Session, result: Any, bokeh: np.ndarray) -> None:
         shown = imaging.fit_display(bokeh)
-        size = (shown.shape[1], shown.shape[0])
         # maps come at the render pass's size; shown at the bokeh's size they line up when
-        # the user switches views. Kept grey (one byte a pixel), coloured when shown.
+        # the user switches views. Kept grey (one byte a pixel), resized when first shown
+        # and coloured when shown.
         session.pass_width = int(result.defocus.shape[-1])
-        session.views = {
-            "Bokeh": shown,
-            "Disparity": imaging.map_to_grey(result.disparity, size),
-            "Defocus": imaging.map_to_grey(result.defocus, size),
-            "Fusion mask": imaging.map_to_grey(result.fusion_mask, size),
-        }
+        session.views = imaging.DisplayViews(
+            shown,
+            {
+                "Disparity": result.disparity,
+                "Defocus": result.defocus,
+                "Fusion mask": result.fusion_mask,
+            },
+        )
 
     @staticmethod
     def _view_picture(session: Session, view: str) -> np.ndarray:

@@ -64,8 +64,9 @@ class Session:
             these coordinates (the upload as the browser shows it, or :attr:`panel`).
         size: ``(width, height)`` of the scene (the upload, possibly downscaled).
         before: ``(h, w, 3)`` uint8 input at display size.
-        views: the last render at display size: ``"Bokeh"`` ``(h, w, 3)`` uint8, the maps
-            ``(h, w)`` uint8 (0..255 for 0..1), coloured when shown.
+        views: the last render at display size (:class:`app.imaging.DisplayViews`, empty
+            before the first): ``"Bokeh"`` ``(h, w, 3)`` uint8, the maps ``(h, w)`` uint8
+            (0..255 for 0..1), coloured when shown.
         pass_width: width in px of the rendering pass of :attr:`views` (a preview's pass is
             its own size): the defocus map's scale (its 1 is 69 px at that pass).
         full_params: params of the full-resolution render the views hold or will hold
@@ -113,7 +114,7 @@ class Session:
     shown_size: tuple[int, int]
     size: tuple[int, int]
     before: np.ndarray
-    views: dict[str, np.ndarray] = field(default_factory=dict)
+    views: Any = field(default_factory=dict)
     pass_width: int = 0
     full_params: RenderParams | None = None
     full_seq: int = 0

@@ -235,18 +235,31 @@ class TestDisplayHelpers:
         finally:
             multiarray._set_madvise_hugepage(before)
 
-    def test_map_to_grey(self):
-        # values to bytes at the asked size, NaN as 0, the same bytes as the gray colour table
+    def test_display_views(self):
+        # maps to bytes, NaN as 0, the same bytes as the gray colour table at their own size
+        bokeh = np.zeros((2, 2, 3), np.uint8)
         m = np.array([[0.0, 0.5], [1.0, np.nan]], np.float32)
-        np.testing.assert_array_equal(imaging.map_to_grey(m, (2, 2)), [[0, 128], [255, 0]])
+        views = imaging.DisplayViews(bokeh, {"Disparity": m})
+        assert views["Bokeh"] is bokeh and len(views) == 2 and "Disparity" in views
+        np.testing.assert_array_equal(views["Disparity"], [[0, 128], [255, 0]])
+        assert views.get("Defocus") is None and "Defocus" not in views
+        with pytest.raises(KeyError):
+            views["Defocus"]
         values = np.random.default_rng(0).random((30, 40)).astype(np.float32)
-        np.testing.assert_array_equal(
-            imaging.map_to_grey(values, (40, 30)), imaging.colorize(values, "gray")[..., 0]
-        )
-        # a 12 MP map shown at 1600x1200: its mean kept (the box means first, then bilinear)
+        views = imaging.DisplayViews(np.zeros((30, 40, 3), np.uint8), {"Defocus": values})
+        np.testing.assert_array_equal(views["Defocus"], imaging.colorize(values, "gray")[..., 0])
+        # a 12 MP map shown at 1600x1200: its mean kept (the box means first, then bilinear);
+        # a pass's 800x600 map enlarged to the picture's size
         full = np.random.default_rng(1).random((3000, 4000)).astype(np.float32)
-        shown = imaging.map_to_grey(full, (1600, 1200))
+        ramp = np.tile(np.linspace(0, 1, 800, dtype=np.float32), (600, 1))
+        views = imaging.DisplayViews(
+            np.zeros((1200, 1600, 3), np.uint8), {"Fusion mask": full, "Disparity": ramp}
+        )
+        shown, enlarged = views["Fusion mask"], views.get("Disparity")
         assert shown.shape == (1200, 1600) and abs(shown.mean() / 255 - full.mean()) < 0.01
+        assert enlarged.shape == (1200, 1600) and views["Disparity"] is enlarged
+        assert np.abs(enlarged[::2, ::2].astype(int) - np.round(ramp * 255)).max() <= 2
+        assert [v.shape for v in views.values()] == [(1200, 1600, 3), (1200, 1600), (1200, 1600)]
 
 
 # --------------------------------------------------------------------------- cache
