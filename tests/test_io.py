@@ -358,6 +358,29 @@ class TestSave:
         assert np.abs(back - src).mean() <= tol
         assert [f.name for f in tmp_path.iterdir()] == [f"out{ext}"]  # no temp files left
 
+    @pytest.mark.parametrize("quality", [90, 95, 100])
+    def test_grainy_photo_as_jpeg(self, tmp_path, quality):
+        # noise compresses to more than the 1-2 bytes a pixel Pillow gives libjpeg for
+        # optimised Huffman tables (2.45 bytes at quality 95): written with the standard ones
+        noise = np.random.default_rng(0).integers(0, 256, (300, 400, 3), dtype=np.uint8)
+        exif = Image.Exif()
+        exif[0x010F] = "TestMake"
+        p = save_image(tmp_path / "grain.jpg", noise, quality=quality, exif=exif.tobytes())
+        assert p.stat().st_size > 1.5 * noise.shape[0] * noise.shape[1]
+        back = np.asarray(Image.open(p).convert("RGB"), dtype=np.float32)
+        assert np.abs(back - noise).mean() < {90: 8, 95: 5, 100: 1}[quality]
+        with Image.open(p) as im:
+            assert im.getexif().get(0x010F) == "TestMake"
+        assert [f.name for f in tmp_path.iterdir()] == ["grain.jpg"]  # no temp files left
+        # a smooth picture keeps the optimised tables: smaller than the standard ones give
+        smooth = np.linspace(0, 1, 300 * 400 * 3, dtype=np.float32).reshape(300, 400, 3)
+        small = save_image(tmp_path / "smooth.jpg", smooth, quality=quality).stat().st_size
+        plain = tmp_path / "plain.jpg"
+        Image.fromarray((smooth * 255 + 0.5).astype(np.uint8)).save(
+            plain, quality=quality, subsampling=0
+        )
+        assert small < plain.stat().st_size
+
     def test_icc_and_exif_kept_orientation_dropped(self, tmp_path):
         srgb = ImageCms.ImageCmsProfile(ImageCms.createProfile("sRGB")).tobytes()
         exif = Image.Exif()

@@ -177,5 +177,15 @@ def save_image(
         # Uncompressed: Pillow's own TIFF writer keeps the EXIF sub-IFDs, the libtiff
         # (compressing) writer rejects them.
         params.update(compression="raw")
-    atomic_write(out, lambda fh: img.save(fh, format=fmt, **params))
+    try:
+        atomic_write(out, lambda fh: img.save(fh, format=fmt, **params))
+    except OSError:
+        if not params.get("optimize"):
+            raise
+        # Optimised Huffman tables need the whole JPEG in one buffer, which Pillow sizes at
+        # 1 byte a pixel (2 from quality 95): a grainy photo at a high quality needs more,
+        # and libjpeg stops ("Suspension not allowed here"). Written with the standard
+        # tables, it streams (a few per cent larger)
+        params["optimize"] = False
+        atomic_write(out, lambda fh: img.save(fh, format=fmt, **params))
     return out
