@@ -40,8 +40,14 @@ class Wiring:
         self.quiet = {"show_progress": "hidden", "trigger_mode": "always_last"}
         self.waited = {"show_progress": "full", "trigger_mode": "always_last"}
         self.timed = {"show_progress": "minimal", "trigger_mode": "always_last"}
+        # Events chained after a render run once per render: a trigger while the previous
+        # run of the same chained event is pending must queue one more run (Gradio's default
+        # for .then and .success, "once", drops it: two renders in quick succession, the first
+        # one's download still writing its file, left Download disabled under the second)
+        self.after = {"trigger_mode": "always_last"}
         self.chained = {
-            "show_progress": "hidden", "api_visibility": "private", "api_name": "auto_download"
+            "show_progress": "hidden", "api_visibility": "private", "api_name": "auto_download",
+            **self.after,
         }  # fmt: skip
         p = page
         self.options = [p.blades, p.rotation, p.highlight, p.fusion, p.view, p.quality]
@@ -77,6 +83,7 @@ class Wiring:
             show_progress="hidden",
             api_visibility="private",
             **self.heavy,
+            **self.after,
         ).success(
             logic.download, [p.session, p.fmt, p.info], [p.download], **self.chained
         )  # after a render, Download is enabled only when the page shows that render
@@ -165,8 +172,8 @@ class Wiring:
 
         def after(event: Any) -> None:
             event.success(logic.download, [p.session, p.fmt], [p.download], **self.chained)
-            event.success(**note_io)
-            event.success(**canvas_io)
+            event.success(**note_io, **self.after)
+            event.success(**canvas_io, **self.after)
 
         # .upload, not .change: an upload fires .change twice in Gradio 6, and the two runs
         # then race on the same output file; and the load sets the photo panel (a Lens Blur
@@ -198,7 +205,7 @@ class Wiring:
         }
         p.photo.upload(**offer_io)
         if p.examples is not None:
-            p.examples.load_input_event.then(**offer_io)
+            p.examples.load_input_event.then(**offer_io, **self.after)
             after(p.examples.load_input_event.then(api_visibility="private", **load_io))
         gr.on([p.blur.change, p.blur_on.change], trigger_mode="always_last", **note_io)
 
