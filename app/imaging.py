@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import html
 import os
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -281,6 +282,7 @@ class DisplayViews:
     """
 
     def __init__(self, bokeh: np.ndarray, maps: dict[str, np.ndarray]) -> None:
+        self._lock = threading.Lock()  # events of one session may show a view at once
         self._size = (int(bokeh.shape[1]), int(bokeh.shape[0]))
         self._shown: dict[str, np.ndarray] = {"Bokeh": bokeh}
         self._grey = {
@@ -289,24 +291,29 @@ class DisplayViews:
         }
 
     def __getitem__(self, name: str) -> np.ndarray:
-        if name not in self._shown:
-            grey = self._grey.pop(name)  # KeyError for a view it does not hold
-            if (grey.shape[1], grey.shape[0]) != self._size:
-                grey = np.asarray(_shrink(Image.fromarray(grey), self._size))
-            self._shown[name] = grey
-        return self._shown[name]
+        with self._lock:
+            if name not in self._shown:
+                grey = self._grey[name]  # KeyError for a view it does not hold
+                if (grey.shape[1], grey.shape[0]) != self._size:
+                    grey = np.asarray(_shrink(Image.fromarray(grey), self._size))
+                self._shown[name] = grey
+                del self._grey[name]
+            return self._shown[name]
 
     def get(self, name: str, default: np.ndarray | None = None) -> np.ndarray | None:
         return self[name] if name in self else default
 
     def __contains__(self, name: object) -> bool:
-        return name in self._shown or name in self._grey
+        with self._lock:
+            return name in self._shown or name in self._grey
 
     def __len__(self) -> int:
-        return len(self._shown) + len(self._grey)
+        with self._lock:
+            return len(self._shown) + len(self._grey)
 
     def keys(self) -> list[str]:
-        return [*self._shown, *self._grey]
+        with self._lock:
+            return [*self._shown, *self._grey]
 
     def values(self) -> list[np.ndarray]:
         """Every view at display size (the maps resized now)."""

@@ -260,6 +260,13 @@ class TestDisplayHelpers:
         assert enlarged.shape == (1200, 1600) and views["Disparity"] is enlarged
         assert np.abs(enlarged[::2, ::2].astype(int) - np.round(ramp * 255)).max() <= 2
         assert [v.shape for v in views.values()] == [(1200, 1600, 3), (1200, 1600), (1200, 1600)]
+        # two events of a session showing one view at once: it is resized once, for both
+        from concurrent.futures import ThreadPoolExecutor
+
+        views = imaging.DisplayViews(np.zeros((1200, 1600, 3), np.uint8), {"Defocus": ramp})
+        with ThreadPoolExecutor(8) as pool:
+            got = list(pool.map(lambda _: views["Defocus"], range(32)))
+        assert all(g is got[0] for g in got) and got[0].shape == (1200, 1600)
 
 
 # --------------------------------------------------------------------------- cache
