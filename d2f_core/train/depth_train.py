@@ -40,8 +40,9 @@ import logging
 import math
 import random
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -351,37 +352,43 @@ def _update_average(ema: dict[str, Tensor], net: torch.nn.Module, decay: float) 
                 ema[k].copy_(v)
 
 
-def train_depth(args: argparse.Namespace) -> Path:
-    """Run (or resume) stage 0; returns the path of the last checkpoint."""
-    torch.set_num_threads(args.threads)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    last = out / "depth_last.pt"
-    resuming = last.is_file() and not args.restart
-    _check_options(args, resuming)  # the options alone, before the photos are scanned
+def _device(args: argparse.Namespace) -> torch.device:
+    """The device of ``--device``, checked (cuDNN's autotuner on for CUDA)."""
     device = torch.device(args.device)
     if device.type == "cuda" and not torch.cuda.is_available():
         raise ValueError("--device cuda: no CUDA device here")
     if device.type == "cuda":
         torch.backends.cudnn.benchmark = True  # a few batch shapes, each seen many times
-    if args.pack is not None:
-        from .depth_pack import PackedDepthData
+    return device
 
-        if "scene" in args.variant:
-            raise ValueError("a pack holds no scene maps: a '-scene' --variant needs --data")
-        data: RealDepthData = PackedDepthData(
-            args.pack, size=(args.crop, args.crop), paste=args.paste, synth=args.synth,
-            scene_weight=args.scene_weight, standing=args.standing, jitter=args.jitter,
-            frame_match=args.frame_match,
+
+def _training_data(args: argparse.Namespace) -> RealDepthData:
+    """The photos of ``--pack`` (a packed file) or of ``--data``."""
+    if args.pack is None:
+        return _real_data(args)
+    from .depth_pack import PackedDepthData
+
+    if "scene" in args.variant:
+        raise ValueError("a pack holds no scene maps: a '-scene' --variant needs --data")
+    data = PackedDepthData(
+        args.pack, size=(args.crop, args.crop), paste=args.paste, synth=args.synth,
+        scene_weight=args.scene_weight, standing=args.standing, jitter=args.jitter,
+        frame_match=args.frame_match,
+    )  # fmt: skip
+    largest = max(args.sides or [args.crop])
+    if largest > data.side:
+        logger.warning(
+            "batches up to %d px from a pack of %d px photos: the larger crops are "
+            "upscaled", largest, data.side,
         )  # fmt: skip
-        largest = max(args.sides or [args.crop])
-        if largest > data.side:
-            logger.warning(
-                "batches up to %d px from a pack of %d px photos: the larger crops are "
-                "upscaled", largest, data.side,
-            )  # fmt: skip
-    else:
-        data = _real_data(args)
+    return data
+
+
+def _networks(args: argparse.Namespace, device: torch.device) -> tuple:
+    """``(net, groups, distiller, encoder_feats, keeper)`` on ``device``: the network to
+    train (from ``--init``), its parameter groups, the ``--distill`` projection (its
+    parameters a group of their own) with the list its hook fills with the encoder's output,
+    and the frozen ``--keep`` network (``None`` without those options)."""
     net = build_defocus_net(args.variant)
     if args.init is not None:
         _load_defocus(net, args.init)
@@ -400,11 +407,44 @@ def train_depth(args: argparse.Namespace) -> Path:
         keeper = _load_defocus(build_defocus_net(args.variant), args.keep)
         keeper.eval().requires_grad_(False)
         logger.info("keep term: weight %g towards %s", args.keep_weight, args.keep)
-    net.to(device)
-    if keeper is not None:
-        keeper.to(device)
-    if distiller is not None:
-        distiller.to(device)
+    for module in (net, keeper, distiller):
+        if module is not None:
+            module.to(device)
+    return net, groups, distiller, encoder_feats, keeper
+
+
+def _loader(
+    data: RealDepthData, args: argparse.Namespace, step: int, device: torch.device
+) -> Iterator:
+    """An endless iterator of training batches from ``step`` on (its own seed per step)."""
+    return iter(
+        torch.utils.data.DataLoader(
+            _Batches(
+                data,
+                args.batch_size,
+                args.seed * 1_000_003 + step,
+                batch_shapes(args.sides) if args.sides else (),
+                teacher=args.distill,
+            ),
+            batch_size=None,
+            num_workers=args.workers,
+            pin_memory=device.type == "cuda",
+            prefetch_factor=4 if args.workers else None,
+        )
+    )
+
+
+def train_depth(args: argparse.Namespace) -> Path:
+    """Run (or resume) stage 0; returns the path of the last checkpoint."""
+    torch.set_num_threads(args.threads)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    last = out / "depth_last.pt"
+    resuming = last.is_file() and not args.restart
+    _check_options(args, resuming)  # the options alone, before the photos are scanned
+    device = _device(args)
+    data = _training_data(args)
+    net, groups, distiller, encoder_feats, keeper = _networks(args, device)
     opt = torch.optim.AdamW(groups, lr=args.lr, weight_decay=1e-4)
     # the step, the seconds of training before this run (for --minutes) and the average
     step, spent, ema = _resumed(last, net, opt, distiller, device) if resuming else (0, 0.0, None)
@@ -425,21 +465,7 @@ def train_depth(args: argparse.Namespace) -> Path:
     net.train()
     if args.head_only:
         net.eval()  # the trunk's batch norms keep their statistics
-    loader = iter(
-        torch.utils.data.DataLoader(
-            _Batches(
-                data,
-                args.batch_size,
-                args.seed * 1_000_003 + step,
-                batch_shapes(args.sides) if args.sides else (),
-                teacher=args.distill,
-            ),
-            batch_size=None,
-            num_workers=args.workers,
-            pin_memory=device.type == "cuda",
-            prefetch_factor=4 if args.workers else None,
-        )
-    )
+    loader = _loader(data, args, step, device)
     t0 = time.perf_counter()
     log = open(out / "depth_log.jsonl", "a")  # noqa: SIM115
     budget = None if args.minutes is None else 60.0 * args.minutes
@@ -467,22 +493,22 @@ def train_depth(args: argparse.Namespace) -> Path:
         if ema is not None:
             _update_average(ema, net, args.ema)
         if step % args.log_every == 0:
-            rec = {
-                "step": step,
-                "loss": loss.item(),
-                **parts,
-                "lr": lr,
-                "elapsed_s": round(spent + time.perf_counter() - t0, 1),
-            }
-            log.write(json.dumps(rec) + "\n")
-            log.flush()
-            logger.info("step %d loss %.4f %s", step, loss.item(), parts)
+            elapsed = round(spent + time.perf_counter() - t0, 1)
+            _log_step(log, step, loss.item(), parts, lr, elapsed)
         final = done = progress() >= 1.0
         if step % args.save_every == 0 or final:
             elapsed = spent + time.perf_counter() - t0
             _save_depth_state(out, args, step, final, net, opt, ema, distiller, elapsed)
     log.close()
     return last
+
+
+def _log_step(log: Any, step: int, loss: float, parts: dict, lr: float, elapsed: float) -> None:
+    """One line of ``depth_log.jsonl`` and of the log."""
+    rec = {"step": step, "loss": loss, **parts, "lr": lr, "elapsed_s": elapsed}
+    log.write(json.dumps(rec) + "\n")
+    log.flush()
+    logger.info("step %d loss %.4f %s", step, loss, parts)
 
 
 def export_checkpoint(
