@@ -12,6 +12,8 @@ from PIL import Image
 from app.latency_probe import show_details
 
 TIMEOUT_MS = 30_000
+#: The status line (``#info``) as the page holds it, a JavaScript expression.
+STATUS = "(document.querySelector('#info textarea')?.value ?? '')"
 
 
 def result_src(page, picture: str = "#result img") -> str | None:
@@ -111,3 +113,18 @@ def type_value(page, elem: str, value: str) -> None:
     box.click()
     box.fill(value)
     box.press("Enter")
+
+
+def wait_status(page, *parts: str, absent: str | None = None, old: str | None = None) -> str:
+    """Wait until the status line holds every one of ``parts``, not ``absent`` and is not
+    ``old``; return it."""
+    page.wait_for_function(
+        f"""([parts, absent, old]) => {{
+            const s = {STATUS};
+            return s !== old && parts.every(p => s.includes(p))
+                && (absent === null || !s.includes(absent));
+        }}""",
+        arg=[list(parts), absent, old],
+        timeout=TIMEOUT_MS,
+    )
+    return page.locator("#info textarea").input_value()

@@ -9,12 +9,18 @@ import re
 
 import numpy as np
 import pytest
-from _browser import TIMEOUT_MS, click_photo_at, fetch_image, open_app, result_src, wait_new_result
+from _browser import (
+    click_photo_at,
+    fetch_image,
+    open_app,
+    result_src,
+    wait_new_result,
+    wait_status,
+)
 from PIL import Image
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
 
-STATUS = "(document.querySelector('#info textarea')?.value ?? '')"
 WIDTH, HEIGHT = 960, 720
 #: the subject, near (0.85), before a wall far away (0.1)
 SUBJECT = (120, 160, 400, 560)
@@ -33,19 +39,6 @@ def _write_scene(folder):
     Image.fromarray(image).save(photo)
     Image.fromarray((disparity * 255).round().astype(np.uint8)).save(depth)
     return photo, depth, image
-
-
-def _wait_status(page, *parts: str, absent: str | None = None, old: str | None = None) -> str:
-    page.wait_for_function(
-        f"""([parts, absent, old]) => {{
-            const s = {STATUS};
-            return s !== old && parts.every(p => s.includes(p))
-                && (absent === null || !s.includes(absent));
-        }}""",
-        arg=[list(parts), absent, old],
-        timeout=TIMEOUT_MS,
-    )
-    return page.locator("#info textarea").input_value()
 
 
 def _picture(page, old_src):
@@ -100,13 +93,13 @@ def test_brushes_keep_sharp_and_blur(app_server, chromium_launch_options, sharpn
         try:
             page = open_app(browser, server.url, height=1300, errors=errors)
             page.set_input_files("#input input[type=file]", str(photo))
-            _wait_status(page, "full render")
+            wait_status(page, "full render")
             page.get_by_text("Your own depth map (optional)").click()
             page.set_input_files("#depth input[type=file]", str(depth))
-            _wait_status(page, "your disparity map")
+            wait_status(page, "your disparity map")
             old = result_src(page)
             click_photo_at(page, (sx0 + sx1) // 2, (sy0 + sy1) // 2)
-            info = _wait_status(page, "focused on the click", "full render")
+            info = wait_status(page, "focused on the click", "full render")
             src, plain = _picture(page, old)
             assert sharpness(plain, inside) < 0.5 * sharpness(image, inside)
             assert sharpness(plain, subject_left) >= 0.95 * sharpness(image, subject_left)
@@ -123,7 +116,7 @@ def test_brushes_keep_sharp_and_blur(app_server, chromium_launch_options, sharpn
             page.locator("#paint button[aria-label=Brush]").click()
             _paint(page, PAINT)
             page.locator("#paint_apply").click()
-            info = _wait_status(page, "painted:", "full render", old=info)
+            info = wait_status(page, "painted:", "full render", old=info)
             assert "--sharp-mask " in info and "--blur-mask" not in info
             mask_path = re.search(r"--sharp-mask (\S+)", info).group(1)
             mask = np.asarray(Image.open(mask_path)) > 0
@@ -145,7 +138,7 @@ def test_brushes_keep_sharp_and_blur(app_server, chromium_launch_options, sharpn
             box.click()
             box.fill("2")
             box.press("Enter")
-            info = _wait_status(page, "f/2,", "painted:", "full render", old=info)
+            info = wait_status(page, "f/2,", "painted:", "full render", old=info)
             src, f2 = _picture(page, src)
             assert sharpness(f2, inside) >= 0.9 * sharpness(image, inside)
             # the unpainted wall: less blurred than at f/1.4, still blurred
@@ -158,7 +151,7 @@ def test_brushes_keep_sharp_and_blur(app_server, chromium_launch_options, sharpn
             page.locator("#paint button[aria-label=Brush]").click()
             _paint(page, (290, sy0 + 10, sx1 + 30, sy1 - 10))
             page.locator("#paint_apply").click()
-            info = _wait_status(page, "% blurred", "full render", "--blur-mask", old=info)
+            info = wait_status(page, "% blurred", "full render", "--blur-mask", old=info)
             src, red = _picture(page, src)
             # as blurred as the wall (the red paint sends it to the far end of the depth)
             assert sharpness(red, subject_right) < 0.85 * sharpness(image, subject_right)
@@ -168,7 +161,7 @@ def test_brushes_keep_sharp_and_blur(app_server, chromium_launch_options, sharpn
 
             # 4. cleared: the picture without paint, the canvas back to the photo
             page.locator("#paint_clear").click()
-            info = _wait_status(page, "full render", absent="painted:", old=info)
+            info = wait_status(page, "full render", absent="painted:", old=info)
             assert "--sharp-mask" not in info
             src, cleared = _picture(page, src)
             assert sharpness(cleared, inside) < 0.85 * sharpness(image, inside)

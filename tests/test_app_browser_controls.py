@@ -15,6 +15,7 @@ import re
 import numpy as np
 import pytest
 from _browser import (
+    STATUS,
     TIMEOUT_MS,
     click_photo_at,
     fetch_image,
@@ -22,12 +23,12 @@ from _browser import (
     result_src,
     type_value,
     wait_new_result,
+    wait_status,
 )
 from PIL import Image
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
 
-STATUS = "(document.querySelector('#info textarea')?.value ?? '')"
 #: The virtual lens as the page states it, written out here (not imported) so that the
 #: test checks the app's figure against the formula.
 LENS_MM, SENSOR_MM, NEAREST_MM = 50.0, 36.0, 1000.0
@@ -60,15 +61,6 @@ def wait_note(page, text: str) -> None:
         arg=text,
         timeout=TIMEOUT_MS,
     )
-
-
-def wait_status(page, *parts: str) -> str:
-    page.wait_for_function(
-        f"(parts) => {{ const s = {STATUS}; return parts.every(p => s.includes(p)); }}",
-        arg=list(parts),
-        timeout=TIMEOUT_MS,
-    )
-    return status(page)
 
 
 def current_result(page, old: str | None) -> np.ndarray:

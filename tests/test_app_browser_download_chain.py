@@ -23,23 +23,13 @@ import sys
 
 import numpy as np
 import pytest
-from _browser import TIMEOUT_MS, open_app
+from _browser import TIMEOUT_MS, open_app, wait_status
 from PIL import Image
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
 
-STATUS = "(document.querySelector('#info textarea')?.value ?? '')"
 WIDTH, HEIGHT = 2000, 1500
 ROUNDS = 4
-
-
-def _wait_status(page, *parts: str, absent: str | None = None) -> None:
-    page.wait_for_function(
-        f"([parts, absent]) => parts.every(p => {STATUS}.includes(p))"
-        f" && !(absent && {STATUS}.includes(absent))",
-        arg=[list(parts), absent],
-        timeout=TIMEOUT_MS,
-    )
 
 
 @contextlib.contextmanager
@@ -77,7 +67,7 @@ def test_download_follows_renders_in_quick_succession(
         try:
             page = open_app(browser, server.url, errors=errors)
             page.set_input_files("#input input[type=file]", str(photo))
-            _wait_status(page, "full render")
+            wait_status(page, "full render")
             page.get_by_text("Advanced", exact=True).click()
             page.locator("#format").get_by_text("PNG", exact=True).click()
             page.wait_for_function(
@@ -87,12 +77,12 @@ def test_download_follows_renders_in_quick_succession(
             with _busy():
                 for i in range(ROUNDS):
                     box.uncheck()
-                    _wait_status(page, "no blur", "full render")
+                    wait_status(page, "no blur", "full render")
                     box.check()
                     if i % 2:  # the blurred render shown first, its PNG still being written
-                        _wait_status(page, "full render", absent="no blur")
+                        wait_status(page, "full render", absent="no blur")
                     box.uncheck()
-                    _wait_status(page, "no blur", "full render")
+                    wait_status(page, "no blur", "full render")
                     try:
                         page.wait_for_function(
                             "() => { const b = document.querySelector("
@@ -109,7 +99,7 @@ def test_download_follows_renders_in_quick_succession(
                     state = _download_state(page)
                     assert f"Download PNG ({WIDTH}x{HEIGHT})" in state["label"], state
                     box.check()
-                    _wait_status(page, "full render", absent="no blur")
+                    wait_status(page, "full render", absent="no blur")
         finally:
             browser.close()
     assert not errors, errors

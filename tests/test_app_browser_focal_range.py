@@ -7,12 +7,18 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from _browser import TIMEOUT_MS, click_photo_at, fetch_image, open_app, result_src, wait_new_result
+from _browser import (
+    click_photo_at,
+    fetch_image,
+    open_app,
+    result_src,
+    wait_new_result,
+    wait_status,
+)
 from PIL import Image
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
 
-STATUS = "(document.querySelector('#info textarea')?.value ?? '')"
 WIDTH, HEIGHT = 960, 720
 #: the subject: a box whose disparity runs from 0.70 (left) to 0.86 (right), before a wall
 BOX = (120, 160, 520, 560)
@@ -33,15 +39,6 @@ def _write_scene(folder):
 
 def _status(page) -> str:
     return page.locator("#info textarea").input_value()
-
-
-def _wait_status(page, *parts: str) -> str:
-    page.wait_for_function(
-        f"(parts) => {{ const s = {STATUS}; return parts.every(p => s.includes(p)); }}",
-        arg=list(parts),
-        timeout=TIMEOUT_MS,
-    )
-    return _status(page)
 
 
 def _slider(page, elem: str) -> float:
@@ -73,16 +70,16 @@ def test_click_sets_a_range_and_the_slider_changes_it(
         try:
             page = open_app(browser, server.url, errors=errors)
             page.set_input_files("#input input[type=file]", str(photo))
-            _wait_status(page, "full render")
+            wait_status(page, "full render")
             page.get_by_text("Your own depth map (optional)").click()
             page.set_input_files("#depth input[type=file]", str(depth))
-            _wait_status(page, "your disparity map")
+            wait_status(page, "your disparity map")
             assert _slider(page, "focal_range") == 0.0  # a new photo: the thin lens
             box = page.locator("#blur input[data-testid=number-input]")
             box.click()
             box.fill("1")
             box.press("Enter")
-            _wait_status(page, "f/1, blur", "full render")
+            wait_status(page, "f/1, blur", "full render")
 
             # 1. a click on the subject's middle: the focus and a range that covers it
             old = result_src(page)
@@ -96,7 +93,7 @@ def test_click_sets_a_range_and_the_slider_changes_it(
             # the click's render, or the render of the page's values that follows it (the
             # aperture box's release when it still had the keyboard focus), whose status
             # line has no note of the click
-            info = _wait_status(page, f"focal range {span:g} |", "full render")
+            info = wait_status(page, f"focal range {span:g} |", "full render")
             assert f"--focal-range {span:g}" in info
             wide = _result(page, old)
             for end in ends:
@@ -109,7 +106,7 @@ def test_click_sets_a_range_and_the_slider_changes_it(
             box.click()
             box.fill("0")
             box.press("Enter")
-            info = _wait_status(page, "--focal-range 0 ", "full render")
+            info = wait_status(page, "--focal-range 0 ", "full render")
             assert "focal range 0" not in info.split(" | reproduce: ")[0]
             assert "--focal-range 0" in info
             thin = _result(page, old)

@@ -7,7 +7,15 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from _browser import TIMEOUT_MS, fetch_image, open_app, result_src, type_value, wait_new_result
+from _browser import (
+    TIMEOUT_MS,
+    fetch_image,
+    open_app,
+    result_src,
+    type_value,
+    wait_new_result,
+    wait_status,
+)
 from PIL import Image
 
 from app.settings import LOUPE_SIZE, SCREEN_SIDE
@@ -15,7 +23,6 @@ from d2f_core.metrics import psnr
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
 
-STATUS = "(document.querySelector('#info textarea')?.value ?? '')"
 WIDTH, HEIGHT = 2400, 1800
 
 
@@ -31,12 +38,6 @@ def _write_photo(folder):
     depth = folder / "large_disparity.png"
     Image.fromarray((ramp * 65535).round().astype(np.uint16)).save(depth)
     return path, depth, image
-
-
-def _wait_status(page, *parts: str) -> None:
-    page.wait_for_function(
-        f"(parts) => parts.every(p => {STATUS}.includes(p))", arg=list(parts), timeout=TIMEOUT_MS
-    )
 
 
 def _download(page, tmp_path) -> np.ndarray:
@@ -64,13 +65,13 @@ def test_screen_picture_download_and_loupe(app_server, chromium_launch_options, 
         try:
             page = open_app(browser, server.url, height=1300, errors=errors, accept_downloads=True)
             page.set_input_files("#input input[type=file]", str(photo))
-            _wait_status(page, "full render", "shown at 1600x1200")
+            wait_status(page, "full render", "shown at 1600x1200")
             # the ramp as depth, focused a quarter of the way in: x = 600 is sharp
             page.get_by_text("Your own depth map (optional)").click()
             page.set_input_files("#depth input[type=file]", str(depth))
-            _wait_status(page, "your disparity map")
+            wait_status(page, "your disparity map")
             type_value(page, "focus", "0.25")
-            _wait_status(page, "focus 0.250", "full render")
+            wait_status(page, "focus 0.250", "full render")
             # the same picture in a photographer's words, above the details
             page.wait_for_function(
                 "() => (document.querySelector('#summary')?.innerText ?? '')"
@@ -107,7 +108,7 @@ def test_screen_picture_download_and_loupe(app_server, chromium_launch_options, 
 
             # focused far away: the result and the loupe follow, the region blurred
             type_value(page, "focus", "0.9")
-            _wait_status(page, "focus 0.900", "full render")
+            wait_status(page, "focus 0.900", "full render")
             again = fetch_image(page, wait_new_result(page, src_loupe, "#loupe img"))
             assert np.abs(again.astype(int) - region)[mid].mean() > 10.0
             refreshed = _download(page, tmp_path)
