@@ -177,8 +177,12 @@ def save_image(
         # Uncompressed: Pillow's own TIFF writer keeps the EXIF sub-IFDs, the libtiff
         # (compressing) writer rejects them.
         params.update(compression="raw")
+
+    def write(fh) -> None:
+        img.save(fh, format=fmt, **params)
+
     try:
-        atomic_write(out, lambda fh: img.save(fh, format=fmt, **params))
+        atomic_write(out, write)
     except OSError:
         if not params.get("optimize"):
             raise
@@ -187,5 +191,5 @@ def save_image(
         # and libjpeg stops ("Suspension not allowed here"). Written with the standard
         # tables, it streams (a few per cent larger)
         params["optimize"] = False
-        atomic_write(out, lambda fh: img.save(fh, format=fmt, **params))
+        atomic_write(out, write)
     return out
