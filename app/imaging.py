@@ -278,7 +278,7 @@ class DisplayViews:
     it was rendered at, and brought to the bokeh's size the first time its view is shown
     (bilinearly, by whole cells first where it shrinks by 2x or more, so a 12 MP map keeps
     its mean): most renders are never looked at as maps, and resizing the three maps of a
-    12 MP photo's 1024x768 pass to 1600x1200 cost about 22 ms of every render on one thread.
+    12 MP photo's then 1024x768 pass to 1600x1200 cost about 22 ms of every render on one thread.
     """
 
     def __init__(self, bokeh: np.ndarray, maps: dict[str, np.ndarray]) -> None:

@@ -18,9 +18,9 @@ VIEWS = ("Bokeh", "Before / after", "Disparity", "Defocus", "Fusion mask")
 
 PREVIEW_MAX_SIDE = 512
 #: An upload of more pixels than this is shown first at the long side of the render pass
-#: (1024 px, as large as the result panel shows it), then at full resolution
+#: (``D2F.config.max_render_side``, 800 px), then at full resolution
 FIRST_LOOK_PIXELS = 4_000_000
-FIRST_LOOK_MAX_SIDE = 1024
+FIRST_LOOK_MAX_SIDE = 800
 
 
 def wants_first_look(size: tuple[int, int]) -> bool:

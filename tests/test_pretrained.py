@@ -322,7 +322,7 @@ def test_given_maps_render_at_full_size_up_to_768_px(model):
     assert model.config.full_pass_side == 768
     assert model.pass_size((512, 768), given=True) == (512, 768)
     assert model.pass_size((512, 768)) == (256, 384)
-    assert model.pass_size((3024, 4032), given=True) == (768, 1024)
+    assert model.pass_size((3024, 4032), given=True) == (600, 800)
 
 
 # ------------------------------------------------------------ the default: the scene source

@@ -146,3 +146,41 @@ class TestRegion:
         scene = model.prepare(image, depth=depth)
         with pytest.raises(ValueError, match="box"):
             model.render_region(scene, box, 0.5, 20.0)
+
+
+class TestFusionGate:
+    """The fusion gate is a CoC in the photo's pixels, whatever the pass's size."""
+
+    def test_gate_in_the_photos_pixels(self, model):
+        from d2f_core.rendering.schedule import defocus_to_coc
+
+        image, depth = _scene_arrays(300, 400)
+        scene = model.prepare(image, depth=depth)
+        expected = defocus_to_coc(model.config.fusion_gate) / model.config.render_scale
+        assert expected == pytest.approx(23.6)
+        assert model.gate_coc(scene) == pytest.approx(expected)
+        screen = model.screen_scene(scene, 200)
+        assert screen.pixel_scale == pytest.approx(0.5)
+        assert model.gate_coc(screen) == pytest.approx(expected / 2)
+
+    def test_small_pass_does_not_sharpen_a_blurred_background(self):
+        """A 1200 px photo through a 200 px pass (a sixth, as a 12 MP photo's pass is a
+        fifth): the wall, 40-70 px out of focus, is the pass's blur alone (mask 0), on the
+        full render and on a 600 px screen. A gate at the pass's own scale (71 px here) let
+        the fusion network put some of the sharp photo back there."""
+        torch.manual_seed(0)
+        small_pass = D2F.from_config({"max_render_side": 200})
+        image, depth = _scene_arrays(800, 1200)
+        scene = small_pass.prepare(image, depth=depth)
+        assert tuple(scene.image_lr.shape[-2:]) == (133, 200)
+        near = depth >= 0.8
+        assert not near[:, 620:].any()  # the wall: disparity 0.1-0.4, focus on the box
+        for screen in (None, 600):
+            result = small_pass.render(scene, 0.8, 100.0, screen=screen)
+            wall = result.fusion_mask[:, result.fusion_mask.shape[1] * 620 // 1200 :]
+            assert float(wall.max()) == 0.0
+            box = result.fusion_mask[
+                result.fusion_mask.shape[0] * 3 // 8 : result.fusion_mask.shape[0] * 5 // 8,
+                result.fusion_mask.shape[1] * 3 // 10 : result.fusion_mask.shape[1] * 4 // 10,
+            ]
+            assert float(box.min()) == pytest.approx(1.0)  # the box in focus: the photo

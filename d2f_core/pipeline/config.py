@@ -33,7 +33,10 @@ class D2FConfig:
         fusion: fusion network variant (``"lite"`` or ``"paper"``).
         network_size: long side (px) the defocus network runs at in :meth:`D2F.prepare`.
         render_scale: scale of the low-resolution rendering pass (paper: 0.5).
-        max_render_side: cap on the long side of the low-resolution pass (px).
+        max_render_side: cap on the long side of the low-resolution pass (px); 800, the
+            pass a 1600 px photo gets, so that a large photo's picture on a 1600 px screen
+            costs what a photo of that size costs (on six generated 12 MP scenes with their
+            true depth 35.57 dB, against 35.44 with a 1024 px pass).
         full_pass_side: a photo prepared with a given disparity map (a phone's depth, a
             user's map) whose long side is at most this (px) is rendered at its own size,
             and the fusion step, which only restores the detail a smaller pass loses, is
@@ -102,7 +105,7 @@ class D2FConfig:
     fusion: str = "lite"
     network_size: int = 768
     render_scale: float = 0.5
-    max_render_side: int = 1024
+    max_render_side: int = 800
     full_pass_side: int = 0
     order: str = "depth"
     placement: str = "paper"

@@ -43,6 +43,16 @@ class FusionStage:
     """D2F's step 6 as methods of :class:`~d2f_core.pipeline.D2F`: the fusion mask ``M_s`` and
     ``B_hr = M_s I_hr + (1 - M_s) upsample(B_lr)``, tile by tile on large frames."""
 
+    def gate_coc(self, scene: Scene) -> float:
+        """The CoC (``scene``'s px) from which the fusion gate keeps ``M_s`` at 0: the gate's
+        ``D`` at the pass a photo gets at ``render_scale``, counted in the photo's own pixels
+        (24 px at the shipped 0.3 and 0.5). One blur in the photo is then gated alike whatever
+        pass renders it: a large photo's pass is capped at ``max_render_side``, and a gate at
+        the pass's own scale let the sharp photo back up to 46 px of CoC at 12 MP with a
+        1024 px pass. A screen's render counts it in its own pixels (``scene.pixel_scale``)."""
+        cfg = self.config
+        return defocus_to_coc(cfg.fusion_gate) / cfg.render_scale * scene.pixel_scale
+
     def fusion_mask(
         self,
         image: Tensor,
@@ -118,10 +128,10 @@ class FusionStage:
         coc_hi = blur * outside_range(
             torch.maximum((hi - focus).abs(), (lo - focus).abs()), focal_range
         )
-        gate_coc = defocus_to_coc(cfg.fusion_gate) / lr_ratio * 1.01
+        gate_coc = self.gate_coc(scene)
         sharp = cfg.sharp_coc
         all_sharp = coc_hi <= sharp
-        needs_net = (coc_lo < gate_coc) & (coc_hi > sharp)
+        needs_net = (coc_lo < gate_coc * 1.01) & (coc_hi > sharp)
         needs_pixels = ((coc_lo < 2 * sharp) | needs_net) & ~all_sharp
         mask = torch.zeros((1, 1, height, width), device=bokeh_up.device, dtype=bokeh_up.dtype)
         image, d_full = scene.image, scene.disparity_full_tensor()
@@ -162,7 +172,7 @@ class FusionStage:
                             memory_format=torch.channels_last
                         ),
                     )
-                    m_s = m_s * (defocus < cfg.fusion_gate).to(m_s.dtype)
+                    m_s = m_s * (coc < gate_coc).to(m_s.dtype)
                     m = torch.maximum(m, m_s)
                 sharpen(y0, y1, x0, x1, m[..., y0 - ya : y1 - ya, x0 - xa : x1 - xa])
         return bokeh_up, mask

@@ -38,6 +38,9 @@ class Scene:
             plane), ``None`` for the others; :meth:`D2F.render` focuses there by default.
         brushes: the focus and blur paint (:meth:`D2F.paint`), applied by every render for
             its focus; ``None`` when nothing is painted.
+        pixel_scale: the scene's pixels per pixel of the photo: 1, or less for a photo
+            downscaled to a screen (:meth:`D2F.screen_scene`); the fusion gate is a CoC in
+            the photo's own pixels.
         cache: derived tensors (full-res disparity, preview-size inputs), filled lazily.
     """
 
@@ -52,6 +55,7 @@ class Scene:
     focus: float | None = None
     given_disparity: Tensor | None = field(default=None, repr=False)
     brushes: Brushes | None = field(default=None, repr=False)
+    pixel_scale: float = 1.0
     cache: dict[Any, Any] = field(default_factory=dict, repr=False)
 
     def brushed(self, focus: float) -> Scene:

@@ -21,7 +21,6 @@ from ..rendering.kernels import check_rotation
 from ..rendering.schedule import (
     check_focal_range,
     coc_to_defocus,
-    defocus_to_coc,
     outside_range,
 )
 from ..sizing import resize, scaled_size, size_ratio
@@ -56,7 +55,7 @@ class RenderSteps:
         if budget is not None:
             t0 = time.perf_counter()
             # the full-res CoC under which the fusion gate can open (see _fuse_tiled)
-            gate_coc = defocus_to_coc(self.config.fusion_gate) / lr_ratio * 1.01
+            gate_coc = self.gate_coc(scene) * 1.01
             settings = self._pick_settings(
                 scene, disparity_lr, focus, blur, lr_ratio, budget, focal_range, gate_coc,
                 render_options, full=not preview,
@@ -70,8 +69,11 @@ class RenderSteps:
             and (settings is None or settings.fusion)
         )
         t0 = time.perf_counter()
+        # foreground layers blurred past the fusion gate (in the pass's px): fusion never
+        # sharpens them, and must not paste what lies behind them over their blur
+        options = render_options | {"front_size": self.gate_coc(scene) * lr_ratio}
         bokeh_lr, behind_lr = self._pass_or_identity(
-            inputs, focus, blur * lr_ratio, fuse, settings, render_options
+            inputs, focus, blur * lr_ratio, fuse, settings, options
         )
         timings["render_lr"] = ms_since(t0)
         return settings, fuse, bokeh_lr, behind_lr
@@ -307,9 +309,6 @@ class RenderSteps:
             blur_lr,
             radiance=radiance_lr,
             behind=fuse,
-            # foreground layers blurred past the fusion gate: fusion never sharpens them, and
-            # must not paste what lies behind them over their blur
-            front_size=defocus_to_coc(self.config.fusion_gate),
             checked=True,
             **options,
         )  # [1,3,h,w]

@@ -14,7 +14,7 @@ import torch
 
 from ..depth.brushes import Brushes
 from ..errors import InputTypeError
-from ..sizing import resize, scaled_size
+from ..sizing import resize, scaled_size, size_ratio
 from .outputs import Result, Scene
 
 #: The pass a region is rendered with reaches this many pass pixels beyond the largest CoC
@@ -61,6 +61,7 @@ class ViewStage:
                     radiance_lr=radiance_lr,
                     size=tuple(size),
                     brushes=None,
+                    pixel_scale=scene.pixel_scale * size_ratio(size, scene.size),
                     cache={"disparity_full": resize(scene.disparity_full_tensor(), size)},
                 )
         return dataclasses.replace(scene.cache[key], brushes=scene.brushes)
