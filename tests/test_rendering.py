@@ -1253,21 +1253,21 @@ class TestLargeFrames:
         g = torch.Generator().manual_seed(3)
         hit = torch.rand(23, 31, generator=g) > 0.8
         hit[:, 12:20] = False  # a gap of 8 tile columns splits the spans
-        boxes = rendering.tiled._hit_boxes(hit, 2, 21, 1, 30, 32)
+        boxes = rendering.tiles.hit_boxes(hit, 2, 21, 1, 30, 32)
         covered = torch.zeros(23, 31, dtype=torch.int64)
         for y0, y1, x0, x1 in boxes:
             assert y0 % 32 == y1 % 32 == x0 % 32 == x1 % 32 == 0
-            assert y1 - y0 <= rendering.tiled._HIT_BAND * 32
+            assert y1 - y0 <= rendering.tiles.HIT_BAND * 32
             covered[y0 // 32 : y1 // 32, x0 // 32 : x1 // 32] += 1
         assert int(covered.max()) == 1
         inside = torch.zeros_like(hit)
         inside[2:21, 1:30] = True
         assert torch.equal(covered.bool() & hit, hit & inside)
         assert not covered[:, 12:20].any() and not covered[:2].any() and not covered[21:].any()
-        assert rendering.tiled._hit_boxes(torch.zeros(4, 4, dtype=torch.bool), 0, 4, 0, 4, 32) == []
+        assert rendering.tiles.hit_boxes(torch.zeros(4, 4, dtype=torch.bool), 0, 4, 0, 4, 32) == []
         # the boxes of bands of 4 rows lie inside those of bands of 16 (the FFT's pieces
         # cover every tile the masking wrote)
-        big = rendering.tiled._hit_boxes(hit, 2, 21, 1, 30, 32, 16)
+        big = rendering.tiles.hit_boxes(hit, 2, 21, 1, 30, 32, 16)
         for y0, y1, x0, x1 in boxes:
             assert any(a <= y0 and y1 <= b and c <= x0 and x1 <= d for a, b, c, d in big)
 
@@ -1289,7 +1289,7 @@ class TestLargeFrames:
     def test_tile_source_matches_a_padded_copy(self, h, w):
         # tiles read from the frame and its two padded edge copies are those of a padded copy
         x = torch.rand(2, h, w, generator=torch.Generator().manual_seed(h * w))
-        src = rendering.tiled._TileSource(x, 32, 7.0)
+        src = rendering.tiles.TileSource(x, 32, 7.0)
         ny, nx = -(-h // 32), -(-w // 32)
         padded = torch.full((2, ny * 32, nx * 32), 7.0)
         padded[:, :h, :w] = x
@@ -1383,8 +1383,8 @@ class TestLargeFrames:
         coord = (torch.rand(70, 100, generator=gen) * 12 - 6).round(decimals=2)
         coord[:32, :32] = 0.0
         coord[5, 5] = -0.1
-        present, lower, upper = rendering.tiled._tile_bins(coord, 32, 3, 4)
-        q = rendering.tiled._TILE_BINS
+        present, lower, upper = rendering.tiles.tile_bins(coord, 32, 3, 4)
+        q = rendering.tiles.TILE_BINS
         for ty in range(3):
             for tx in range(4):
                 tile = coord[ty * 32 : ty * 32 + 32, tx * 32 : tx * 32 + 32].flatten()

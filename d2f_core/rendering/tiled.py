@@ -5,7 +5,6 @@ without gradients, by tiles and row bands in bounded memory.
 from __future__ import annotations
 
 import functools
-import math
 
 import torch
 
@@ -14,7 +13,6 @@ from .blur import (
     MAX_FACTOR,
     KernelSpec,
     blend_stacked,
-    column_spans,
     direct_stacked,
     fast_len,
     fft_conv,
@@ -29,6 +27,7 @@ from .hidden import hidden_surface, upsample_window
 from .inputs import ROW_BAND
 from .plan import FAR, LayerPlan
 from .threads import ThreadChoice
+from .tiles import TileSource, hit_boxes, tile_bins
 
 # large frames: tiles and bands
 # --------------------------------------------------------------------------------------
@@ -37,54 +36,6 @@ from .threads import ThreadChoice
 _TT = 32
 # Pixels per band of the full-resolution passes.
 _BAND_PIXELS = 1_000_000
-
-
-class _TileSource:
-    """The ``tile x tile`` tiles of a ``(C, H, W)`` frame whose sides need not be whole
-    tiles, for their extremes, without a padded copy of it: tiles inside the frame are read
-    from it, the partial tiles of the last row and column from two small copies padded with
-    ``fill``."""
-
-    def __init__(self, x: torch.Tensor, tile: int, fill: float) -> None:
-        c, h, w = x.shape
-        self.tile, self.c = tile, c
-        self.fy, self.fx = h // tile, w // tile  # whole tiles down and across
-        self.ny, self.nx = -(-h // tile), -(-w // tile)
-        body = x[:, : self.fy * tile, : self.fx * tile]
-        self.body = body.unflatten(2, (self.fx, tile)).unflatten(1, (self.fy, tile))
-        self.body = self.body.permute(1, 3, 0, 2, 4)  # (fy, fx, C, t, t)
-        self.bottom = self.right = None
-        self._pads: list[tuple[torch.Tensor, slice, slice]] = []
-        if self.fy < self.ny:  # the last row of tiles, corner included
-            b = x.new_empty(c, tile, self.nx * tile)
-            b[:, : h - self.fy * tile, :w] = x[:, self.fy * tile :]
-            self._pads += [
-                (b, slice(h - self.fy * tile, None), slice(None)),
-                (b, slice(None), slice(w, None)),
-            ]
-            self.bottom = b.view(c, tile, self.nx, tile).permute(2, 0, 1, 3)  # (nx, C, t, t)
-        if self.fx < self.nx:  # the last column of tiles above that row
-            r = x.new_empty(c, self.fy * tile, tile)
-            r[:, :, : w - self.fx * tile] = x[:, : self.fy * tile, self.fx * tile :]
-            self._pads.append((r, slice(None), slice(w - self.fx * tile, None)))
-            self.right = r.view(c, self.fy, tile, tile).permute(1, 0, 2, 3)  # (fy, C, t, t)
-        self.refill(fill)
-
-    def refill(self, fill: float) -> None:
-        """Set the padding past the frame to ``fill``."""
-        for buf, rows, cols in self._pads:
-            buf[:, rows, cols] = fill
-
-    def extreme(self, op) -> torch.Tensor:
-        """``op`` (``torch.amin`` or ``torch.amax``) over each tile and channel, padding
-        included, ``(ny, nx)``."""
-        out = self.body.new_empty(self.ny, self.nx)
-        out[: self.fy, : self.fx] = op(self.body, dim=(2, 3, 4))
-        if self.bottom is not None:
-            out[self.fy] = op(self.bottom, dim=(1, 2, 3))
-        if self.right is not None:
-            out[: self.fy, self.fx] = op(self.right, dim=(1, 2, 3))
-        return out
 
 
 def _fill_layer(image, weights, ys, xs, m: torch.Tensor, out: torch.Tensor) -> None:
@@ -115,47 +66,9 @@ def _tile_mask(ct: torch.Tensor, centre: int, mask_of, gate: int) -> torch.Tenso
 #: pixel (see :class:`_HalfSource`).
 _MIXED_RANGE = 0.1
 #: Which tiles a layer takes: from the bins of the coordinates each tile holds
-#: (:func:`_tile_bins`), or with ``False`` from the tiles' coordinate ranges alone (which
+#: (:func:`tile_bins`), or with ``False`` from the tiles' coordinate ranges alone (which
 #: put a tile across a depth edge in every layer between its two sides).
 _EXACT_HITS = True
-
-
-#: Bins of the layer coordinate per layer in :func:`_tile_bins`.
-_TILE_BINS = 4
-#: Rows of tiles :func:`_tile_bins` counts at once.
-_TILE_BIN_ROWS = 4
-
-
-def _tile_bins(
-    coord: torch.Tensor, tile: int, ny: int, nx: int, extremes: tuple[float, float] | None = None
-):
-    """Which bins of the layer coordinate each ``tile x tile`` tile of ``coord (H, W)``
-    holds a pixel in: ``(ny * nx, bins)`` (0 or 1), and each bin's lowest and highest
-    coordinate. Bins are 1 / :data:`_TILE_BINS` of a layer wide, split at 0 with 0 a bin of
-    its own, so a bin's pixels are all on one side of focus (or at it). ``extremes``: the
-    coordinate's lowest and highest value when the caller has them."""
-    height, width = coord.shape
-    q = _TILE_BINS
-    low, high = (float(coord.min()), float(coord.max())) if extremes is None else extremes
-    top = int(math.ceil(max(abs(low), abs(high)) * q))
-    nb = 2 * top + 1
-    j = torch.arange(-top, top + 1, dtype=coord.dtype, device=coord.device)
-    lower = torch.where(j > 0, (j - 1) / q, j / q)
-    upper = torch.where(j < 0, (j + 1) / q, j / q)
-    rows = tile * _TILE_BIN_ROWS
-    cols = torch.arange(width, device=coord.device) // tile
-    base = ((torch.arange(rows, device=coord.device) // tile)[:, None] * nx + cols) * nb + top
-    if ny * nx * nb < 1 << 31:
-        base = base.int()  # half the memory traffic of int64 indices
-    present = coord.new_zeros(ny * nx * nb)
-    for y0 in range(0, height, rows):
-        y1 = min(height, y0 + rows)
-        band = coord[y0:y1]
-        b = band.abs().mul_(q).ceil_().copysign_(band).to(base.dtype).add_(base[: y1 - y0])
-        counts = torch.bincount(b.view(-1), minlength=-(-(y1 - y0) // tile) * nx * nb)
-        t0 = y0 // tile * nx * nb
-        present[t0 : t0 + counts.numel()] = (counts > 0).to(coord.dtype)
-    return present.view(ny * nx, nb), lower, upper
 
 
 class _HalfSource:
@@ -325,33 +238,299 @@ class _PieceBlur:
         return out
 
 
-#: Rows of tiles per band in which a coarse layer's hit tiles are grouped into boxes.
-_HIT_BAND = 4
 #: The same for the pieces a coarse layer is blurred by FFT in (:func:`_blend_fft`).
 _FFT_BAND = 16
 #: A layer is blurred by pieces when their padded area is under this share of its box's.
 _FFT_PIECES_SHARE = 0.7
 
 
-def _hit_boxes(
-    hit: torch.Tensor, ty0: int, ty1: int, tx0: int, tx1: int, tile: int, band_rows: int = 0
-) -> list[tuple[int, int, int, int]]:
-    """Boxes ``(y0, y1, x0, x1)`` (px, whole tiles, possibly past the frame) that cover the
-    tiles set in ``hit`` ``(rows, cols)`` within rows ``ty0:ty1`` and columns ``tx0:tx1``:
-    per band of ``band_rows`` (default :data:`_HIT_BAND`) tile rows, spans of columns merged
-    across gaps under two tiles, each cut to the band's rows it hits. Boxes do not overlap,
-    and those of a band of ``n`` rows lie inside those of a band of ``m n`` rows."""
-    boxes = []
-    band_rows = band_rows or _HIT_BAND
-    sub = hit[ty0:ty1, tx0:tx1]
-    for b0 in range(0, ty1 - ty0, band_rows):
-        band = sub[b0 : b0 + band_rows]
-        cols = torch.nonzero(band.any(dim=0)).flatten().tolist()
-        for c0, c1 in column_spans(cols):
-            rows = torch.nonzero(band[:, c0 : c1 + 1].any(dim=1)).flatten()
-            r0, r1 = ty0 + b0 + int(rows[0]), ty0 + b0 + int(rows[-1]) + 1
-            boxes.append((r0 * tile, r1 * tile, (tx0 + c0) * tile, (tx0 + c1 + 1) * tile))
-    return boxes
+class _TiledFrame:
+    """One large frame rendered by :func:`render_tiled`: where each layer reaches (per tile),
+    the coarse layers' accumulators, the full-resolution layers, and the bands they end in.
+
+    Shape: ``image (1, 3, H, W)``, ``weights (1, Cw, H, W)`` or ``None``.
+    """
+
+    def __init__(
+        self,
+        image: torch.Tensor,
+        weights: torch.Tensor | None,
+        plan: LayerPlan,
+        spec: KernelSpec,
+        quality: str,
+        threads: ThreadChoice | None,
+        hidden: bool,
+    ) -> None:
+        self.image, self.weights, self.plan, self.spec = image, weights, plan, spec
+        self.quality, self.threads = quality, threads
+        _, _, self.height, self.width = image.shape
+        t = _TT
+        self.nty, self.ntx = -(-self.height // t), -(-self.width // t)
+        self.hp, self.wp = self.nty * t, self.ntx * t
+        # the layer is [mask, mask w I, mask w] (or [mask, mask I]), read box by box or band
+        # by band from the image, the weights (plus the floor, added in place by the caller)
+        # and the layer coordinate: no padded or weighted copy of the frame is built
+        cx = 3 if weights is None else 3 + weights.shape[1]
+        self.chans = cx + 1
+        self.coord = plan.coord[0]
+        # the layer coordinate's range per tile; past the frame the coordinate is so far
+        # that no mask reaches it
+        ctiles = TileSource(self.coord, t, FAR)
+        self.lo = ctiles.extreme(torch.amin)
+        ctiles.refill(-FAR)
+        self.hi = ctiles.extreme(torch.amax)
+        self.layer_rows = functools.partial(_fill_layer, image, weights)
+        self.bins = None
+        if _EXACT_HITS:
+            # (the tiles past the frame hold FAR in lo and -FAR in hi: the frame's extremes)
+            extremes = (float(self.lo.min()), float(self.hi.max()))
+            self.bins = tile_bins(self.coord[0], t, self.nty, self.ntx, extremes)
+        self.under = None
+        if hidden and plan.signed:
+            self.under = hidden_surface(self._pixels, plan)
+        self.half: _HalfSource | None = None  # the frame on cells of 2 px, made when needed
+        self.back: tuple[int, torch.Tensor] | None = None  # (factor, colour) behind the focus
+        self.front: list[list] = []  # [factor, colour, transmit] per grid, back to front
+        self.sharp: list[tuple[int, int, torch.Tensor]] = []  # full-resolution layers
+
+    def _pixels(self, ys: torch.Tensor, xs: torch.Tensor) -> torch.Tensor:
+        """The layer of mask one at single pixels: ``[1, x]`` as the layers are made."""
+        out = self.image.new_empty(self.chans, ys.numel())
+        self.layer_rows(ys, xs, self.image.new_ones(()), out)
+        return out
+
+    def hits(self, centre: int) -> torch.Tensor:
+        """Tiles where layer ``centre`` has a mask above _MASK_EPS, ``(nty, ntx)``."""
+        plan, reach = self.plan, self.plan.reach
+        lo, hi = self.lo, self.hi
+        a, b = lo, hi
+        if plan.signed and centre > 0:
+            a = lo.clamp(min=0.0)
+            out = (hi > 0) & (b > centre - reach) & (a < centre + reach)
+        elif plan.signed and centre < 0:
+            b = hi.clamp(max=0.0)
+            out = (lo < 0) & (b > centre - reach) & (a < centre + reach)
+        else:
+            out = (b > centre - reach) & (a < centre + reach)
+        if self.bins is None:
+            return out
+        # a tile across a depth edge holds coordinates on both sides but none between them:
+        # only the layers near the coordinates its pixels have
+        present, lower, upper = self.bins
+        near = (lower < centre + reach) & (upper > centre - reach)
+        if plan.signed and centre:
+            near &= upper > 0 if centre > 0 else lower < 0
+        return out & (present @ near.to(present.dtype) > 0).view(self.nty, self.ntx)
+
+    def gate(self, centre: int) -> int:
+        """+1 or -1: the side of focus layer ``centre`` is masked to; 0: no gate needed."""
+        # beyond one reach from 0 the other side's mask is already 0 in float32
+        if not self.plan.signed or centre == 0 or abs(centre) > self.plan.reach + 1:
+            return 0
+        return 1 if centre > 0 else -1
+
+    def layers(self) -> None:
+        """Every layer in the plan's order: a full-resolution one is kept for the bands, a
+        coarse one masked, blurred and composited on its grid (:meth:`coarse_layer`)."""
+        phase = 0  # 0: behind the sharp layers, 1: sharp layers, 2: in front of them
+        previous = MAX_FACTOR * 2
+        for centre, size in self.plan.order:
+            hit = self.hits(centre)
+            index = torch.nonzero(hit.flatten()).flatten()
+            if not index.numel():
+                continue
+            if self.threads is not None:
+                self.threads.check()
+            factor = 1 if size <= 1 else grid_factor(size, self.quality)
+            if self.spec.blades and factor > 2:
+                factor = 2
+            if phase == 0 and (factor == 1 or factor > previous):
+                phase = 1 if factor == 1 else 2
+            elif phase == 1 and factor > 1:
+                phase = 2
+            previous = factor
+            if factor == 1:
+                self.sharp.append((centre, size, hit))
+            else:
+                self.coarse_layer(centre, size, hit, index, factor, behind=phase == 0)
+
+    def _grid(self, centre: int, hit: torch.Tensor, box: tuple[int, int, int, int], factor: int):
+        """Layer ``centre`` masked tile by tile over its hit tiles (``box``: tile rows and
+        columns ``ty0, ty1, tx0, tx1``), summed into its grid of ``factor``."""
+        t, image = _TT, self.image
+        ty0, ty1, tx0, tx1 = box
+        cell = t // factor
+        grid = image.new_zeros(self.chans, (ty1 - ty0) * cell, (tx1 - tx0) * cell)
+        g = self.gate(centre)
+        if self.half is None:
+            self.half = _HalfSource(
+                image, self.weights, self.coord, self.hp, self.wp, self.chans, self.plan.signed
+            )
+        half = self.half
+        # the layer masked on the half-resolution cells of its hit tiles (cells across a
+        # depth edge pixel by pixel), summed into its grid
+        for ya, yb, xa, xb in hit_boxes(hit, ty0, ty1, tx0, tx1, t):
+            sy, sx = slice(ya // 2, yb // 2), slice(xa // 2, xb // 2)
+            m = _tile_mask(half.c[sy, sx], centre, self.plan.mask, g)
+            gy, gx = (ya - ty0 * t) // factor, (xa - tx0 * t) // factor
+            dest = grid[:, gy : gy + (yb - ya) // factor, gx : gx + (xb - xa) // factor]
+            if factor == 2:
+                torch.mul(half.x[:, sy, sx], m, out=dest)
+            else:
+                pool_product(half.x[:, sy, sx], m, factor // 2, out=dest, mean=False)
+        half.add_mixed(grid, centre, self.plan.mask, g, hit, (ty0 * t, tx0 * t), factor)
+        return grid
+
+    def coarse_layer(
+        self,
+        centre: int,
+        size: int,
+        hit: torch.Tensor,
+        index: torch.Tensor,
+        factor: int,
+        behind: bool,
+    ) -> None:
+        """Layer ``centre`` (kernel ``size``, tiles ``hit``, their flat ``index``) on its grid
+        of ``factor``: masked, blurred (directly, or by FFT by pieces) and composited into
+        the accumulator behind the focus (``behind``) or the front grid of its factor."""
+        t, image, spec = _TT, self.image, self.spec
+        ty, tx = index // self.ntx, index % self.ntx
+        box = int(ty.min()), int(ty.max()) + 1, int(tx.min()), int(tx.max()) + 1
+        ty0, ty1, tx0, tx1 = box
+        cell = t // factor
+        grid = self._grid(centre, hit, box, factor)
+        gh, gw = self.hp // factor, self.wp // factor
+        # each grid cell sums (factor / 2)**2 cell means: the kernel carries 1 / cells**2
+        cells = factor // 2
+        k = kernel_tensor(spec, size, factor, str(image.device), image.dtype, 1.0 / cells**2)
+        blurred = pieces = None
+        if k.shape[-1] <= DIRECT_MAX_SIZE:
+            cbox = (ty0 * cell, ty1 * cell, tx0 * cell, tx1 * cell)
+
+            def rows_of(r0, r1, out=None, grid=grid):
+                return grid[None, :, r0:r1] if out is None else out.copy_(grid[None, :, r0:r1])
+
+            blurred, oy, ox = direct_stacked(rows_of, image, self.chans, cbox, k, (gh, gw))
+        else:
+            # blurred by FFT and composited one channel at a time (see _blend_fft), by
+            # pieces when the layer's tiles and their blur fill little of its box
+            r = k.shape[-1] // 2
+            oy, ox = ty0 * cell - r, tx0 * cell - r
+            pieces = [
+                ((a - ty0 * t) // factor, (b - ty0 * t) // factor,
+                 (c - tx0 * t) // factor, (d - tx0 * t) // factor)
+                for a, b, c, d in hit_boxes(hit, ty0, ty1, tx0, tx1, t, _FFT_BAND)
+            ]  # fmt: skip
+            area = sum((b - a + 2 * r) * (d - c + 2 * r) for a, b, c, d in pieces)
+            if area > _FFT_PIECES_SHARE * (grid.shape[1] + 2 * r) * (grid.shape[2] + 2 * r):
+                pieces = None
+        if behind:
+            if self.back is None:
+                self.back = (factor, image.new_zeros(1, self.chans, gh, gw))
+            elif self.back[0] != factor:
+                up = upsample_grid(self.back[1], self.back[0] // factor, gh, gw)
+                self.back = (factor, up.contiguous())
+            acc, transmit = self.back[1], None
+        else:
+            if not self.front or self.front[-1][0] != factor:
+                self.front.append(
+                    [factor, image.new_zeros(1, self.chans, gh, gw), image.new_ones(1, 1, gh, gw)]
+                )
+            acc, transmit = self.front[-1][1], self.front[-1][2]
+        if blurred is not None:
+            blend_stacked(acc, blurred, oy, ox, transmit=transmit)
+        else:
+            _blend_fft(acc, grid, spec, size, factor, oy, ox, transmit, pieces, cells=cells)
+
+    def fold_front(self) -> tuple[int, torch.Tensor, torch.Tensor] | None:
+        """The front grids folded into one, the coarsest on top: ``(factor, colour (C, h,
+        w), transmit (1, h, w))``, or ``None`` when nothing is in front."""
+        fold = None
+        for factor, colour, transmit in reversed(self.front):
+            if fold is None:
+                fold = (factor, colour, transmit)
+                continue
+            f0, c0, t0 = fold
+            up = upsample_grid(t0, f0 // factor, *colour.shape[-2:])
+            colour.mul_(up)
+            transmit.mul_(up)
+            up = None
+            colour.add_(upsample_grid(c0, f0 // factor, *colour.shape[-2:]))
+            fold = (factor, colour, transmit)
+        self.front = []
+        return None if fold is None else (fold[0], fold[1][0], fold[2][0])
+
+    def bands(self, fold: tuple[int, torch.Tensor, torch.Tensor] | None) -> torch.Tensor:
+        """The full-resolution passes, band by band: the accumulator behind the focus
+        upsampled, the full-resolution layers, the hidden surface under them, the front
+        grids over them, and the normalisation; the result is an ordinary tensor."""
+        image, weights, height, width = self.image, self.weights, self.height, self.width
+        with torch.inference_mode(False):
+            out = torch.empty_like(image)
+        rows = max(MAX_FACTOR, _BAND_PIXELS // max(width, 1) // MAX_FACTOR * MAX_FACTOR)
+        floor = 1e-6 if weights is None else 1e-8
+        for y0 in range(0, height, rows):
+            y1 = min(height, y0 + rows)
+            if self.threads is not None:
+                self.threads.check()
+            if self.back is None:
+                acc = image.new_zeros(self.chans, y1 - y0, width)
+            else:
+                acc = _upsample_rows(self.back[1][0], self.back[0], y0, y1, width).contiguous()
+            for centre, size, hit in self.sharp:
+                self._sharp_layer(acc, centre, size, hit, y0, y1)
+            under = self.under
+            if under is not None:
+                # under every layer (over is associative): what the layers leave of it shows
+                a, b = max(y0, under.box[0]), min(y1, under.box[1])
+                if a < b:
+                    under.composite(acc, a, b, top=y0)
+            if fold is not None:
+                # with weights the alpha channel is not read past here
+                kept = acc if weights is None else acc[1:]
+                kept.mul_(_upsample_rows(fold[2], fold[0], y0, y1, width))
+                kept.add_(_upsample_rows(fold[1][kept is not acc :], fold[0], y0, y1, width))
+            norm = acc[:1] if weights is None else acc[4:]
+            covered = norm > 1e-6
+            band_out = out[0, :, y0:y1]
+            torch.div(acc[1:4], norm.clamp_(min=floor), out=band_out)
+            if not bool(covered.all()):
+                band_out.copy_(torch.where(covered, band_out, image[0, :, y0:y1]))
+            band_out.clamp_(0, 1)
+        return out
+
+    def _sharp_layer(
+        self, acc: torch.Tensor, centre: int, size: int, hit: torch.Tensor, y0: int, y1: int
+    ) -> None:
+        """Full-resolution layer ``centre`` composited into band ``y0:y1``'s ``acc``."""
+        t, image, plan = _TT, self.image, self.plan
+        height, width = self.height, self.width
+        k = kernel_tensor(self.spec, size, 1, str(image.device), image.dtype)
+        r = k.shape[-1] // 2
+        # the layer's tiles whose blur reaches the band, as boxes of nearby columns (one
+        # band of tile rows), cut to the rows the blur reaches
+        first = max(0, (y0 - r) // t)
+        last = min(self.nty, (y1 + r - 1) // t + 1)
+        g = self.gate(centre)
+        for ya, yb, xa, xb in hit_boxes(hit, first, last, 0, self.ntx, t, last - first):
+            ya, yb, xb = max(ya, y0 - r), min(yb, height, y1 + r), min(xb, width)
+            if yb <= ya:
+                continue
+
+            def rows_of(r0, r1, out=None, ya=ya, xa=xa, xb=xb):
+                if out is None:
+                    out = image.new_empty(1, self.chans, r1 - r0, xb - xa)
+                ys = slice(ya + r0, ya + r1)
+                m = _tile_mask(self.coord[0, ys, xa:xb], centre, plan.mask, g)
+                self.layer_rows(ys, slice(xa, xb), m, out[0])
+                return out
+
+            if size <= 1:
+                blend_part(acc[None], rows_of(0, yb - ya), ya - y0, xa, False)
+                continue
+            box = (ya - y0, yb - y0, xa, xb)
+            out_s, oy0, ox0 = direct_stacked(rows_of, image, self.chans, box, k, (y1 - y0, width))
+            blend_stacked(acc[None], out_s, oy0, ox0)
 
 
 def render_tiled(
@@ -366,7 +545,7 @@ def render_tiled(
     """:func:`render` of one large frame without gradients, in bounded memory.
 
     Where each layer is masked is found per 32-px tile (from the bins of the layer
-    coordinate the tile holds, :func:`_tile_bins`), so a pixel is masked for the few layers it
+    coordinate the tile holds, :func:`tile_bins`), so a pixel is masked for the few layers it
     can reach, not for every layer whose bounding box holds it, nor (across a depth edge) for
     every layer between the edge's two sides. Coarse layers (1/2 to 1/16 grids) are masked
     on the frame averaged over cells of 2 px (:class:`_HalfSource`: a cell across a depth
@@ -375,243 +554,12 @@ def render_tiled(
     composited into one accumulator that moves to the next finer grid as their kernels
     shrink (upsampled once per grid), the layers in front into (colour, transmittance) per
     grid, folded into one at the end. The full-resolution layers, the merge of both and
-    the normalisation run band by band, so no full-resolution accumulator is built.
+    the normalisation run band by band, so no full-resolution accumulator is built
+    (:class:`_TiledFrame`).
 
     Shape: ``image (1, 3, H, W)``, ``weights (1, Cw, H, W)`` or ``None`` ->
     ``(1, 3, H, W)``.
     """
-    _, _, height, width = image.shape
-    t = _TT
-    nty, ntx = -(-height // t), -(-width // t)
-    hp, wp = nty * t, ntx * t
-    dev, dtype = str(image.device), image.dtype
-    # the layer is [mask, mask w I, mask w] (or [mask, mask I]), read box by box or band by
-    # band from the image, the weights (plus the floor, added in place by the caller) and the
-    # layer coordinate: no padded or weighted copy of the frame is built
-    cx = 3 if weights is None else 3 + weights.shape[1]
-    chans = cx + 1
-    coord = plan.coord[0]
-    # the layer coordinate's range per tile; past the frame the coordinate is so far that no
-    # mask reaches it
-    ctiles = _TileSource(coord, t, FAR)
-    lo = ctiles.extreme(torch.amin)
-    ctiles.refill(-FAR)
-    hi = ctiles.extreme(torch.amax)
-    reach = plan.reach
-
-    layer_rows = functools.partial(_fill_layer, image, weights)
-
-    bins = None
-    if _EXACT_HITS:
-        # (the tiles past the frame hold FAR in lo and -FAR in hi: the frame's extremes)
-        bins = _tile_bins(coord[0], t, nty, ntx, (float(lo.min()), float(hi.max())))
-
-    def hits(centre: int) -> torch.Tensor:
-        """Tiles where layer ``centre`` has a mask above _MASK_EPS, ``(nty, ntx)``."""
-        a, b = lo, hi
-        if plan.signed and centre > 0:
-            a = lo.clamp(min=0.0)
-            out = (hi > 0) & (b > centre - reach) & (a < centre + reach)
-        elif plan.signed and centre < 0:
-            b = hi.clamp(max=0.0)
-            out = (lo < 0) & (b > centre - reach) & (a < centre + reach)
-        else:
-            out = (b > centre - reach) & (a < centre + reach)
-        if bins is None:
-            return out
-        # a tile across a depth edge holds coordinates on both sides but none between them:
-        # only the layers near the coordinates its pixels have
-        present, lower, upper = bins
-        near = (lower < centre + reach) & (upper > centre - reach)
-        if plan.signed and centre:
-            near &= upper > 0 if centre > 0 else lower < 0
-        return out & (present @ near.to(present.dtype) > 0).view(nty, ntx)
-
-    def gate(centre: int) -> int:
-        # beyond one reach from 0 the other side's mask is already 0 in float32
-        if not plan.signed or centre == 0 or abs(centre) > reach + 1:
-            return 0
-        return 1 if centre > 0 else -1
-
-    under = None
-    if hidden and plan.signed:
-
-        def pixels(ys: torch.Tensor, xs: torch.Tensor) -> torch.Tensor:
-            # the layer of mask one: [1, x] as the layers are made
-            out = image.new_empty(chans, ys.numel())
-            layer_rows(ys, xs, image.new_ones(()), out)
-            return out
-
-        under = hidden_surface(pixels, plan)
-
-    half = None  # the frame on cells of 2 px, made for the first coarse layer
-
-    back: tuple[int, torch.Tensor] | None = None  # (factor, colour) behind the focus
-    front: list[list] = []  # [factor, colour, transmit] per grid, back to front
-    sharp: list[tuple[int, int, torch.Tensor]] = []  # full-resolution layers
-    phase = 0  # 0: behind the sharp layers, 1: sharp layers, 2: in front of them
-    previous = MAX_FACTOR * 2
-    grid = blurred = None
-    for centre, size in plan.order:
-        hit = hits(centre)
-        index = torch.nonzero(hit.flatten()).flatten()
-        if not index.numel():
-            continue
-        if threads is not None:
-            threads.check()
-        factor = 1 if size <= 1 else grid_factor(size, quality)
-        if spec.blades and factor > 2:
-            factor = 2
-        if phase == 0 and (factor == 1 or factor > previous):
-            phase = 1 if factor == 1 else 2
-        elif phase == 1 and factor > 1:
-            phase = 2
-        previous = factor
-        if factor == 1:
-            sharp.append((centre, size, hit))
-            continue
-        # the layer, masked tile by tile and summed into its grid over its tiles' box
-        ty, tx = index // ntx, index % ntx
-        ty0, ty1 = int(ty.min()), int(ty.max()) + 1
-        tx0, tx1 = int(tx.min()), int(tx.max()) + 1
-        cell = t // factor
-        grid = image.new_zeros(chans, (ty1 - ty0) * cell, (tx1 - tx0) * cell)
-        g = gate(centre)
-        if half is None:
-            half = _HalfSource(image, weights, coord, hp, wp, chans, plan.signed)
-        # the layer masked on the half-resolution cells of its hit tiles (cells across a
-        # depth edge pixel by pixel), summed into its grid
-        for ya, yb, xa, xb in _hit_boxes(hit, ty0, ty1, tx0, tx1, t):
-            sy, sx = slice(ya // 2, yb // 2), slice(xa // 2, xb // 2)
-            m = _tile_mask(half.c[sy, sx], centre, plan.mask, g)
-            gy, gx = (ya - ty0 * t) // factor, (xa - tx0 * t) // factor
-            dest = grid[:, gy : gy + (yb - ya) // factor, gx : gx + (xb - xa) // factor]
-            if factor == 2:
-                torch.mul(half.x[:, sy, sx], m, out=dest)
-            else:
-                pool_product(half.x[:, sy, sx], m, factor // 2, out=dest, mean=False)
-        half.add_mixed(grid, centre, plan.mask, g, hit, (ty0 * t, tx0 * t), factor)
-        gh, gw = hp // factor, wp // factor
-        # each grid cell sums (factor / 2)**2 cell means: the kernel carries 1 / cells**2
-        cells = factor // 2
-        k = kernel_tensor(spec, size, factor, dev, dtype, 1.0 / cells**2)
-        if k.shape[-1] <= DIRECT_MAX_SIZE:
-            cbox = (ty0 * cell, ty1 * cell, tx0 * cell, tx1 * cell)
-
-            def rows_of(r0, r1, out=None, grid=grid):
-                return grid[None, :, r0:r1] if out is None else out.copy_(grid[None, :, r0:r1])
-
-            blurred, oy, ox = direct_stacked(rows_of, image, chans, cbox, k, (gh, gw))
-            stacked = True
-        else:
-            # blurred by FFT and composited one channel at a time (see _blend_fft), by
-            # pieces when the layer's tiles and their blur fill little of its box
-            blurred = None
-            r = k.shape[-1] // 2
-            oy, ox = ty0 * cell - r, tx0 * cell - r
-            stacked = False
-            pieces = [
-                ((a - ty0 * t) // factor, (b - ty0 * t) // factor,
-                 (c - tx0 * t) // factor, (d - tx0 * t) // factor)
-                for a, b, c, d in _hit_boxes(hit, ty0, ty1, tx0, tx1, t, _FFT_BAND)
-            ]  # fmt: skip
-            area = sum((b - a + 2 * r) * (d - c + 2 * r) for a, b, c, d in pieces)
-            if area > _FFT_PIECES_SHARE * (grid.shape[1] + 2 * r) * (grid.shape[2] + 2 * r):
-                pieces = None
-        if phase == 0:
-            if back is None:
-                back = (factor, image.new_zeros(1, chans, gh, gw))
-            elif back[0] != factor:
-                up = upsample_grid(back[1], back[0] // factor, gh, gw)
-                back = (factor, up.contiguous())
-            if stacked:
-                blend_stacked(back[1], blurred, oy, ox)
-            else:
-                _blend_fft(back[1], grid, spec, size, factor, oy, ox, pieces=pieces, cells=cells)
-            grid = blurred = None  # freed before the next layer's
-            continue
-        if not front or front[-1][0] != factor:
-            front.append([factor, image.new_zeros(1, chans, gh, gw), image.new_ones(1, 1, gh, gw)])
-        if stacked:
-            blend_stacked(front[-1][1], blurred, oy, ox, transmit=front[-1][2])
-        else:
-            _blend_fft(
-                front[-1][1], grid, spec, size, factor, oy, ox, front[-1][2], pieces, cells=cells
-            )
-        grid = blurred = None
-    del grid, blurred  # the last coarse layer's buffers
-    # fold the front grids into one: the coarsest is on top
-    fold = None
-    for factor, colour, transmit in reversed(front):
-        if fold is None:
-            fold = (factor, colour, transmit)
-            continue
-        f0, c0, t0 = fold
-        up = upsample_grid(t0, f0 // factor, *colour.shape[-2:])
-        colour.mul_(up)
-        transmit.mul_(up)
-        up = None
-        colour.add_(upsample_grid(c0, f0 // factor, *colour.shape[-2:]))
-        fold = (factor, colour, transmit)
-    if fold is not None:
-        fold = (fold[0], fold[1][0], fold[2][0])
-    front = []
-
-    # full-resolution passes, band by band; the result is an ordinary tensor
-    with torch.inference_mode(False):
-        out = torch.empty_like(image)
-    rows = max(MAX_FACTOR, _BAND_PIXELS // max(width, 1) // MAX_FACTOR * MAX_FACTOR)
-    floor = 1e-6 if weights is None else 1e-8
-    for y0 in range(0, height, rows):
-        y1 = min(height, y0 + rows)
-        if threads is not None:
-            threads.check()
-        if back is None:
-            acc = image.new_zeros(chans, y1 - y0, width)
-        else:
-            acc = _upsample_rows(back[1][0], back[0], y0, y1, width).contiguous()
-        for centre, size, hit in sharp:
-            k = kernel_tensor(spec, size, 1, dev, dtype)
-            r = k.shape[-1] // 2
-            # the layer's tiles whose blur reaches the band, as boxes of nearby columns (one
-            # band of tile rows), cut to the rows the blur reaches
-            first = max(0, (y0 - r) // t)
-            last = min(nty, (y1 + r - 1) // t + 1)
-            g = gate(centre)
-            for ya, yb, xa, xb in _hit_boxes(hit, first, last, 0, ntx, t, last - first):
-                ya, yb, xb = max(ya, y0 - r), min(yb, height, y1 + r), min(xb, width)
-                if yb <= ya:
-                    continue
-
-                def rows_of(r0, r1, out=None, ya=ya, xa=xa, xb=xb, centre=centre, g=g):
-                    if out is None:
-                        out = image.new_empty(1, chans, r1 - r0, xb - xa)
-                    ys = slice(ya + r0, ya + r1)
-                    m = _tile_mask(coord[0, ys, xa:xb], centre, plan.mask, g)
-                    layer_rows(ys, slice(xa, xb), m, out[0])
-                    return out
-
-                if size <= 1:
-                    blend_part(acc[None], rows_of(0, yb - ya), ya - y0, xa, False)
-                    continue
-                box = (ya - y0, yb - y0, xa, xb)
-                out_s, oy0, ox0 = direct_stacked(rows_of, image, chans, box, k, (y1 - y0, width))
-                blend_stacked(acc[None], out_s, oy0, ox0)
-        if under is not None:
-            # under every layer (over is associative): what the layers leave of it shows
-            a, b = max(y0, under.box[0]), min(y1, under.box[1])
-            if a < b:
-                under.composite(acc, a, b, top=y0)
-        if fold is not None:
-            # with weights the alpha channel is not read past here
-            kept = acc if weights is None else acc[1:]
-            kept.mul_(_upsample_rows(fold[2], fold[0], y0, y1, width))
-            kept.add_(_upsample_rows(fold[1][kept is not acc :], fold[0], y0, y1, width))
-        norm = acc[:1] if weights is None else acc[4:]
-        covered = norm > 1e-6
-        band_out = out[0, :, y0:y1]
-        torch.div(acc[1:4], norm.clamp_(min=floor), out=band_out)
-        if not bool(covered.all()):
-            band_out.copy_(torch.where(covered, band_out, image[0, :, y0:y1]))
-        band_out.clamp_(0, 1)
-    return out
+    frame = _TiledFrame(image, weights, plan, spec, quality, threads, hidden)
+    frame.layers()
+    return frame.bands(frame.fold_front())
