@@ -112,9 +112,9 @@ def composite_layers(
     """
     b, c, height, width = x.shape
     grad = tracks_grad(x, plan.coord)
-    dev, dtype = str(x.device), x.dtype
     if not grad:
         c -= 1  # the channel of ones
+    layers = _Layers(x, plan, spec, method, grad, c + 1)
     acc = x.new_zeros(b, c + 1, height, width)  # channel 0 is the alpha
     if full_frame:
         boxes = {centre: (0, height, 0, width) for centre, _ in plan.order}
@@ -122,22 +122,6 @@ def composite_layers(
         boxes = support_boxes(plan, height, width)
     blank = True  # nothing composited into acc yet
     group: tuple[int, torch.Tensor, torch.Tensor | None] | None = None
-
-    def flush(acc: torch.Tensor) -> torch.Tensor:
-        nonlocal group, blank
-        if group is None:
-            return acc
-        factor, colour, transmit = group
-        group = None
-        if transmit is None:
-            # over an empty accumulator the composite is the group's colour alone
-            blank = False
-            return upsample_grid(colour, factor, height, width)
-        up = upsample_grid(torch.cat([colour, transmit], dim=1), factor, height, width)
-        if grad:
-            return acc * up[:, -1:] + up[:, :-1]
-        return acc.mul_(up[:, -1:]).add_(up[:, :-1])
-
     back = None  # the accumulator behind the focal plane, once the front layers begin
     for centre, size in plan.order:
         box = boxes.get(centre)
@@ -146,7 +130,7 @@ def composite_layers(
         if threads is not None:
             threads.check()
         if front and back is None and plan.signed and centre > 0 and size >= front_size:
-            back = flush(acc)
+            back, group = layers.flush(acc, group), None
             acc = x.new_zeros(b, c + 1, height, width)
             blank = True
         factor = 1 if size <= 1 else grid_factor(size, quality)
@@ -154,37 +138,103 @@ def composite_layers(
             # a 1/4-resolution grid rounds off a polygon's corners: visible in highlights
             factor = 2
         if group is not None and group[0] != factor:
-            acc = flush(acc)
-        coord = plan.side_coord(centre)
-        k = kernel_tensor(spec, size, factor, dev, dtype)
-        r = k.shape[-1] // 2
-        direct = method == "direct" or k.shape[-1] <= DIRECT_MAX_SIZE
+            blank = blank and group[2] is not None  # over a blank acc, the group's colour
+            acc, group = layers.flush(acc, group), None
         if factor == 1:
             blank = False
-            if size <= 1:
-                z = layer_input(x, coord, centre, plan.mask, box, (0, 0, 0, 0), grad)
-                acc = blend_part(acc, z, box[0], box[2], grad)
-            elif direct and not grad:
-                rows = layer_input_rows(x, coord, centre, plan.mask, box, 1)
-                out, oy0, ox0 = direct_stacked(rows, x, c + 1, box, k, (height, width))
-                blend_stacked(acc, out, oy0, ox0)
-            elif direct:
-                pads, oy0, ox0 = direct_pads(box, r, height, width)
-                z = layer_input(x, coord, centre, plan.mask, box, pads, grad)
-                acc = blend_part(acc, direct_conv(z, k), oy0, ox0, grad)
-            else:
-                z = layer_input(x, coord, centre, plan.mask, box, (0, 0, 0, 0), grad)
-                acc = blend_part(acc, fft_conv(z, spec, size, 1), box[0] - r, box[2] - r, grad)
-            continue
-        # coarse layer: the box snapped to the coarse grid; the premultiplied layer is pooled,
-        # so colour from other layers in the same cell never leaks into this one
+            acc = layers.full(acc, centre, size, box)
+        else:
+            group = layers.coarse(group, blank, centre, size, box, factor)
+    acc = layers.flush(acc, group)
+    if hidden is not None:
+        # under every layer (over is associative): what the layers leave of it shows
+        if back is not None:
+            back = under_hidden(back, hidden, grad)
+        else:
+            acc = under_hidden(acc, hidden, grad)
+    split = None
+    if back is not None:
+        transmit = 1 - acc[:, :1].clamp(0, 1)
+        acc = back * transmit + acc if grad else acc.addcmul_(back, transmit)
+        split = (back, transmit)
+    return acc[:, 1:], acc[:, :1], split
+
+
+class _Layers:
+    """What the layers of one :func:`composite_layers` share: the layer input ``x``, the
+    plan, the kernel, the blur method, whether gradients flow, and the channels of the
+    accumulator (alpha first)."""
+
+    def __init__(
+        self, x: torch.Tensor, plan: LayerPlan, spec: KernelSpec, method: str, grad: bool,
+        chans: int,
+    ) -> None:  # fmt: skip
+        self.x, self.plan, self.spec, self.method, self.grad = x, plan, spec, method, grad
+        self.chans = chans
+        self.height, self.width = x.shape[-2:]
+        self.dev, self.dtype = str(x.device), x.dtype
+
+    def _kernel(self, size: int, factor: int, gain: float = 1.0) -> tuple[torch.Tensor, bool]:
+        """The kernel of ``size`` on a grid of ``factor``, and whether it is convolved
+        directly (else by FFT)."""
+        k = kernel_tensor(self.spec, size, factor, self.dev, self.dtype, gain)
+        return k, self.method == "direct" or k.shape[-1] <= DIRECT_MAX_SIZE
+
+    def flush(self, acc: torch.Tensor, group: tuple | None) -> torch.Tensor:
+        """``acc`` with a run of coarse layers, ``group = (factor, colour, transmit)``, merged
+        into it (``acc T + C`` upsampled; the colour alone over an empty accumulator,
+        ``transmit`` ``None``)."""
+        if group is None:
+            return acc
+        factor, colour, transmit = group
+        if transmit is None:
+            # over an empty accumulator the composite is the group's colour alone
+            return upsample_grid(colour, factor, self.height, self.width)
+        up = upsample_grid(torch.cat([colour, transmit], dim=1), factor, self.height, self.width)
+        if self.grad:
+            return acc * up[:, -1:] + up[:, :-1]
+        return acc.mul_(up[:, -1:]).add_(up[:, :-1])
+
+    def full(self, acc: torch.Tensor, centre: int, size: int, box: tuple) -> torch.Tensor:
+        """``acc`` with layer ``centre`` (kernel ``size``, over ``box``) composited at full
+        resolution."""
+        x, plan, grad = self.x, self.plan, self.grad
+        coord = plan.side_coord(centre)
+        k, direct = self._kernel(size, 1)
+        r = k.shape[-1] // 2
+        if size <= 1:
+            z = layer_input(x, coord, centre, plan.mask, box, (0, 0, 0, 0), grad)
+            return blend_part(acc, z, box[0], box[2], grad)
+        if direct and not grad:
+            rows = layer_input_rows(x, coord, centre, plan.mask, box, 1)
+            out, oy0, ox0 = direct_stacked(rows, x, self.chans, box, k, (self.height, self.width))
+            blend_stacked(acc, out, oy0, ox0)
+            return acc
+        if direct:
+            pads, oy0, ox0 = direct_pads(box, r, self.height, self.width)
+            z = layer_input(x, coord, centre, plan.mask, box, pads, grad)
+            return blend_part(acc, direct_conv(z, k), oy0, ox0, grad)
+        z = layer_input(x, coord, centre, plan.mask, box, (0, 0, 0, 0), grad)
+        return blend_part(acc, fft_conv(z, self.spec, size, 1), box[0] - r, box[2] - r, grad)
+
+    def coarse(
+        self, group: tuple | None, blank: bool, centre: int, size: int, box: tuple, factor: int
+    ) -> tuple:
+        """``group`` (a run of coarse layers on the grid of ``factor``; ``None`` starts one,
+        with no transmittance while the accumulator is ``blank``) with layer ``centre``
+        composited into it: the box snapped to the grid, the premultiplied layer pooled (so
+        colour from other layers in the same cell never leaks into this one) and blurred."""
+        x, plan, grad, b = self.x, self.plan, self.grad, self.x.shape[0]
+        coord = plan.side_coord(centre)
+        k, direct = self._kernel(size, factor)
+        r = k.shape[-1] // 2
         y0, y1, x0, x1 = box
         y0, x0 = y0 - y0 % factor, x0 - x0 % factor
-        lh, lw = -(-height // factor), -(-width // factor)
+        lh, lw = -(-self.height // factor), -(-self.width // factor)
         if group is None:
             # nothing to transmit to while the accumulator is empty
             transmit = None if blank and not grad else x.new_ones(b, 1, lh, lw)
-            group = (factor, x.new_zeros(b, c + 1, lh, lw), transmit)
+            group = (factor, x.new_zeros(b, self.chans, lh, lw), transmit)
         # zero padding past the frame edge: the pooled alpha there is partial, as it should be
         bh, bw = (-(y1 - y0)) % factor, (-(x1 - x0)) % factor
         cbox = (y0 // factor, (y1 + bh) // factor, x0 // factor, (x1 + bw) // factor)
@@ -201,35 +251,22 @@ def composite_layers(
         else:  # product and pooling in one: no full-resolution layer is built
             rows = layer_input_rows(x, coord, centre, plan.mask, (y0, y1, x0, x1), factor)
         if direct and not grad:
-            k = kernel_tensor(spec, size, factor, dev, dtype, gain)
-            out, oy0, ox0 = direct_stacked(rows, x, c + 1, cbox, k, (lh, lw))
+            k, _ = self._kernel(size, factor, gain)
+            out, oy0, ox0 = direct_stacked(rows, x, self.chans, cbox, k, (lh, lw))
             blend_stacked(group[1], out, oy0, ox0, transmit=group[2])
-            continue
+            return group
         if direct:
             pads, oy0, ox0 = direct_pads(cbox, r, lh, lw)
             zc = F.pad(rows(0, cbox[1] - cbox[0]), (pads[2], pads[3], pads[0], pads[1]))
             blurred = direct_conv(zc, k)
         else:
-            blurred = fft_conv(rows(0, cbox[1] - cbox[0]), spec, size, factor, gain)
+            blurred = fft_conv(rows(0, cbox[1] - cbox[0]), self.spec, size, factor, gain)
             oy0, ox0 = cbox[0] - r, cbox[2] - r
         colour = blend_part(group[1], blurred, oy0, ox0, grad)
         transmit = group[2]
         if transmit is not None:
             transmit = _blend_transmit(transmit, blurred[:, :1], oy0, ox0, grad)
-        group = (factor, colour, transmit)
-    acc = flush(acc)
-    if hidden is not None:
-        # under every layer (over is associative): what the layers leave of it shows
-        if back is not None:
-            back = under_hidden(back, hidden, grad)
-        else:
-            acc = under_hidden(acc, hidden, grad)
-    split = None
-    if back is not None:
-        transmit = 1 - acc[:, :1].clamp(0, 1)
-        acc = back * transmit + acc if grad else acc.addcmul_(back, transmit)
-        split = (back, transmit)
-    return acc[:, 1:], acc[:, :1], split
+        return (factor, colour, transmit)
 
 
 def _blend_transmit(
