@@ -149,13 +149,20 @@ def test_brushes_keep_sharp_and_blur(app_server, chromium_launch_options, sharpn
             # the palette's swatches: green (keep sharp), red (blur)
             page.locator("#paint button.color").nth(1).click()
             page.locator("#paint button[aria-label=Brush]").click()
-            _paint(page, (290, sy0 + 10, sx1 + 30, sy1 - 10))
+            # 16 rows: strokes 25 px apart overlap (8 rows, 51 px apart, left stripes of the
+            # subject between them unpainted, and so sharp)
+            _paint(page, (290, sy0 + 10, sx1 + 30, sy1 - 10), rows=16)
             page.locator("#paint_apply").click()
             info = wait_status(page, "% blurred", "full render", "--blur-mask", old=info)
+            blur_path = re.search(r"--blur-mask (\S+)", info).group(1)
+            blur_mask = np.asarray(Image.open(blur_path)) > 0
+            rx0, ry0, rx1, ry1 = subject_right
+            assert blur_mask[ry0:ry1, rx0:rx1].all()  # the measured part is painted whole
             src, red = _picture(page, src)
-            # as blurred as the wall (the red paint sends it to the far end of the depth)
-            assert sharpness(red, subject_right) < 0.85 * sharpness(image, subject_right)
-            assert sharpness(red, subject_right) < 1.1 * sharpness(red, wall)
+            # blurred as the far wall is (the red paint sends it to the far end of the depth):
+            # under a tenth of its detail left (measured 4.1 %, the wall 2.0 %: beside the
+            # sharp left part the far layer's blur is drawn from one side only)
+            assert sharpness(red, subject_right) < 0.1 * sharpness(image, subject_right)
             assert sharpness(red, subject_left) >= 0.9 * sharpness(image, subject_left)
             assert sharpness(red, inside) >= 0.9 * sharpness(image, inside)
 
