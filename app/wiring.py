@@ -88,14 +88,12 @@ class Wiring:
             logic.download, [p.session, p.fmt, p.info], [p.download], **self.chained
         )  # after a render, Download is enabled only when the page shows that render
 
-    def loading(self) -> None:
-        """An upload, a sample, a depth map or a depth source loads the photo (its first
-        look, then its full render), then the download, the aperture's note, the brushes'
-        canvas; a failed load shows the loaded photo again."""
-        p, logic, files = self.page, self.logic, self.files
+    def _load_io(self) -> dict[str, Any]:
+        """The load event's function, inputs and outputs: a large photo's first look, then
+        its full render (an API client gets the last)."""
+        p, logic = self.page, self.logic
 
         def load_ui(*values):
-            # a large photo's first look, then its full render (an API client gets the last)
             first = True
             for outputs in logic.load_steps(*values):
                 # set with the first picture (with the session and the focus): a Lens Blur
@@ -117,7 +115,7 @@ class Wiring:
             parameters=[v for v in signature.parameters.values() if v.name != "first_look"]
         )
         load_ui.__annotations__ = {"request": gr.Request}
-        load_io = {
+        return {
             "fn": load_ui,
             "inputs": [
                 p.photo,
@@ -149,12 +147,15 @@ class Wiring:
             **self.waited,
         }
 
-        # the aperture slider's info line: the blur in px that it gives the photo (an update
-        # without a value sets no value, and fires no .change or .release of the slider)
+    def _note_io(self) -> dict[str, Any]:
+        """The aperture slider's info line: the blur in px that it gives the photo (an update
+        without a value sets no value, and fires no .change or .release of the slider)."""
+        p, logic = self.page, self.logic
+
         def blur_note_ui(state, f_number, on):
             return gr.update(info=logic.blur_note(state, f_number, on))
 
-        note_io = {
+        return {
             "fn": blur_note_ui,
             "inputs": [p.session, p.blur, p.blur_on],
             "outputs": [p.blur],
@@ -162,19 +163,28 @@ class Wiring:
             "api_visibility": "private",
             "queue": False,
         }
-        canvas_io = {
-            "fn": logic.paint_canvas,
-            "inputs": [p.session],
-            "outputs": [p.editor],
-            "show_progress": "hidden",
-            "api_visibility": "private",
-        }
 
-        def after(event: Any) -> None:
-            event.success(logic.download, [p.session, p.fmt], [p.download], **self.chained)
-            event.success(**note_io, **self.after)
-            event.success(**canvas_io, **self.after)
+    def _after_load(self, event: Any, note_io: dict[str, Any]) -> None:
+        """What follows a load that succeeded: the download, the aperture's note and the
+        brushes' canvas."""
+        p, logic = self.page, self.logic
+        event.success(logic.download, [p.session, p.fmt], [p.download], **self.chained)
+        event.success(**note_io, **self.after)
+        event.success(
+            logic.paint_canvas,
+            [p.session],
+            [p.editor],
+            show_progress="hidden",
+            api_visibility="private",
+            **self.after,
+        )
 
+    def loading(self) -> None:
+        """An upload, a sample, a depth map or a depth source loads the photo (its first
+        look, then its full render), then the download, the aperture's note, the brushes'
+        canvas; a failed load shows the loaded photo again."""
+        p, logic, files = self.page, self.logic, self.files
+        load_io, note_io = self._load_io(), self._note_io()
         # .upload, not .change: an upload fires .change twice in Gradio 6, and the two runs
         # then race on the same output file; and the load sets the photo panel (a Lens Blur
         # file's original), which fires .change but not .upload. A new depth source
@@ -183,7 +193,7 @@ class Wiring:
         loading = gr.on([p.photo.upload, p.photo.clear, p.depth.change, p.depth_kind.change,
                          p.depth_source.input, *p.hub_events], api_name="load",
                         **load_io)  # fmt: skip
-        after(loading)
+        self._after_load(loading, note_io)
         # a failed upload: the photo panel shows the loaded photo again (or nothing), and the
         # status line keeps the error after the toast is gone
         loading.failure(
@@ -206,7 +216,9 @@ class Wiring:
         p.photo.upload(**offer_io)
         if p.examples is not None:
             p.examples.load_input_event.then(**offer_io, **self.after)
-            after(p.examples.load_input_event.then(api_visibility="private", **load_io))
+            self._after_load(
+                p.examples.load_input_event.then(api_visibility="private", **load_io), note_io
+            )
         gr.on([p.blur.change, p.blur_on.change], trigger_mode="always_last", **note_io)
 
     def renders(self) -> None:
