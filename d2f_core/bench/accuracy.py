@@ -468,8 +468,7 @@ def _headline(summary: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     return out
 
 
-def main(argv: list[str] | None = None) -> int:
-    """``d2f-bench accuracy [--quick] [--out DIR] [--cache DIR] [--e2e] [--calibrate]``."""
+def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="d2f-bench accuracy",
         description="Renderer settings against accumulation-buffer ground truth "
@@ -503,120 +502,140 @@ def main(argv: list[str] | None = None) -> int:
         help="layer placements --calibrate measures (default: all)",
     )
     parser.add_argument("-v", "--verbose", action="store_true")
-    argv = list(argv) if argv is not None else None
-    if argv and argv[0] == "--":
-        # `d2f-bench accuracy -- --quick`: the dispatcher's REMAINDER keeps the separator
-        argv = argv[1:]
-    args = parser.parse_args(argv)
-    logging.basicConfig(
-        level=logging.INFO if args.verbose else logging.WARNING, format="%(message)s"
-    )
-    torch.set_num_threads(max(1, args.threads))
-    preset = QUICK if args.quick else FULL
+    return parser
+
+
+def _load_average() -> float:
+    return os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+
+
+def _calibrate_step(args: argparse.Namespace, out_dir: Path, meta: dict[str, Any]) -> int:
+    """``--calibrate``: the adaptive picker's table, written and printed."""
+    cal_sizes = args.sizes or ((256, 384), (512, 768))
+    cal_seeds = args.seeds or (201, 202, 203, 204, 205, 206)
+    cal_k = args.k_fracs or (0.01, 0.02, 0.04, 0.07, 0.1, 0.15, 0.2)
+    result = calibrate(cal_sizes, cal_seeds, cal_k, args.placements) | {"meta": meta}
+    (out_dir / "calibration.json").write_text(json.dumps(result, indent=1))
+    print(f"wrote {out_dir / 'calibration.json'}")
+    for key, row in result["table"].items():
+        print(f"    ({key.replace(',', ', ')!s}): {tuple(row)},")
+    return 0
+
+
+def _grid_step(
+    args: argparse.Namespace, preset: dict[str, Any], cache: Path, out_dir: Path
+) -> dict[str, Any]:
+    """The settings grid on the generated cases: the report's part, the chart and the
+    table printed."""
     sizes = args.sizes or preset["sizes"]
     seeds = args.seeds or preset["seeds"]
     k_fracs = args.k_fracs or preset["k_fracs"]
     samples = args.samples or preset["samples"]
     repeat = args.repeat or preset["repeat"]
+    t0 = time.perf_counter()
+    cases = load_cases(sizes, seeds, k_fracs, samples=samples, cache=cache)
+    t_cases = time.perf_counter() - t0
+    settings = default_settings(args.quick)
+    t0 = time.perf_counter()
+    rows = run_grid(cases, settings, repeat=repeat)
+    summary = summarise(rows)
+    report = {
+        "cases": [
+            {"key": c.key, "focus": c.focus, "blur": c.blur, "size": list(c.size)} for c in cases
+        ],
+        "settings": [
+            {"name": s.name, "axis": s.axis, "options": s.kwargs, "adaptive": s.adaptive}
+            for s in settings
+        ],
+        "summary": summary,
+        "headline": _headline(summary),
+        "rows": rows,
+        "seconds": {"cases": t_cases, "grid": time.perf_counter() - t0},
+    }
+    title = (
+        f"Layered renderer: time vs PSNR against thin-lens ground truth "
+        f"({len(seeds)} scenes x K = {', '.join(f'{k:g}' for k in k_fracs)} x width, "
+        f"{torch.get_num_threads()} CPU threads)"
+    )
+    plot_accuracy(summary, out_dir / "accuracy.png", title)
+
+    def fmt(v):
+        return "   -  " if v is None else f"{v:6.2f}"
+
+    print(f"{'size':>8} {'setting':<22} {'ms':>8} {'PSNR':>6} {'edges':>6} {'lights':>6}")
+    for e in sorted(summary, key=lambda e: (int(e["size"].split("x")[0]), e["ms"])):
+        star = " *" if e.get("pareto") else ""
+        print(
+            f"{e['size']:>8} {e['setting']:<22} {e['ms']:8.1f} {fmt(e['psnr'])} "
+            f"{fmt(e['psnr_edges'])} {fmt(e['psnr_lights'])}{star}"
+        )
+    for h in report["headline"]:
+        print(
+            f"{h['size']}: adaptive {h['adaptive_ms']:.1f} ms {h['adaptive_psnr']:.2f} dB, "
+            f"paper {h['paper_ms']:.1f} ms {h['paper_psnr']:.2f} dB: "
+            f"{h['speedup_vs_paper']:.1f}x faster; {h['adaptive_db_below_front']:.2f} dB "
+            "below the Pareto front"
+        )
+    return report
+
+
+def _e2e_step(args: argparse.Namespace, cache: Path, out_dir: Path) -> dict[str, Any]:
+    """Prepare + render of the pipeline on held-out scenes: the report's part, the chart
+    and the rows printed."""
+    e2e = E2E_QUICK if args.quick else E2E_FULL
+    e2e_cases = load_cases(
+        [e2e["size"]], e2e["seeds"], [e2e["k_frac"]], samples=e2e["samples"], cache=cache
+    )
+    variants = ("shipped",) if args.quick else ("shipped", "resnext50")
+    scales = (0.5,) if args.quick else (0.25, 0.5, 1.0)
+    e2e_rows, sources = run_e2e(e2e_cases, variants=variants, scales=scales, weights=args.weights)
+    random_init = [v for v, s in sources.items() if s == "random init"]
+    note = f" (random init: {', '.join(random_init)})" if random_init else ""
+    h, w = e2e["size"]
+    title = (
+        f"D2F pipeline prepare + render, {len(e2e_cases)} held-out generated {h}x{w} scenes, "
+        f"K = {e2e['k_frac']:g} x width{note}"
+    )
+    plot_e2e(e2e_rows, out_dir / "e2e.png", title)
+    for r in e2e_rows:
+        print(
+            f"e2e {r['series']:<16} x{r['scale']:<5g} {r['case']:<28} "
+            f"prepare {r['prepare_ms']:7.1f} ms render {r['render_ms']:7.1f} ms "
+            f"PSNR {r['psnr']:.2f}"
+        )
+    return {"rows": e2e_rows, "weights": sources, "paper_gpu_s": PAPER_GPU_SECONDS}
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``d2f-bench accuracy [--quick] [--out DIR] [--cache DIR] [--e2e] [--calibrate]``."""
+    argv = list(argv) if argv is not None else None
+    if argv and argv[0] == "--":
+        # `d2f-bench accuracy -- --quick`: the dispatcher's REMAINDER keeps the separator
+        argv = argv[1:]
+    args = _parser().parse_args(argv)
+    logging.basicConfig(
+        level=logging.INFO if args.verbose else logging.WARNING, format="%(message)s"
+    )
+    torch.set_num_threads(max(1, args.threads))
     out_dir: Path = args.out
     cache = args.cache or out_dir / "cache"
     out_dir.mkdir(parents=True, exist_ok=True)
-    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     meta = {
         "quick": args.quick,
         "threads": torch.get_num_threads(),
         "torch": torch.__version__,
         "machine": platform.machine(),
         "cpus": os.cpu_count(),
-        "load_average_1min_at_start": load,
+        "load_average_1min_at_start": _load_average(),
     }
-
     if args.calibrate:
-        cal_sizes = args.sizes or ((256, 384), (512, 768))
-        cal_seeds = args.seeds or (201, 202, 203, 204, 205, 206)
-        cal_k = args.k_fracs or (0.01, 0.02, 0.04, 0.07, 0.1, 0.15, 0.2)
-        result = calibrate(cal_sizes, cal_seeds, cal_k, args.placements) | {"meta": meta}
-        (out_dir / "calibration.json").write_text(json.dumps(result, indent=1))
-        print(f"wrote {out_dir / 'calibration.json'}")
-        for key, row in result["table"].items():
-            print(f"    ({key.replace(',', ', ')!s}): {tuple(row)},")
-        return 0
-
+        return _calibrate_step(args, out_dir, meta)
     report: dict[str, Any] = {"meta": meta}
     if not args.e2e_only:
-        t0 = time.perf_counter()
-        cases = load_cases(sizes, seeds, k_fracs, samples=samples, cache=cache)
-        t_cases = time.perf_counter() - t0
-        settings = default_settings(args.quick)
-        t0 = time.perf_counter()
-        rows = run_grid(cases, settings, repeat=repeat)
-        summary = summarise(rows)
-        report |= {
-            "cases": [
-                {"key": c.key, "focus": c.focus, "blur": c.blur, "size": list(c.size)}
-                for c in cases
-            ],
-            "settings": [
-                {"name": s.name, "axis": s.axis, "options": s.kwargs, "adaptive": s.adaptive}
-                for s in settings
-            ],
-            "summary": summary,
-            "headline": _headline(summary),
-            "rows": rows,
-            "seconds": {"cases": t_cases, "grid": time.perf_counter() - t0},
-        }
-        title = (
-            f"Layered renderer: time vs PSNR against thin-lens ground truth "
-            f"({len(seeds)} scenes x K = {', '.join(f'{k:g}' for k in k_fracs)} x width, "
-            f"{torch.get_num_threads()} CPU threads)"
-        )
-        plot_accuracy(summary, out_dir / "accuracy.png", title)
-        print(f"{'size':>8} {'setting':<22} {'ms':>8} {'PSNR':>6} {'edges':>6} {'lights':>6}")
-        for e in sorted(summary, key=lambda e: (int(e["size"].split("x")[0]), e["ms"])):
-
-            def fmt(v):
-                return "   -  " if v is None else f"{v:6.2f}"
-
-            star = " *" if e.get("pareto") else ""
-            print(
-                f"{e['size']:>8} {e['setting']:<22} {e['ms']:8.1f} {fmt(e['psnr'])} "
-                f"{fmt(e['psnr_edges'])} {fmt(e['psnr_lights'])}{star}"
-            )
-        for h in report["headline"]:
-            print(
-                f"{h['size']}: adaptive {h['adaptive_ms']:.1f} ms {h['adaptive_psnr']:.2f} dB, "
-                f"paper {h['paper_ms']:.1f} ms {h['paper_psnr']:.2f} dB: "
-                f"{h['speedup_vs_paper']:.1f}x faster; {h['adaptive_db_below_front']:.2f} dB "
-                "below the Pareto front"
-            )
+        report |= _grid_step(args, QUICK if args.quick else FULL, cache, out_dir)
     if args.e2e or args.e2e_only:
-        e2e = E2E_QUICK if args.quick else E2E_FULL
-        e2e_cases = load_cases(
-            [e2e["size"]], e2e["seeds"], [e2e["k_frac"]], samples=e2e["samples"], cache=cache
-        )
-        variants = ("shipped",) if args.quick else ("shipped", "resnext50")
-        scales = (0.5,) if args.quick else (0.25, 0.5, 1.0)
-        e2e_rows, sources = run_e2e(
-            e2e_cases, variants=variants, scales=scales, weights=args.weights
-        )
-        random_init = [v for v, s in sources.items() if s == "random init"]
-        note = f" (random init: {', '.join(random_init)})" if random_init else ""
-        h, w = e2e["size"]
-        title = (
-            f"D2F pipeline prepare + render, {len(e2e_cases)} held-out generated {h}x{w} scenes, "
-            f"K = {e2e['k_frac']:g} x width{note}"
-        )
-        plot_e2e(e2e_rows, out_dir / "e2e.png", title)
-        report["e2e"] = {"rows": e2e_rows, "weights": sources, "paper_gpu_s": PAPER_GPU_SECONDS}
-        for r in e2e_rows:
-            print(
-                f"e2e {r['series']:<16} x{r['scale']:<5g} {r['case']:<28} "
-                f"prepare {r['prepare_ms']:7.1f} ms render {r['render_ms']:7.1f} ms "
-                f"PSNR {r['psnr']:.2f}"
-            )
-    report["meta"]["load_average_1min_at_end"] = (
-        os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-    )
+        report["e2e"] = _e2e_step(args, cache, out_dir)
+    report["meta"]["load_average_1min_at_end"] = _load_average()
     (out_dir / "accuracy.json").write_text(json.dumps(report, indent=1, default=float))
     print(f"wrote {out_dir / 'accuracy.json'}")
     return 0
