@@ -99,38 +99,67 @@ def read_tflite(path: Path) -> Graph:
     """The ADE20K graph in the common form: the space-to-batch / depthwise /
     batch-to-space triples become dilated convolutions, the batch norm after them (MUL and
     ADD of constants) is folded in, DEQUANTIZE is read through and a resize to the same size
-    dropped."""
-    import tflite
-    from ai_edge_litert.interpreter import Interpreter, OpResolverType
+    dropped (:class:`_TFLiteWalk`)."""
+    walk = _TFLiteWalk(path)
+    for k in range(walk.sub.OperatorsLength()):
+        walk.operator(k)
+    return walk.graph()
 
-    net = Interpreter(
-        model_path=str(path),
-        experimental_op_resolver_type=OpResolverType.BUILTIN_WITHOUT_DEFAULT_DELEGATES,
-    )
-    net.allocate_tensors()
-    details = {d["index"]: d for d in net.get_tensor_details()}
-    model = tflite.Model.GetRootAsModel(path.read_bytes(), 0)
-    if model.SubgraphsLength() != 1:
-        raise ValueError(f"{path}: expected one subgraph, got {model.SubgraphsLength()}")
-    sub = model.Subgraphs(0)
-    op_names = {v: k for k, v in vars(tflite.BuiltinOperator).items() if not k.startswith("_")}
-    acts = {
-        tflite.ActivationFunctionType.NONE: "none",
-        tflite.ActivationFunctionType.RELU: "relu",
-        tflite.ActivationFunctionType.RELU6: "relu6",
-    }
 
-    def is_const(i: int) -> bool:
-        return model.Buffers(sub.Tensors(i).Buffer()).DataLength() > 0
+class _TFLiteWalk:
+    """:func:`read_tflite`'s walk over the one subgraph of a TFLite file, operator by
+    operator: the tensors' names (DEQUANTIZE and the folded operators rename), the nodes
+    made so far and what each tensor is."""
 
-    def value(i: int) -> np.ndarray:
+    def __init__(self, path: Path) -> None:
+        import tflite
+        from ai_edge_litert.interpreter import Interpreter, OpResolverType
+
+        self.tflite, self.path = tflite, path
+        self.net = Interpreter(
+            model_path=str(path),
+            experimental_op_resolver_type=OpResolverType.BUILTIN_WITHOUT_DEFAULT_DELEGATES,
+        )
+        self.net.allocate_tensors()
+        self.details = {d["index"]: d for d in self.net.get_tensor_details()}
+        self.model = tflite.Model.GetRootAsModel(path.read_bytes(), 0)
+        if self.model.SubgraphsLength() != 1:
+            raise ValueError(f"{path}: expected one subgraph, got {self.model.SubgraphsLength()}")
+        self.sub = sub = self.model.Subgraphs(0)
+        self.op_names = {
+            v: k for k, v in vars(tflite.BuiltinOperator).items() if not k.startswith("_")
+        }
+        self.acts = {
+            tflite.ActivationFunctionType.NONE: "none",
+            tflite.ActivationFunctionType.RELU: "relu",
+            tflite.ActivationFunctionType.RELU6: "relu6",
+        }
+        count = sub.TensorsLength()
+        self.name = {i: f"t{i}" for i in range(count)}  # DEQUANTIZE renames
+        self.weights = {f"t{i}" for i in range(count) if self.is_const(i)}
+        self.shape = {f"t{i}": tuple(sub.Tensors(i).ShapeAsNumpy()) for i in range(count)}
+        self.values: dict[str, np.ndarray] = {}
+        self.nodes: list[Node] = []
+        self.producer: dict[str, Node] = {}
+        self.pending: dict[str, dict] = {}  # space-to-batch outputs: block and pads
+        self.structural: set[str] = set()  # int32 constants: shapes, pads, sizes
+        self.dequantized: set[int] = set()  # DEQUANTIZE outputs: int8 weights read as float
+        self.readers: Counter[int] = Counter()
+        for k in range(sub.OperatorsLength()):
+            op = sub.Operators(k)
+            self.readers.update(op.Inputs(j) for j in range(op.InputsLength()))
+
+    def is_const(self, i: int) -> bool:
+        return self.model.Buffers(self.sub.Tensors(i).Buffer()).DataLength() > 0
+
+    def value(self, i: int) -> np.ndarray:
         """A constant as float32 (int8 dequantized with its scale) or as stored (int32)."""
-        d = details[i]
-        v = net.get_tensor(i)
+        d = self.details[i]
+        v = self.net.get_tensor(i)
         if d["dtype"] == np.int8:
             q = d["quantization_parameters"]
             if np.any(q["zero_points"] != 0):
-                raise ValueError(f"{path}: tensor {i} has a zero point")
+                raise ValueError(f"{self.path}: tensor {i} has a zero point")
             scale = q["scales"].astype(np.float32)
             if scale.size != 1:  # per output channel
                 scale = scale.reshape([-1] + [1] * (v.ndim - 1))
@@ -139,161 +168,171 @@ def read_tflite(path: Path) -> Graph:
             return v.astype(np.float32)
         return v
 
+    @staticmethod
     def options(op, cls):
         o, t = cls(), op.BuiltinOptions()
         o.Init(t.Bytes, t.Pos)
         return o
 
-    name = {i: f"t{i}" for i in range(sub.TensorsLength())}  # DEQUANTIZE renames
-    weights = {f"t{i}" for i in range(sub.TensorsLength()) if is_const(i)}
-    shape = {f"t{i}": tuple(sub.Tensors(i).ShapeAsNumpy()) for i in range(sub.TensorsLength())}
-    values: dict[str, np.ndarray] = {}
-    nodes: list[Node] = []
-    producer: dict[str, Node] = {}
-    pending: dict[str, dict] = {}  # space-to-batch outputs: block and pads
-    structural: set[str] = set()  # int32 constants: shapes, pads, sizes
-    dequantized: set[int] = set()  # DEQUANTIZE outputs: int8 weights read as float
-
-    readers: Counter[int] = Counter()
-    for k in range(sub.OperatorsLength()):
-        op = sub.Operators(k)
-        readers.update(op.Inputs(j) for j in range(op.InputsLength()))
-
-    def const(i: int) -> str:
-        key = name[i]
-        if key not in values:
-            values[key] = value(int(key[1:]))
+    def const(self, i: int) -> str:
+        key = self.name[i]
+        if key not in self.values:
+            self.values[key] = self.value(int(key[1:]))
         return key
 
-    for k in range(sub.OperatorsLength()):
-        op = sub.Operators(k)
-        code = model.OperatorCodes(op.OpcodeIndex())
-        kind = op_names[max(code.BuiltinCode(), code.DeprecatedBuiltinCode())]
+    def operator(self, k: int) -> None:
+        """Operator ``k``: a node of the common form, or a tensor renamed (read through or
+        folded into the node that made its input)."""
+        op = self.sub.Operators(k)
+        code = self.model.OperatorCodes(op.OpcodeIndex())
+        kind = self.op_names[max(code.BuiltinCode(), code.DeprecatedBuiltinCode())]
         ins = [op.Inputs(j) for j in range(op.InputsLength())]
         out = f"t{op.Outputs(0)}"
-        if kind == "DEQUANTIZE":
-            dequantized.add(op.Outputs(0))
-            name[op.Outputs(0)] = name[ins[0]]
-            weights.discard(out)
-            continue
-        if kind == "SPACE_TO_BATCH_ND":
-            block, pads = value(ins[1]), value(ins[2])
-            structural |= {name[ins[1]], name[ins[2]]}
-            if block[0] != block[1] or pads[0, 0] != pads[1, 0]:
-                raise ValueError(f"{path}: op {k}: unequal space-to-batch {block} {pads}")
-            pending[out] = {"input": name[ins[0]], "block": int(block[0]), "pad": int(pads[0, 0])}
-            continue
-        if kind in ("CONV_2D", "DEPTHWISE_CONV_2D"):
-            depthwise = kind == "DEPTHWISE_CONV_2D"
-            o = options(op, tflite.DepthwiseConv2DOptions if depthwise else tflite.Conv2DOptions)
-            w, b = const(ins[1]), const(ins[2])
-            # TFLite holds OHWI (1HWC for a depthwise one), torch OIHW (C1HW)
-            weight = values[w].transpose((3, 0, 1, 2) if depthwise else (0, 3, 1, 2))
-            if depthwise and o.DepthMultiplier() != 1:
-                raise ValueError(f"{path}: op {k}: depth multiplier {o.DepthMultiplier()}")
-            if (o.StrideH(), o.DilationHFactor()) != (o.StrideW(), o.DilationWFactor()):
-                raise ValueError(f"{path}: op {k}: unequal strides or dilations")
-            x, dilation = name[ins[0]], o.DilationHFactor()
-            kernel = weight.shape[-1]
-            if x in pending:  # a dilated convolution: VALID inside space-to-batch
-                if readers[ins[0]] != 1:
-                    raise ValueError(f"{path}: op {k}: a space-to-batch read twice")
-                stb = pending.pop(x)
-                x, dilation = stb["input"], stb["block"]
-                if o.Padding() != tflite.Padding.VALID or stb["pad"] != dilation * (kernel // 2):
-                    raise ValueError(f"{path}: op {k}: space-to-batch pads {stb['pad']}")
-                pad = stb["pad"]
-            elif o.Padding() != tflite.Padding.SAME:
-                raise ValueError(f"{path}: op {k}: VALID padding outside space-to-batch")
-            else:
-                pad = "same"
-            node = Node(
-                "conv",
-                [x],
-                out,
-                {
-                    "weight": weight,
-                    "bias": values[b].copy(),
-                    "stride": o.StrideH(),
-                    "dilation": dilation,
-                    "groups": weight.shape[0] if depthwise else 1,
-                    "act": acts[o.FusedActivationFunction()],
-                    "pad": pad,
-                    # int8 weights read as they are: the runtime quantizes the input too
-                    "quantized": ins[1] not in dequantized and details[ins[1]]["dtype"] == np.int8,
-                },
-                [w, b],
-            )
-        elif kind == "BATCH_TO_SPACE_ND":
-            src = producer[name[ins[0]]]
-            crops = value(ins[2])
-            structural |= {name[ins[1]], name[ins[2]]}
-            dilated = src.kind == "conv" and src.attrs["dilation"] == int(value(ins[1])[0])
-            if not dilated or crops[:, 0].any() or readers[ins[0]] != 1:
-                raise ValueError(f"{path}: op {k}: batch-to-space after no dilated convolution")
-            name[op.Outputs(0)] = src.output
-            continue
-        elif kind in ("MUL", "ADD") and any(is_const(i) for i in ins):
-            (x,) = [name[i] for i in ins if not is_const(i)]
-            (c,) = [const(i) for i in ins if is_const(i)]
-            src = producer.get(x)
-            if src is None or src.kind != "conv" or src.attrs["act"] != "none":
-                raise ValueError(f"{path}: op {k}: {kind} of a constant after no linear conv")
-            if readers[next(i for i in ins if not is_const(i))] != 1:
-                raise ValueError(f"{path}: op {k}: a batch norm on a shared tensor")
-            a = src.attrs
-            if kind == "MUL":
-                a["weight"] = a["weight"] * values[c].reshape(-1, 1, 1, 1)
-                a["bias"] = a["bias"] * values[c]
-            else:
-                a["bias"] = a["bias"] + values[c]
-                a["act"] = acts[options(op, tflite.AddOptions).FusedActivationFunction()]
-            src.weights.append(c)
-            name[op.Outputs(0)] = src.output
-            continue
-        elif kind == "ADD":
-            if options(op, tflite.AddOptions).FusedActivationFunction():
-                raise ValueError(f"{path}: op {k}: a residual add with an activation")
-            node = Node("add", [name[i] for i in ins], out)
-        elif kind == "AVERAGE_POOL_2D":
-            o = options(op, tflite.Pool2DOptions)
-            _, h, w_, _ = shape[name[ins[0]]]
-            if (o.FilterHeight(), o.FilterWidth()) != (h, w_) or shape[out][1:3] != (1, 1):
-                raise ValueError(f"{path}: op {k}: an average pool that is not global")
-            node = Node("pool", [name[ins[0]]], out)
-        elif kind == "RESIZE_BILINEAR":
-            o = options(op, tflite.ResizeBilinearOptions)
-            structural.add(name[ins[1]])
-            if shape[name[ins[0]]] == shape[out] and not o.HalfPixelCenters():
-                name[op.Outputs(0)] = name[ins[0]]  # the identity
-                continue
-            mode = (
-                "align_corners"
-                if o.AlignCorners()
-                else "half_pixel"
-                if o.HalfPixelCenters()
-                else "asymmetric"
-            )
-            node = Node("resize", [name[ins[0]]], out, {"mode": mode})
-        elif kind == "CONCATENATION":
-            o = options(op, tflite.ConcatenationOptions)
-            if o.Axis() not in (3, -1) or o.FusedActivationFunction():
-                raise ValueError(f"{path}: op {k}: a concatenation not on channels")
-            node = Node("concat", [name[i] for i in ins], out)
+        # a MUL or ADD of a constant: a batch norm's scale or shift
+        affine = kind in ("MUL", "ADD") and any(self.is_const(i) for i in ins)
+        handler = {
+            "DEQUANTIZE": self._dequantize,
+            "SPACE_TO_BATCH_ND": self._space_to_batch,
+            "CONV_2D": self._conv,
+            "DEPTHWISE_CONV_2D": self._conv,
+            "BATCH_TO_SPACE_ND": self._batch_to_space,
+            "AFFINE": self._affine,
+            "ADD": self._add,
+            "AVERAGE_POOL_2D": self._pool,
+            "RESIZE_BILINEAR": self._resize,
+            "CONCATENATION": self._concat,
+        }.get("AFFINE" if affine else kind)
+        if handler is None:
+            raise ValueError(f"{self.path}: op {k}: unsupported operator {kind}")
+        node = handler(k, op, kind, ins, out)
+        if node is not None:
+            self.nodes.append(node)
+            self.producer[out] = node
+
+    def _dequantize(self, k, op, kind, ins, out) -> None:
+        self.dequantized.add(op.Outputs(0))
+        self.name[op.Outputs(0)] = self.name[ins[0]]
+        self.weights.discard(out)
+
+    def _space_to_batch(self, k, op, kind, ins, out) -> None:
+        block, pads = self.value(ins[1]), self.value(ins[2])
+        self.structural |= {self.name[ins[1]], self.name[ins[2]]}
+        if block[0] != block[1] or pads[0, 0] != pads[1, 0]:
+            raise ValueError(f"{self.path}: op {k}: unequal space-to-batch {block} {pads}")
+        self.pending[out] = {
+            "input": self.name[ins[0]], "block": int(block[0]), "pad": int(pads[0, 0])
+        }  # fmt: skip
+
+    def _conv(self, k, op, kind, ins, out) -> Node:
+        tfl, path = self.tflite, self.path
+        depthwise = kind == "DEPTHWISE_CONV_2D"
+        o = self.options(op, tfl.DepthwiseConv2DOptions if depthwise else tfl.Conv2DOptions)
+        w, b = self.const(ins[1]), self.const(ins[2])
+        # TFLite holds OHWI (1HWC for a depthwise one), torch OIHW (C1HW)
+        weight = self.values[w].transpose((3, 0, 1, 2) if depthwise else (0, 3, 1, 2))
+        if depthwise and o.DepthMultiplier() != 1:
+            raise ValueError(f"{path}: op {k}: depth multiplier {o.DepthMultiplier()}")
+        if (o.StrideH(), o.DilationHFactor()) != (o.StrideW(), o.DilationWFactor()):
+            raise ValueError(f"{path}: op {k}: unequal strides or dilations")
+        x, dilation = self.name[ins[0]], o.DilationHFactor()
+        kernel = weight.shape[-1]
+        if x in self.pending:  # a dilated convolution: VALID inside space-to-batch
+            if self.readers[ins[0]] != 1:
+                raise ValueError(f"{path}: op {k}: a space-to-batch read twice")
+            stb = self.pending.pop(x)
+            x, dilation = stb["input"], stb["block"]
+            if o.Padding() != tfl.Padding.VALID or stb["pad"] != dilation * (kernel // 2):
+                raise ValueError(f"{path}: op {k}: space-to-batch pads {stb['pad']}")
+            pad = stb["pad"]
+        elif o.Padding() != tfl.Padding.SAME:
+            raise ValueError(f"{path}: op {k}: VALID padding outside space-to-batch")
         else:
-            raise ValueError(f"{path}: op {k}: unsupported operator {kind}")
-        nodes.append(node)
-        producer[out] = node
-    if pending:
-        raise ValueError(f"{path}: a space-to-batch with no convolution after it")
-    weights -= structural
-    graph_in, graph_out = f"t{sub.Inputs(0)}", name[sub.Outputs(0)]
-    for n in nodes:
-        for key in ("weight", "bias"):
-            if key in n.attrs:
-                n.attrs[key] = n.attrs[key].astype(np.float32)
-    zeros = {k for k, v in values.items() if not v.any()}
-    return Graph(nodes, graph_in, graph_out, weights, zeros)
+            pad = "same"
+        quantized = ins[1] not in self.dequantized and self.details[ins[1]]["dtype"] == np.int8
+        attrs = {
+            "weight": weight,
+            "bias": self.values[b].copy(),
+            "stride": o.StrideH(),
+            "dilation": dilation,
+            "groups": weight.shape[0] if depthwise else 1,
+            "act": self.acts[o.FusedActivationFunction()],
+            "pad": pad,
+            # int8 weights read as they are: the runtime quantizes the input too
+            "quantized": quantized,
+        }
+        return Node("conv", [x], out, attrs, [w, b])
+
+    def _batch_to_space(self, k, op, kind, ins, out) -> None:
+        src = self.producer[self.name[ins[0]]]
+        crops = self.value(ins[2])
+        self.structural |= {self.name[ins[1]], self.name[ins[2]]}
+        dilated = src.kind == "conv" and src.attrs["dilation"] == int(self.value(ins[1])[0])
+        if not dilated or crops[:, 0].any() or self.readers[ins[0]] != 1:
+            raise ValueError(f"{self.path}: op {k}: batch-to-space after no dilated convolution")
+        self.name[op.Outputs(0)] = src.output
+
+    def _affine(self, k, op, kind, ins, out) -> None:
+        """A MUL or ADD of a constant after a linear convolution: folded into it."""
+        (x,) = [self.name[i] for i in ins if not self.is_const(i)]
+        (c,) = [self.const(i) for i in ins if self.is_const(i)]
+        src = self.producer.get(x)
+        if src is None or src.kind != "conv" or src.attrs["act"] != "none":
+            raise ValueError(f"{self.path}: op {k}: {kind} of a constant after no linear conv")
+        if self.readers[next(i for i in ins if not self.is_const(i))] != 1:
+            raise ValueError(f"{self.path}: op {k}: a batch norm on a shared tensor")
+        a = src.attrs
+        if kind == "MUL":
+            a["weight"] = a["weight"] * self.values[c].reshape(-1, 1, 1, 1)
+            a["bias"] = a["bias"] * self.values[c]
+        else:
+            a["bias"] = a["bias"] + self.values[c]
+            options = self.options(op, self.tflite.AddOptions)
+            a["act"] = self.acts[options.FusedActivationFunction()]
+        src.weights.append(c)
+        self.name[op.Outputs(0)] = src.output
+
+    def _add(self, k, op, kind, ins, out) -> Node:
+        if self.options(op, self.tflite.AddOptions).FusedActivationFunction():
+            raise ValueError(f"{self.path}: op {k}: a residual add with an activation")
+        return Node("add", [self.name[i] for i in ins], out)
+
+    def _pool(self, k, op, kind, ins, out) -> Node:
+        o = self.options(op, self.tflite.Pool2DOptions)
+        _, h, w, _ = self.shape[self.name[ins[0]]]
+        if (o.FilterHeight(), o.FilterWidth()) != (h, w) or self.shape[out][1:3] != (1, 1):
+            raise ValueError(f"{self.path}: op {k}: an average pool that is not global")
+        return Node("pool", [self.name[ins[0]]], out)
+
+    def _resize(self, k, op, kind, ins, out) -> Node | None:
+        o = self.options(op, self.tflite.ResizeBilinearOptions)
+        self.structural.add(self.name[ins[1]])
+        if self.shape[self.name[ins[0]]] == self.shape[out] and not o.HalfPixelCenters():
+            self.name[op.Outputs(0)] = self.name[ins[0]]  # the identity
+            return None
+        if o.AlignCorners():
+            mode = "align_corners"
+        else:
+            mode = "half_pixel" if o.HalfPixelCenters() else "asymmetric"
+        return Node("resize", [self.name[ins[0]]], out, {"mode": mode})
+
+    def _concat(self, k, op, kind, ins, out) -> Node:
+        o = self.options(op, self.tflite.ConcatenationOptions)
+        if o.Axis() not in (3, -1) or o.FusedActivationFunction():
+            raise ValueError(f"{self.path}: op {k}: a concatenation not on channels")
+        return Node("concat", [self.name[i] for i in ins], out)
+
+    def graph(self) -> Graph:
+        """The walk's nodes as a :class:`Graph`, the weights' arrays as float32."""
+        if self.pending:
+            raise ValueError(f"{self.path}: a space-to-batch with no convolution after it")
+        weights = self.weights - self.structural
+        graph_in, graph_out = f"t{self.sub.Inputs(0)}", self.name[self.sub.Outputs(0)]
+        for n in self.nodes:
+            for key in ("weight", "bias"):
+                if key in n.attrs:
+                    n.attrs[key] = n.attrs[key].astype(np.float32)
+        zeros = {k for k, v in self.values.items() if not v.any()}
+        return Graph(self.nodes, graph_in, graph_out, weights, zeros)
 
 
 # ----------------------------------------------------------------------------- ONNX
