@@ -325,6 +325,19 @@ def _log_step(
         csv.writer(fh).writerow(row)
 
 
+def _stage_optimizer(
+    model: D2F, stage: int, lr: float, resume: dict[str, Any] | None, device: torch.device
+) -> tuple[torch.optim.Optimizer, int]:
+    """Adam over the stage's trainable parameters, and the step to start from: a resumed
+    run's optimizer state (moved to ``device``) and step, else a fresh one at step 0."""
+    optimizer = torch.optim.Adam(_trainable(model, stage), lr=lr)
+    if resume is None:
+        return optimizer, 0
+    optimizer.load_state_dict(resume["optimizer"])
+    _optimizer_to(optimizer, device)
+    return optimizer, int(resume["step"])
+
+
 def train(args: argparse.Namespace) -> TrainResult:
     """Run one training stage described by parsed ``d2f-train`` arguments."""
     stage = 1 if args.stage == "stage1" else 2
@@ -337,13 +350,7 @@ def train(args: argparse.Namespace) -> TrainResult:
     # 1. model: resume > init checkpoint > fresh config
     model, resume = _stage_model(args, stage)
     model.to(device).train()
-    params = _trainable(model, stage)
-    optimizer = torch.optim.Adam(params, lr=args.lr)
-    step = 0
-    if resume is not None:
-        optimizer.load_state_dict(resume["optimizer"])
-        _optimizer_to(optimizer, device)
-        step = int(resume["step"])
+    optimizer, step = _stage_optimizer(model, stage, args.lr, resume, device)
     criterion = D2FLoss(args.vgg_weights, theta=model.config.fusion_theta).to(device)
     forward: nn.Module = _StageForward(model, stage)
     if ddp.world > 1:
