@@ -184,3 +184,22 @@ class TestFusionGate:
                 result.fusion_mask.shape[1] * 3 // 10 : result.fusion_mask.shape[1] * 4 // 10,
             ]
             assert float(box.min()) == pytest.approx(1.0)  # the box in focus: the photo
+
+    def test_no_line_where_a_floor_crosses_the_gate(self, shipped):
+        """A textured floor receding from the focal plane: the sharp photo fusion puts back
+        fades out towards the gate's CoC, with no step between two rows (a hard gate took
+        the mask from 0.34 to 0 between two rows here)."""
+        h, w = 600, 800
+        rng = np.random.default_rng(0)
+        cells = rng.standard_normal((h // 2, w // 2, 3)).repeat(2, 0).repeat(2, 1)
+        image = np.clip(0.5 + 0.25 * cells, 0, 1).astype(np.float32)
+        disparity = np.tile(np.linspace(1.0, 0.0, h, dtype=np.float32)[:, None], (1, w))
+        scene = shipped.prepare(image, depth=disparity)
+        result = shipped.render(scene, 1.0, 60.0)
+        mask = result.fusion_mask[:, 20:-20].mean(axis=1)
+        coc = 60.0 * (1.0 - disparity[:, 0])
+        gate = shipped.gate_coc(scene)
+        assert mask[coc < 0.4 * gate].min() > 0.1  # fusion is at work near the focus
+        assert mask[coc >= gate].max() == 0.0
+        across = (coc > 0.5 * gate) & (coc < 1.2 * gate)  # into the gate and past it
+        assert np.abs(np.diff(mask[across])).max() < 0.02  # a ramp, not a step

@@ -54,7 +54,9 @@ class D2FConfig:
         train_blur: ``K`` (px at the pair's full resolution) for pairs without ``params``;
             138 px at EBB!'s 1024x1536 is the paper's 69-px largest kernel at half size.
         fusion_theta: threshold on ``D`` of the binary in-focus mask ``M_b`` (stage-2 target).
-        fusion_gate: ``M_s`` is forced to 0 where ``D >= fusion_gate``.
+        fusion_gate: ``M_s`` is 0 where ``D >= fusion_gate`` (``D`` at the pass a photo
+            gets at ``render_scale``, so a CoC in the photo's pixels, ``D2F.gate_coc``),
+            fading to it over the last half of that CoC (``fusion.GATE_FADE``).
         sharp_coc: full-res CoC (px) below which a pixel always stays sharp.
         refine: ``"none"`` (the network's map upsampled bilinearly) or ``"snap"`` (its soft
             edges moved onto the photo's colour edges at the render pass's size,
