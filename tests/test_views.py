@@ -158,10 +158,10 @@ class TestFusionGate:
         scene = model.prepare(image, depth=depth)
         expected = defocus_to_coc(model.config.fusion_gate) / model.config.render_scale
         assert expected == pytest.approx(23.6)
-        assert model.gate_coc(scene) == pytest.approx(expected)
+        assert model.gate_coc(scene.pixel_scale) == pytest.approx(expected)
         screen = model.screen_scene(scene, 200)
         assert screen.pixel_scale == pytest.approx(0.5)
-        assert model.gate_coc(screen) == pytest.approx(expected / 2)
+        assert model.gate_coc(screen.pixel_scale) == pytest.approx(expected / 2)
 
     def test_small_pass_does_not_sharpen_a_blurred_background(self):
         """A 1200 px photo through a 200 px pass (a sixth, as a 12 MP photo's pass is a
@@ -198,7 +198,7 @@ class TestFusionGate:
         result = shipped.render(scene, 1.0, 60.0)
         mask = result.fusion_mask[:, 20:-20].mean(axis=1)
         coc = 60.0 * (1.0 - disparity[:, 0])
-        gate = shipped.gate_coc(scene)
+        gate = shipped.gate_coc(scene.pixel_scale)
         assert mask[coc < 0.4 * gate].min() > 0.1  # fusion is at work near the focus
         assert mask[coc >= gate].max() == 0.0
         across = (coc > 0.5 * gate) & (coc < 1.2 * gate)  # into the gate and past it

@@ -50,15 +50,16 @@ class FusionStage:
     """D2F's step 6 as methods of :class:`~d2f_core.pipeline.D2F`: the fusion mask ``M_s`` and
     ``B_hr = M_s I_hr + (1 - M_s) upsample(B_lr)``, tile by tile on large frames."""
 
-    def gate_coc(self, scene: Scene) -> float:
-        """The CoC (``scene``'s px) from which the fusion gate keeps ``M_s`` at 0: the gate's
+    def gate_coc(self, pixel_scale: float = 1.0) -> float:
+        """The CoC (px of a scene at ``pixel_scale``, its ``Scene.pixel_scale``: 1 at the
+        photo's own size) from which the fusion gate keeps ``M_s`` at 0: the gate's
         ``D`` at the pass a photo gets at ``render_scale``, counted in the photo's own pixels
         (24 px at the shipped 0.3 and 0.5). One blur in the photo is then gated alike whatever
         pass renders it: a large photo's pass is capped at ``max_render_side``, and a gate at
         the pass's own scale let the sharp photo back up to 46 px of CoC at 12 MP with a
-        1024 px pass. A screen's render counts it in its own pixels (``scene.pixel_scale``)."""
+        1024 px pass. A screen's render counts it in its own pixels."""
         cfg = self.config
-        return defocus_to_coc(cfg.fusion_gate) / cfg.render_scale * scene.pixel_scale
+        return defocus_to_coc(cfg.fusion_gate) / cfg.render_scale * pixel_scale
 
     def gate(self, coc: Tensor, gate_coc: float) -> Tensor:
         """What is left of ``M_s`` at a CoC of ``coc`` (px) under a gate at ``gate_coc``: 1
@@ -93,7 +94,7 @@ class FusionStage:
         coc = k * (disparity - f).abs()  # [B,1,H,W] full-res px
         prior = ((2.0 * cfg.sharp_coc - coc) / cfg.sharp_coc).clamp(0, 1)
         defocus = coc_to_defocus(coc * lr_ratio)
-        gate = self.gate(coc.detach(), defocus_to_coc(cfg.fusion_gate) / cfg.render_scale)
+        gate = self.gate(coc.detach(), self.gate_coc())
         m_s = self.fusion_net(1.0 - defocus, rgb_to_gray(image)) * gate
         return torch.maximum(m_s, prior), m_s
 
@@ -140,7 +141,7 @@ class FusionStage:
         coc_hi = blur * outside_range(
             torch.maximum((hi - focus).abs(), (lo - focus).abs()), focal_range
         )
-        gate_coc = self.gate_coc(scene)
+        gate_coc = self.gate_coc(scene.pixel_scale)
         sharp = cfg.sharp_coc
         all_sharp = coc_hi <= sharp
         needs_net = (coc_lo < gate_coc * 1.01) & (coc_hi > sharp)

@@ -52,12 +52,12 @@ class RenderSteps:
         image_lr, disparity_lr, _ = inputs
         lr_size = (int(image_lr.shape[-2]), int(image_lr.shape[-1]))
         settings = None
+        gate_coc = self.gate_coc(scene.pixel_scale)  # the full-res CoC of the fusion gate
         if budget is not None:
             t0 = time.perf_counter()
-            # the full-res CoC under which the fusion gate can open (see _fuse_tiled)
-            gate_coc = self.gate_coc(scene) * 1.01
+            # (1.01: the CoC under which the gate can open, as _fuse_tiled reads it)
             settings = self._pick_settings(
-                scene, disparity_lr, focus, blur, lr_ratio, budget, focal_range, gate_coc,
+                scene, disparity_lr, focus, blur, lr_ratio, budget, focal_range, gate_coc * 1.01,
                 render_options, full=not preview,
             )  # fmt: skip
             timings["pick"] = ms_since(t0)
@@ -71,7 +71,7 @@ class RenderSteps:
         t0 = time.perf_counter()
         # foreground layers blurred past the fusion gate (in the pass's px): fusion never
         # sharpens them, and must not paste what lies behind them over their blur
-        options = render_options | {"front_size": self.gate_coc(scene) * lr_ratio}
+        options = render_options | {"front_size": gate_coc * lr_ratio}
         bokeh_lr, behind_lr = self._pass_or_identity(
             inputs, focus, blur * lr_ratio, fuse, settings, options
         )
