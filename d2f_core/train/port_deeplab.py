@@ -148,6 +148,19 @@ class _TFLiteWalk:
         for k in range(sub.OperatorsLength()):
             op = sub.Operators(k)
             self.readers.update(op.Inputs(j) for j in range(op.InputsLength()))
+        # what each operator kind becomes (AFFINE: a MUL or ADD of a constant)
+        self.handlers = {
+            "DEQUANTIZE": self._dequantize,
+            "SPACE_TO_BATCH_ND": self._space_to_batch,
+            "CONV_2D": self._conv,
+            "DEPTHWISE_CONV_2D": self._conv,
+            "BATCH_TO_SPACE_ND": self._batch_to_space,
+            "AFFINE": self._affine,
+            "ADD": self._add,
+            "AVERAGE_POOL_2D": self._pool,
+            "RESIZE_BILINEAR": self._resize,
+            "CONCATENATION": self._concat,
+        }
 
     def is_const(self, i: int) -> bool:
         return self.model.Buffers(self.sub.Tensors(i).Buffer()).DataLength() > 0
@@ -190,18 +203,7 @@ class _TFLiteWalk:
         out = f"t{op.Outputs(0)}"
         # a MUL or ADD of a constant: a batch norm's scale or shift
         affine = kind in ("MUL", "ADD") and any(self.is_const(i) for i in ins)
-        handler = {
-            "DEQUANTIZE": self._dequantize,
-            "SPACE_TO_BATCH_ND": self._space_to_batch,
-            "CONV_2D": self._conv,
-            "DEPTHWISE_CONV_2D": self._conv,
-            "BATCH_TO_SPACE_ND": self._batch_to_space,
-            "AFFINE": self._affine,
-            "ADD": self._add,
-            "AVERAGE_POOL_2D": self._pool,
-            "RESIZE_BILINEAR": self._resize,
-            "CONCATENATION": self._concat,
-        }.get("AFFINE" if affine else kind)
+        handler = self.handlers.get("AFFINE" if affine else kind)
         if handler is None:
             raise ValueError(f"{self.path}: op {k}: unsupported operator {kind}")
         node = handler(k, op, kind, ins, out)
