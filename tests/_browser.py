@@ -35,6 +35,12 @@ def wait_new_result(page, old: str | None, picture: str = "#result img") -> str:
     return result_src(page, picture)
 
 
+def changed_result(page, old: str | None) -> str:
+    """The src of ``#result img`` once it is not ``old`` (it may have changed already)."""
+    src = result_src(page)
+    return wait_new_result(page, old) if src == old else src
+
+
 def wait_full_result(page, old: str | None) -> str:
     """Wait until ``#result img`` shows a different, fully loaded file that is a full render
     at the focus the focus slider now shows (the status line says so), and return its src.

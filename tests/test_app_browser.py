@@ -14,10 +14,10 @@ from pathlib import Path
 
 import pytest
 from _browser import (
+    changed_result,
     click_photo_at,
     fetch_image,
     open_app,
-    result_src,
     wait_full_result,
     wait_new_result,
 )
@@ -172,7 +172,7 @@ def test_refocus_in_browser(
                 " && /f\\/2[0-2](\\.\\d)?, blur [0-9.]+ px/.test("
                 "document.querySelector('#info textarea').value)"
             )
-            src = wait_new_result(page, src) if result_src(page) == src else result_src(page)
+            src = changed_result(page, src)
             dragged = fetch_image(page, src)
             f_after = float(page.locator("#blur input[data-testid=number-input]").input_value())
             assert f_before == 1.0 and f_after > 20
@@ -198,7 +198,7 @@ def test_refocus_in_browser(
                 "() => document.querySelector('#info textarea').value.includes("
                 "'focus 0.500 (0 = near, 1 = far; disparity 0.500) | f/22, blur 3 px | full')"
             )
-            src = wait_new_result(page, src) if result_src(page) == src else result_src(page)
+            src = changed_result(page, src)
             assert fetch_image(page, src).shape[:2] == scene.image.shape[:2]
         finally:
             browser.close()

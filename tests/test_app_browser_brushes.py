@@ -10,11 +10,11 @@ import re
 import numpy as np
 import pytest
 from _browser import (
+    changed_result,
     click_photo_at,
     fetch_image,
     open_app,
     result_src,
-    wait_new_result,
     wait_status,
 )
 from PIL import Image
@@ -42,9 +42,7 @@ def _write_scene(folder):
 
 
 def _picture(page, old_src):
-    src = result_src(page)
-    if src == old_src:
-        src = wait_new_result(page, old_src)
+    src = changed_result(page, old_src)
     return src, fetch_image(page, src)
 
 

@@ -17,12 +17,12 @@ import pytest
 from _browser import (
     STATUS,
     TIMEOUT_MS,
+    changed_result,
     click_photo_at,
     fetch_image,
     open_app,
     result_src,
     type_value,
-    wait_new_result,
     wait_status,
 )
 from PIL import Image
@@ -61,14 +61,6 @@ def wait_note(page, text: str) -> None:
         arg=text,
         timeout=TIMEOUT_MS,
     )
-
-
-def current_result(page, old: str | None) -> np.ndarray:
-    """The result picture once it is not ``old`` (it may have changed already)."""
-    src = result_src(page)
-    if src == old:
-        src = wait_new_result(page, old)
-    return fetch_image(page, src)
 
 
 def saved_download(page, folder) -> tuple[str, Image.Image]:
@@ -139,7 +131,7 @@ def test_focus_and_aperture_controls(
             wait_status(
                 page, f"focus {focus:.3f} (0 = near, 1 = far; disparity {1 - focus:.3f})", "full"
             )
-            near = current_result(page, old)
+            near = fetch_image(page, changed_result(page, old))
             assert sharpness(near, subject) > 0.8 * sharpness(scene.image, subject)
             assert sharpness(near, background) < 0.5 * sharpness(scene.image, background)
 
@@ -149,7 +141,7 @@ def test_focus_and_aperture_controls(
             wait_status(page, f"f/8, blur {expected_k(8):g} px | full render")
             wait_note(page, "f/8: ")
             assert shown_k(page) == expected_k(8) == 8.3
-            at_f8 = current_result(page, old)
+            at_f8 = fetch_image(page, changed_result(page, old))
             assert sharpness(at_f8, background) > 2 * sharpness(near, background)
 
             # 4. Download saves the full render of the typed f-number, at full size
@@ -221,7 +213,7 @@ def test_slow_events_show_progress(app_server, chromium_launch_options, scene_fa
             old = result_src(page)
             click_photo_at(page, *scene.near_point)
             wait_status(page, "focused on the click")
-            current_result(page, old)
+            fetch_image(page, changed_result(page, old))
             assert shown_trackers(page) == {"full"}
             page.wait_for_function(
                 "() => { const b = document.querySelector('button#download, #download button');"

@@ -8,11 +8,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from _browser import (
+    changed_result,
     click_photo_at,
     fetch_image,
     open_app,
     result_src,
-    wait_new_result,
     wait_status,
 )
 from PIL import Image
@@ -46,10 +46,7 @@ def _slider(page, elem: str) -> float:
 
 
 def _result(page, old):
-    src = result_src(page)
-    if src == old:
-        src = wait_new_result(page, old)
-    return fetch_image(page, src)
+    return fetch_image(page, changed_result(page, old))
 
 
 def test_click_sets_a_range_and_the_slider_changes_it(
