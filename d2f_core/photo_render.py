@@ -103,6 +103,8 @@ class Engine:
 class Rendered:
     bokeh: np.ndarray
     maps: dict[str, np.ndarray] = field(default_factory=dict)
+    #: where the render's map came from, as :meth:`DepthMap.describe` says it
+    source: str = ""
 
 
 @dataclass
@@ -112,7 +114,8 @@ class RenderInfo:
     Attributes:
         output: the file written.
         size: (width, height) rendered, after any ``--max-pixels`` downscale.
-        depth_source: where the disparity came from (``d2f`` for the network).
+        depth_source: where the disparity came from, as a log line says it (``"scene
+            (scene teachers' map (parse, ...))"``, ``"file:PATH (disparity map)"``).
         focus: the focal disparity in [0, 1] (1 = nearest).
         focus_point: (x, y) in the input photo's pixels that gave the focus (``--focus-at``
             or the subject found), or ``None`` when the focus was a number.
@@ -244,10 +247,13 @@ def _choose_depth(
             return None  # the weights' own source (D2F.prepare's default), logged there
     elif source.kind == "file" and depth_file is not None:
         raise UsageError("give the map once: --depth FILE or --depth-model file:PATH")
+    elif depth_file is not None:
+        raise UsageError(
+            f"--depth FILE and --depth-model {source.name} name two depth sources: give one"
+        )
     elif source.kind == "embedded" and args.no_embedded_depth:
         raise UsageError("--depth-model embedded and --no-embedded-depth contradict each other")
-    if source.kind == "d2f":
-        logger.info("%s: depth from d2f (the shipped network)", src)
+    if source.kind == "d2f":  # the network's own map, made by D2F.prepare at its pass
         return None
     model = engine.model() if source.kind == "scene" else None
     if source.kind == "scene" and model is None:
@@ -345,7 +351,7 @@ def render_file(
     if point is not None:  # back into the input photo's pixels
         oh, ow = photo.info.original_size
         point = (round(point[0] * ow / w, 1), round(point[1] * oh / h, 1))
-    source = "d2f" if depth is None else depth.describe()
+    source = rendered.source if depth is None else depth.describe()
     return RenderInfo(dst, (w, h), source, float(focus), point, float(blur), float(focal_range))
 
 
@@ -405,9 +411,14 @@ def _render_with_model(
     from ``depth`` (or the weights' own source), painted, focused as ``asked`` (``(focus,
     point, focal_range)``: a point gets its subject's range unless one is given), rendered."""
     focus, point, focal_range = asked
-    scene = model.prepare(photo.image, depth=depth, refine=not args.no_refine_depth)
+    asked_d2f = args.depth_model is not None and args.depth_model.kind == "d2f"
+    own = "d2f" if asked_d2f else None  # else the weights' own source (scene or d2f)
+    scene = model.prepare(
+        photo.image, depth=own if depth is None else depth, refine=not args.no_refine_depth
+    )
     if depth is None:
-        logger.info("%s: depth from %s (the weights' own source)", src, scene.disparity_source)
+        why = "asked" if asked_d2f else "the weights' own source"
+        logger.info("%s: depth from %s (%s)", src, scene.disparity_source, why)
     if masks:
         scene = model.paint(scene, **masks)
     if point == "subject":  # the library's default focus, the app's too
@@ -436,7 +447,9 @@ def _render_with_model(
         "defocus": result.defocus,
         "fusion_mask": result.fusion_mask,
     }
-    return Rendered(bokeh=result.bokeh, maps=maps), focus, focal_range, point
+    source = f"{scene.disparity_source} ({scene.disparity_output})"
+    rendered = Rendered(bokeh=result.bokeh, maps=maps, source=source)
+    return rendered, focus, focal_range, point
 
 
 def _render_with_map(

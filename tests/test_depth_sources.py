@@ -417,6 +417,45 @@ class TestCli:
         np.save(tmp_path / "d.npy", np.ones((48, 64)))
         file_twice = ["--depth", str(tmp_path / "d.npy"), "--depth-model", "file:x.npy"]
         assert main([*base, *file_twice]) == 2
+        for source in ("d2f", "scene"):  # --depth and another source: two maps asked for
+            assert main([*base, "--depth", str(tmp_path / "d.npy"), "--depth-model", source]) == 2
+            assert "name two depth sources" in capsys.readouterr().err
+
+    def test_d2f_asked_of_weights_whose_own_source_is_scene(self, tmp_path, capsys):
+        """``--depth-model d2f`` with weights that default to the scene source renders the
+        network's own map: the same picture as the same weights whose own source is d2f. The
+        default render of those weights, and the batch manifest, name the scene source."""
+        from conftest import TINY_CONFIG
+
+        from d2f_core.batch.manifest import read_rows
+        from d2f_core.cli import main
+        from d2f_core.io import load_image
+
+        weights = {}
+        for own in ("d2f", "scene"):
+            torch.manual_seed(0)
+            weights[own] = tmp_path / f"{own}.pt"
+            D2F.from_config({**TINY_CONFIG, "depth_source": own}).save(weights[own])
+        (tmp_path / "in").mkdir()
+        photo = self._write_photo(tmp_path / "in" / "p.png")
+        base = ["render", str(photo), "--blur", "8", "--focus", "0.5", "-v"]
+
+        def render(name, *extra):
+            assert main([*base, "-o", str(tmp_path / name), *extra]) == 0
+            return load_image(tmp_path / name), capsys.readouterr().err
+
+        own_d2f, _ = render("own_d2f.png", "--weights", str(weights["d2f"]))
+        asked, err = render("asked.png", "--weights", str(weights["scene"]), "--depth-model", "d2f")
+        assert "depth from d2f (asked)" in err
+        np.testing.assert_array_equal(asked, own_d2f)
+        default, err = render("default.png", "--weights", str(weights["scene"]))
+        assert "depth from scene (the weights' own source)" in err
+        assert np.abs(default - asked).max() > 0.05  # another map, another picture
+        out = tmp_path / "batch"
+        argv = ["batch", "--workers", "1", str(tmp_path / "in"), "-o", str(out), "--blur", "8"]
+        assert main([*argv, "--weights", str(weights["scene"])]) == 0, capsys.readouterr().err
+        (row,) = read_rows(out / "manifest.jsonl")
+        assert row["depth_source"].startswith("scene (scene teachers' map (parse"), row
 
 
 # ------------------------------------------------------------------------------ the app

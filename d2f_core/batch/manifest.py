@@ -52,7 +52,7 @@ FIELDS = (
     "width",  # px rendered (after any --max-pixels downscale); null when it failed
     "height",
     "bytes",  # the output file's size
-    "depth_source",  # d2f (the network), embedded (...), file:PATH (...), transformers:...
+    "depth_source",  # scene (...), d2f (...), embedded (...), file:PATH (...), transformers:...
     "focus_point",  # [x, y] in the input's px that gave the focus, or null (a number given)
     "focus",  # focal disparity in [0, 1], 1 = nearest
     "blur_px",  # K at the rendered size
