@@ -111,6 +111,50 @@ class TestLoadDepth:
         expect = (1 / z - 1 / 5) / (1 - 1 / 5)
         np.testing.assert_allclose(ref, expect, atol=1e-5)
 
+    @pytest.mark.parametrize("version", [(1, 0), (2, 0), (3, 0)])
+    def test_npy_of_each_format_version(self, tmp_path, version):
+        z = np.linspace(1.0, 5.0, 60, dtype=np.float32).reshape(6, 10)
+        with open(tmp_path / "z.npy", "wb") as fh:
+            np.lib.format.write_array(fh, z, version=version)
+        np.testing.assert_array_equal(read_depth_array(tmp_path / "z.npy"), z)
+        # the header is read before the values: a cut file is refused by what it lacks
+        data = (tmp_path / "z.npy").read_bytes()
+        (tmp_path / "cut.npy").write_bytes(data[:-8])
+        with pytest.raises(ValueError, match="truncated .npy file"):
+            read_depth_array(tmp_path / "cut.npy")
+
+    def test_npy_unknown_version_or_broken_header(self, tmp_path):
+        buf = io.BytesIO()
+        np.save(buf, np.ones((4, 4)))
+        data = bytearray(buf.getvalue())
+        data[6] = 9  # format version 9.0
+        (tmp_path / "v9.npy").write_bytes(bytes(data))
+        with pytest.raises(ValueError, match="version 9.0 is not 1.0, 2.0 or 3.0"):
+            read_depth_array(tmp_path / "v9.npy")
+        (tmp_path / "bad.npy").write_bytes(
+            b"\x93NUMPY\x03\x00" + b"\x10\x00\x00\x00" + b"{'a': 1}" + b" " * 8
+        )
+        with pytest.raises(ValueError, match="unreadable .npy header"):
+            read_depth_array(tmp_path / "bad.npy")
+
+    @pytest.mark.parametrize(
+        ("shape", "sides"),
+        [((1, 50), (1, 50)), ((1, 50, 1), (1, 50)), ((1, 1), (1, 1)), ((1, 6, 10), (6, 10)),
+         ((1, 1, 6, 10), (6, 10)), ((6, 10, 1), (6, 10)), ((50, 1), (50, 1))],
+    )  # fmt: skip
+    def test_a_map_one_pixel_tall_or_wide_keeps_its_sides(self, tmp_path, shape, sides):
+        values = np.linspace(1.0, 2.0, int(np.prod(shape))).reshape(shape)
+        np.save(tmp_path / "d.npy", values)
+        np.testing.assert_array_equal(read_depth_array(tmp_path / "d.npy"), values.reshape(sides))
+        if sides[0] == 1 and sides[1] > 1:  # as a PNG of a photo one pixel tall, loaded for it
+            row = (values.reshape(sides) * 100).astype(np.uint8)
+            Image.fromarray(row).save(tmp_path / "d.png")
+            out = load_depth(tmp_path / "d.png", size=sides, robust=False)
+            assert out.shape == sides and out[0, -1] == 1.0 and out[0, 0] == 0.0
+        with pytest.raises(ValueError, match=r"2-D depth map, got shape \(50,\)"):
+            np.save(tmp_path / "v.npy", np.ones(50))
+            read_depth_array(tmp_path / "v.npy")
+
     def test_multichannel_float_tiff(self, tmp_path):
         tifffile = pytest.importorskip("tifffile")
         z = np.linspace(1.0, 2.0, 24, dtype=np.float32).reshape(4, 6)

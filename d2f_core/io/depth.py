@@ -163,8 +163,10 @@ def _check_npy_header(data: bytes, name: str) -> tuple[int, ...]:
             shape, _, dtype = np.lib.format.read_array_header_1_0(fh)
         elif version == (2, 0):
             shape, _, dtype = np.lib.format.read_array_header_2_0(fh)
-        else:  # 3.0 (a UTF-8 header): no public reader
-            shape, _, dtype = np.lib.format._read_array_header(fh, version)
+        elif version == (3, 0):
+            shape, dtype = _npy_header_3_0(fh)
+        else:
+            raise ValueError(f"format version {version[0]}.{version[1]} is not 1.0, 2.0 or 3.0")
     except Exception as exc:  # noqa: BLE001 (any failure to parse it: tokenize, literal_eval)
         raise ValueError(f"{name}: unreadable .npy header: {exc}") from None
     count = 1
@@ -184,11 +186,43 @@ def _check_npy_header(data: bytes, name: str) -> tuple[int, ...]:
     return tuple(int(n) for n in shape)
 
 
+def _npy_header_3_0(fh: io.BytesIO) -> tuple[tuple[int, ...], np.dtype]:
+    """``(shape, dtype)`` from a version 3.0 ``.npy`` header (after its magic): version 2.0's
+    layout, a 4-byte length then the header's dict, in UTF-8. numpy reads it with no public
+    function."""
+    import ast
+    import struct
+
+    (length,) = struct.unpack("<I", fh.read(4))
+    header = fh.read(length)
+    if len(header) != length:
+        raise ValueError("the header is cut short")
+    d = ast.literal_eval(header.decode("utf-8"))
+    if not isinstance(d, dict) or not {"descr", "fortran_order", "shape"} <= set(d):
+        raise ValueError(f"the header is not a dict of descr, fortran_order and shape: {d!r}")
+    shape = d["shape"]
+    if not isinstance(shape, tuple) or not all(isinstance(n, int) and n >= 0 for n in shape):
+        raise ValueError(f"shape is not a tuple of sizes: {shape!r}")
+    return shape, np.lib.format.descr_to_dtype(d["descr"])
+
+
+def _map_shape(shape: tuple[int, ...]) -> tuple[int, ...]:
+    """The shape an array of ``shape`` has as a depth map: length-1 axes dropped after and
+    before a map's two (``H x W x 1``, ``1 x H x W``), never the map's own (a ``1 x W`` map
+    belongs to a photo one pixel tall)."""
+    shape = tuple(shape)
+    while len(shape) > 2 and shape[-1] == 1:  # a channel axis first: 1 x W x 1 is 1 x W
+        shape = shape[:-1]
+    while len(shape) > 2 and shape[0] == 1:
+        shape = shape[1:]
+    return shape
+
+
 def _map_sides(shape: tuple[int, ...]) -> tuple[int, int] | None:
     """The (H, W) that an array of ``shape`` becomes as a depth map (the rules of
-    :func:`read_depth_array`: length-1 axes dropped, 3 or 4 equal channels averaged), or None
+    :func:`read_depth_array`: :func:`_map_shape`, 3 or 4 equal channels averaged), or None
     when it is no map (refused after reading)."""
-    kept = tuple(n for n in shape if n != 1)
+    kept = _map_shape(shape)
     if len(kept) == 3 and kept[2] in (3, 4):
         kept = kept[:2]
     return kept if len(kept) == 2 else None
@@ -360,7 +394,7 @@ def _depth_values(data: bytes, name: str, size: tuple[int, int] | None) -> np.nd
         raise ValueError(f"{name}: depth map has non-numeric dtype {arr.dtype}")
     if np.issubdtype(arr.dtype, np.complexfloating):
         raise ValueError(f"{name}: depth map has complex dtype {arr.dtype}; expected real values")
-    arr = np.squeeze(arr)
+    arr = arr.reshape(_map_shape(arr.shape))
     if arr.ndim == 3 and arr.shape[2] in (3, 4):
         # the rule of a colour PNG: channels that agree are one map, a colour map is refused
         arr = _grey_channels(arr[..., :3].astype(np.float64), name)
