@@ -525,3 +525,25 @@ def test_check_aspect_known_answers():
         check_aspect((400, 300), (300, 400), "d")
     with pytest.raises(ValueError, match="a side is empty"):
         check_aspect((0, 5), (300, 400), "d")
+
+
+@pytest.mark.parametrize("src", [None, 123, 1.5, ["a.png"], np.zeros((4, 4, 3), np.float32)])
+def test_a_source_that_is_no_path_nor_bytes_is_named(src):
+    """Every file loader refuses what is neither a path nor the file's bytes with the
+    library's InputTypeError (a ValueError), naming what it got."""
+    from d2f_core import load_depth, load_photo
+    from d2f_core.errors import InputTypeError
+    from d2f_core.io import load_mask
+
+    for load in (load_image, load_photo, load_depth, load_mask):
+        with pytest.raises(InputTypeError, match=f"got {type(src).__name__}"):
+            load(src)
+
+
+@pytest.mark.parametrize("size", [(240,), (0, 5), (1.5, 5), (True, 4), "ab", 7])
+def test_load_depth_names_a_bad_photo_size(tmp_path, size):
+    from d2f_core import load_depth
+
+    np.save(tmp_path / "d.npy", np.linspace(0, 1, 12).reshape(3, 4))
+    with pytest.raises(ValueError, match=r"size: expected the photo's \(H, W\)"):
+        load_depth(tmp_path / "d.npy", size=size)

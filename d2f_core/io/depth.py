@@ -14,13 +14,14 @@ import logging
 import math
 import os
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from PIL import Image
 
+from ..errors import whole_number
 from .holes import fill_holes  # noqa: F401  (part of this module's API, as before)
-from .image import MAX_DECODE_PIXELS, open_pil, read_source_bytes, resize_float
+from .image import MAX_DECODE_PIXELS, open_pil, read_source_bytes, resize_float, source_name
 from .save import atomic_write, to_uint8
 
 logger = logging.getLogger(__name__)
@@ -47,7 +48,7 @@ def read_pfm(src: str | os.PathLike | bytes) -> np.ndarray:
         ValueError: bad header or too little data.
     """
     data = read_source_bytes(src)
-    name = "<bytes>" if isinstance(src, (bytes, bytearray, memoryview)) else os.fspath(src)
+    name = source_name(src)
     return _read_pfm(data, name)
 
 
@@ -358,14 +359,27 @@ def read_depth_array(
         ValueError: not a regular file (the message says what it is), unreadable, corrupt,
             above the limits, of another aspect ratio than ``size``, not a 2-D map.
     """
-    name = "<bytes>" if isinstance(src, (bytes, bytearray, memoryview)) else os.fspath(src)
-    if size is not None and (int(size[0]) < 1 or int(size[1]) < 1):
-        raise ValueError(f"size: expected positive (H, W), got {size}")
+    name = source_name(src)
+    size = _photo_size(size)
     data = read_source_bytes(src)
     try:
         return _depth_values(data, name, size)
     except MemoryError:  # within the pixel limit, but more than this process may have
         raise ValueError(f"{name}: not enough memory to read this depth map") from None
+
+
+def _photo_size(size: Any) -> tuple[int, int] | None:
+    """``size`` as the photo's ``(H, W)``: two whole numbers of at least 1, or ``None``."""
+    if size is None:
+        return None
+    try:
+        h, w = size
+        sides = (whole_number(h, "size's H", 1), whole_number(w, "size's W", 1))
+    except (TypeError, ValueError):
+        raise ValueError(
+            f"size: expected the photo's (H, W), two whole numbers >= 1, got {size!r}"
+        ) from None
+    return sides
 
 
 def _depth_values(data: bytes, name: str, size: tuple[int, int] | None) -> np.ndarray:
@@ -549,7 +563,7 @@ def load_depth(
     Returns:
         HxW float32 in [0, 1], 1 = nearest, at ``size`` (the image's (H, W)) when given.
     """
-    name = "<bytes>" if isinstance(path, (bytes, bytearray, memoryview)) else os.fspath(path)
+    name = source_name(path)
     raw = read_depth_array(path, size=size)  # the aspect is checked before decoding
     return depth_to_disparity(
         raw,

@@ -111,6 +111,14 @@ def source_name(src: ImageSource) -> str:
     """Printable name of an image source for messages."""
     if isinstance(src, (bytes, bytearray, memoryview)):
         return "<bytes>"
+    if not isinstance(src, (str, os.PathLike)):
+        what = type(src).__name__
+        hint = (
+            " (an array is already loaded: give it where an array goes)"
+            if hasattr(src, "shape")
+            else ""
+        )
+        raise InputTypeError(f"expected a file path or the file's bytes, got {what}{hint}")
     return os.fspath(src)
 
 
