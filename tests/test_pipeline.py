@@ -10,6 +10,7 @@ import torch
 from PIL import Image
 
 from d2f_core import rendering
+from d2f_core.errors import InputTypeError
 from d2f_core.metrics import psnr
 from d2f_core.pipeline import D2F, D2FConfig, Result, Scene
 from d2f_core.rendering.adaptive import BUDGETS
@@ -319,6 +320,12 @@ class TestInputChecks:
             model.render(scene, focus=1.5, blur=10.0)
         with pytest.raises(ValueError, match="blur"):
             model.render(scene, focus=0.5, blur=-1.0)
+        # text and bools are no numbers, though float() takes them ("0.5", True as 1 px)
+        for focus, blur, name in (("0.5", 10.0, "focus"), (True, 10.0, "focus"),
+                                  (0.5, True, "blur"), (0.5, np.bool_(True), "blur"),
+                                  (0.5, b"10", "blur")):  # fmt: skip
+            with pytest.raises(InputTypeError, match=f"{name} must be a number, got"):
+                model.render(scene, focus=focus, blur=blur)
         with pytest.raises(ValueError, match="max_side"):
             model.render(scene, focus=0.5, blur=1.0, max_side=0)
         # a preview side is a whole number: 1.5 is not truncated to a 1 px preview
@@ -549,7 +556,7 @@ class TestAdaptive:
         assert model.render(scene, 0.5, 30.0, budget=None).settings is None
         assert model.render(scene, 0.5, 30.0).settings.budget_db == 40.0
 
-    @pytest.mark.parametrize("budget", ["bogus", True, "40", float("nan"), [40]])
+    @pytest.mark.parametrize("budget", ["bogus", True, "40", float("nan"), [40], -1.0, 0])
     def test_bad_budget(self, model, budget):
         scene = model.prepare(_image(), disparity=_ramp())
         with pytest.raises(ValueError, match="budget"):

@@ -231,8 +231,8 @@ class RenderSteps:
                 budget = float(budget)
             except (TypeError, ValueError):
                 raise ValueError(bad) from None
-            if not math.isfinite(budget):
-                raise ValueError(f"budget must be finite, got {budget}")
+            if not math.isfinite(budget) or budget <= 0:
+                raise ValueError(f"budget must be a PSNR above 0 dB, got {budget}")
         return focus, blur, focal_range, budget
 
     def _pick_settings(

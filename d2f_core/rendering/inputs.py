@@ -46,6 +46,10 @@ MAX_BLUR = 10000.0
 
 
 def _number(name: str, value) -> float:
+    """``value`` as a float: a Python or NumPy number, or a one-value tensor; never text or a
+    bool, which ``float()`` would take ("0.5", ``True`` as 1 px)."""
+    if isinstance(value, (str, bytes, bool, np.bool_)):
+        raise InputTypeError(f"{name} must be a number, got {value!r}")
     try:
         return float(value)
     except (TypeError, ValueError):
