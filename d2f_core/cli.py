@@ -464,8 +464,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
     for flag, mask in (("--sharp-mask", args.sharp_mask), ("--blur-mask", args.blur_mask)):
         if mask is not None and same_file(dst, mask):
             raise UsageError(f"output {os.fspath(dst)!r} is the {flag} file")
-    if not dst.parent.exists():
-        raise RenderError(f"output folder {os.fspath(dst.parent)!r} does not exist")
+    photo_render.check_output_folder(dst)
     photo_render.render_file(src, dst, args, Engine(args.weights), args.depth)
     logger.info("wrote %s", dst)
     return 0

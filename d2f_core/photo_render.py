@@ -566,6 +566,25 @@ def _map_at_size(arr: np.ndarray, size: tuple[int, int]) -> np.ndarray:
 # --------------------------------------------------------------------------- commands
 
 
+def check_output_folder(path: Path) -> None:
+    """Refuse, before a render, an output ``path`` whose folder is missing, is no folder, or
+    cannot be written in (permissions, a read-only disk): found after the render, the render
+    would be lost."""
+    folder = path.parent
+    if not folder.exists():
+        raise RenderError(f"output folder {os.fspath(folder)!r} does not exist")
+    if not folder.is_dir():
+        raise RenderError(f"output {os.fspath(path)!r}: {os.fspath(folder)!r} is not a folder")
+    try:
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as exc:
+        reason = exc.strerror or type(exc).__name__
+        raise RenderError(
+            f"output {os.fspath(path)!r}: cannot write in {os.fspath(folder)!r} ({reason})"
+        ) from exc
+
+
 def check_output_name(path: Path) -> None:
     if path.suffix.lower() not in SAVE_FORMATS:
         known = " ".join(sorted(SAVE_FORMATS))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import os
 import re
 import sys
 from pathlib import Path
@@ -110,6 +111,28 @@ class TestUsage:
         code, err = _run(capsys, "batch", tmp_path, "-o", tmp_path, "--blur", 5)
         assert code == 2 and err.count("\n") == 1, err
         assert err.rstrip().endswith("(see 'd2f batch --help')"), err
+
+    def test_an_output_folder_that_cannot_be_written_is_refused_before_rendering(
+        self, tmp_path, capsys, monkeypatch
+    ):
+        img, _ = _scene()
+        src = _write_photo(tmp_path / "photo.png", img)
+        rendered = []
+        monkeypatch.setattr(
+            "d2f_core.photo_render.render_file", lambda *a: rendered.append(a)
+        )  # never reached: each output below is refused first
+        code, err = _run(capsys, "render", src, "-o", tmp_path / "photo.png" / "x.png", "--blur", 5)
+        assert code == 1 and err.count("\n") == 1, err
+        assert "'photo.png' is not a folder" in err.replace(os.fspath(tmp_path) + "/", "")
+        code, err = _run(capsys, "render", src, "-o", tmp_path / "none" / "x.png", "--blur", 5)
+        assert code == 1 and "does not exist" in err
+        if os.geteuid() != 0:  # root writes in any folder whatever its mode
+            locked = tmp_path / "locked"
+            locked.mkdir(mode=0o555)
+            code, err = _run(capsys, "render", src, "-o", locked / "x.png", "--blur", 5)
+            assert code == 1 and "cannot write in" in err and "Permission denied" in err, err
+            assert ".tmp" not in err  # the output is named, not a temporary file
+        assert rendered == []
 
     def test_unknown_output_extension(self, tmp_path, capsys):
         img, _ = _scene()

@@ -547,3 +547,23 @@ def test_load_depth_names_a_bad_photo_size(tmp_path, size):
     np.save(tmp_path / "d.npy", np.linspace(0, 1, 12).reshape(3, 4))
     with pytest.raises(ValueError, match=r"size: expected the photo's \(H, W\)"):
         load_depth(tmp_path / "d.npy", size=size)
+
+
+def test_a_failed_write_names_the_output_and_leaves_nothing(tmp_path):
+    """An OSError while the file is written (a full disk gives no file name) names the output,
+    not the hidden temporary file beside it, and the temporary file is gone."""
+    import errno
+
+    def full_disk(fh):
+        fh.write(b"part")
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    out = tmp_path / "out.jpg"
+    with pytest.raises(OSError, match="No space left on device") as caught:
+        io_save.atomic_write(out, full_disk)
+    assert caught.value.errno == errno.ENOSPC and caught.value.filename == str(out)
+    assert list(tmp_path.iterdir()) == []
+    (tmp_path / "x.png").write_bytes(b"a file")
+    with pytest.raises(OSError) as caught:  # in a "folder" that is a file: mkstemp fails
+        io_save.atomic_write(tmp_path / "x.png" / "y.png", lambda fh: None)
+    assert caught.value.filename == str(tmp_path / "x.png" / "y.png")

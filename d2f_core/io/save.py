@@ -94,16 +94,27 @@ def _umask() -> int:
 def atomic_write(path: Path, write) -> None:
     """Call ``write(file_object)`` on a temp file next to ``path``, then rename it into place,
     so that a failure never leaves a half-written output."""
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    except OSError as exc:
+        raise _named(exc, path) from exc
     try:
         with os.fdopen(fd, "wb") as fh:
             write(fh)
         # mkstemp creates 0600 files; give the output the permissions open() would have
         os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         Path(tmp).unlink(missing_ok=True)
+        if isinstance(exc, OSError) and exc.errno is not None:
+            raise _named(exc, path) from exc
         raise
+
+
+def _named(exc: OSError, path: Path) -> OSError:
+    """``exc`` about the output ``path``, not the hidden temporary file beside it (a full
+    disk says no file at all): ``[Errno 28] No space left on device: 'out.jpg'``."""
+    return type(exc)(exc.errno, exc.strerror or str(exc), os.fspath(path))
 
 
 #: the share of Pillow's one-shot buffer for optimised Huffman tables (1 byte a pixel, 2 from
