@@ -38,6 +38,7 @@ from .photo_render import (
     UsageError,
     check_output_name,
     error_message,
+    one_line,
 )
 
 # named explicitly: under "python -m d2f_core.cli" __name__ is "__main__"
@@ -87,9 +88,12 @@ def _blur_px(text: str) -> float:
 def _f_number(text: str) -> float:
     from .lens import F_NUMBER_LIMITS
 
-    value = _non_negative_float(text)
     lo, hi = F_NUMBER_LIMITS
-    if not lo <= value <= hi:
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not lo <= value <= hi:  # NaN too
         raise argparse.ArgumentTypeError(f"expected an f-number in [{lo:g}, {hi:g}], got {text!r}")
     return value
 
@@ -506,7 +510,8 @@ def main(argv: list[str] | None = None) -> int:
 
         return run_batch(args)
     except UsageError as exc:  # worded as the parser's own errors are
-        print(f"{PROG}: error: {exc} (see '{PROG} {args.command} --help')", file=sys.stderr)
+        hint = f"(see '{PROG} {args.command} --help')"
+        print(f"{PROG}: error: {one_line(str(exc))} {hint}", file=sys.stderr)
         return 2
     except Exception as exc:  # expected ones name the problem; any other, one line too
         print(f"{PROG}: error: {error_message(exc)}", file=sys.stderr)

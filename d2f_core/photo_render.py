@@ -69,6 +69,7 @@ class Engine:
     _model: Any = None
     _error: str | None = None
     _tried: bool = False
+    _unusable: bool = False
 
     def model(self) -> Any:
         if self._tried:
@@ -78,7 +79,8 @@ class Engine:
 
         if self.weights is not None:
             if not self.weights.is_file():
-                raise RenderError(f"--weights {os.fspath(self.weights)!r}: no such file")
+                what = "is a folder" if self.weights.is_dir() else "no such file"
+                raise RenderError(f"--weights {os.fspath(self.weights)!r}: {what}")
             try:
                 self._model = D2F.from_checkpoint(self.weights)
             except (ValueError, FileNotFoundError) as exc:
@@ -89,10 +91,17 @@ class Engine:
         except FileNotFoundError as exc:
             self._error = str(exc)
             logger.info("D2F weights unavailable (%s)", exc)
-        except ValueError as exc:  # present but unusable: worth a warning
+        except ValueError as exc:  # present but unusable: a warning where a render goes on
             self._error = str(exc)
-            logger.warning("D2F weights unusable (%s)", exc)
+            self._unusable = True
         return self._model
+
+    def say_unusable(self) -> None:
+        """Warn, once, that the default weights are there but cannot be used, where a render
+        goes on without them (where it cannot, its error says why, in one line)."""
+        if self._unusable:
+            self._unusable = False
+            logger.warning("D2F weights unusable (%s)", self._error)
 
     @property
     def error(self) -> str | None:
@@ -337,6 +346,7 @@ def render_file(
             model, src, args, photo, depth, masks, (focus, point, focal_range), blur, options
         )
     elif disparity is not None:
+        engine.say_unusable()
         rendered, focus, focal_range, point = _render_with_map(
             src, args, photo, disparity, masks, (focus, point, focal_range), blur, options
         )
@@ -532,6 +542,8 @@ def map_targets(
     anything is written."""
     if folder is None:
         return []
+    if folder.exists() and not folder.is_dir():
+        raise RenderError(f"--save-maps {os.fspath(folder)}: a file, not a folder")
     try:
         folder.mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryFile(dir=folder):
@@ -601,4 +613,10 @@ def error_message(exc: BaseException) -> str:
         text = f"{exc.filename}: {exc.strerror}"
     if not isinstance(exc, _EXPECTED_ERRORS):  # a defect of d2f, not of the input
         text = f"unexpected {type(exc).__name__}: {text} (please report it)"
-    return text
+    return one_line(text)
+
+
+def one_line(text: str) -> str:
+    """``text`` with its line breaks written as ``\\n``: a line break in a file's name (or a
+    library's message) would begin a second line of an error."""
+    return text.replace("\r", "\\r").replace("\n", "\\n")

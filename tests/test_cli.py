@@ -141,6 +141,50 @@ class TestUsage:
         assert code == 2 and "extension" in err
 
 
+class TestOneLine:
+    """Each refusal is one line that names the problem as it is."""
+
+    def test_unusable_default_weights_said_once(self, tmp_path, capsys, monkeypatch):
+        img, disp = _scene()
+        src = _write_photo(tmp_path / "photo.png", img)
+        (tmp_path / "empty.pt").write_bytes(b"")
+        monkeypatch.setenv("D2F_WEIGHTS", str(tmp_path / "empty.pt"))
+        code, err = _run(capsys, "render", src, "-o", tmp_path / "o.png", "--blur", 5)
+        # no render without weights nor map: the error says why, and nothing else is printed
+        assert code == 1 and err.count("\n") == 1 and "empty.pt cannot be read" in err, err
+        save_depth(tmp_path / "depth.png", disp)
+        argv = ["-o", tmp_path / "o.png", "--blur", 5, "--depth", tmp_path / "depth.png"]
+        code, err = _run(capsys, "render", src, *argv, "--focus", 1.0)
+        # a render that goes on without them warns, once
+        assert code == 0 and err.count("\n") == 1, err
+        assert err.startswith("d2f: warning: D2F weights unusable (") and "empty.pt" in err
+
+    def test_each_message_names_the_problem(self, tmp_path, capsys, checkpoint):
+        img, _ = _scene()
+        src = _write_photo(tmp_path / "photo.png", img)
+        out = ["-o", tmp_path / "o.png", "--blur", 5]
+        cases = [
+            (["--weights", tmp_path], 1, f"--weights {str(tmp_path)!r}: is a folder"),
+            (["--weights", checkpoint, "--focus", 0.5, "--save-maps", src], 1,
+             f"--save-maps {src}: a file, not a folder"),
+            (["--f-number", -2], 2, "expected an f-number in [0.5, 1000], got '-2'"),
+            (["--depth-model", "file:"], 2, "needs a map file: write file:PATH"),
+            (["--depth-model", "transformers:"], 2, "a folder: write transformers:MODEL"),
+        ]  # fmt: skip
+        for extra, status, words in cases:
+            code, err = _run(capsys, "render", src, *out, *extra)
+            assert code == status and err.count("\n") == 1 and words in err, (extra, err)
+        assert not (tmp_path / "o.png").exists()
+
+    def test_a_line_break_in_a_name_stays_in_the_line(self, tmp_path, capsys):
+        missing = tmp_path / "a\nb.png"
+        code, err = _run(capsys, "render", missing, "-o", tmp_path / "o.png", "--blur", 5)
+        assert code == 1 and err.count("\n") == 1 and "a\\nb.png: no such file" in err, err
+        src = _write_photo(tmp_path / "p\nq.png", _scene()[0])
+        code, err = _run(capsys, "render", src, "-o", tmp_path / "o\n.gif", "--blur", 5)
+        assert code == 2 and err.count("\n") == 1 and "o\\n.gif" in err, err
+
+
 class TestRender:
     def test_with_depth_file_and_no_weights(self, tmp_path, capsys):
         img, disp = _scene()

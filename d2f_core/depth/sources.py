@@ -174,8 +174,10 @@ def parse_source(source: str | DepthSource) -> DepthSource:
             raise ValueError(f"depth source {kind!r} takes no argument, got {source!r}")
         return DepthSource(kind)
     if not arg:
-        what = "a map file" if kind == "file" else "a model id or a folder"
-        raise ValueError(f"depth source {kind!r} needs {what}: write {kind}:{what.split()[-1]}")
+        what, form = (
+            ("a map file", "PATH") if kind == "file" else ("a model id or a folder", "MODEL")
+        )
+        raise ValueError(f"depth source {kind!r} needs {what}: write {kind}:{form}")
     return DepthSource(kind, arg)
 
 
