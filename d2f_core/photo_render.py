@@ -22,6 +22,7 @@ import numpy as np
 
 from .depth.subject import focus_in_map, range_in_map, subject_in_map
 from .io import SAVE_FORMATS, load_photo, same_file, save_depth, save_image
+from .io.save import check_side_limit
 
 __all__ = [
     "DEFAULT_MAX_PIXELS",
@@ -333,6 +334,7 @@ def render_file(
             "(--max-pixels 0 renders it at its size)",
             src, ow, oh, ow * oh / 1e6, w, h, DEFAULT_MAX_PIXELS / 1e6,
         )  # fmt: skip
+    check_side_limit(dst, (h, w))  # before the render, not after it
     blur = _blur_of(args, (h, w))
     focal_range = getattr(args, "focal_range", None)
     masks = _load_masks(args, (h, w))

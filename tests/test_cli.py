@@ -176,6 +176,20 @@ class TestOneLine:
             assert code == status and err.count("\n") == 1 and words in err, (extra, err)
         assert not (tmp_path / "o.png").exists()
 
+    def test_a_picture_too_long_for_its_format_is_refused_before_the_render(
+        self, tmp_path, capsys, checkpoint, monkeypatch
+    ):
+        src = _write_photo(tmp_path / "long.png", np.zeros((2, 16384, 3), np.uint8))
+        rendered = []
+        monkeypatch.setattr(
+            "d2f_core.photo_render._render_with_model", lambda *a: rendered.append(a)
+        )
+        argv = ["-o", tmp_path / "o.webp", "--blur", 5, "--weights", checkpoint, "--focus", 0.5]
+        code, err = _run(capsys, "render", src, *argv)
+        assert code == 1 and err.count("\n") == 1 and rendered == [], err
+        assert "cannot save 'o.webp': WEBP holds at most 16383 px a side" in err
+        assert "16384x2; save it as .png or .tif" in err
+
     def test_a_line_break_in_a_name_stays_in_the_line(self, tmp_path, capsys):
         missing = tmp_path / "a\nb.png"
         code, err = _run(capsys, "render", missing, "-o", tmp_path / "o.png", "--blur", 5)

@@ -458,6 +458,12 @@ class TestSave:
         save_image(tmp_path / "x.png", long)
         assert load_image(tmp_path / "x.png").shape[:2] == (1, 16384)
 
+    @pytest.mark.parametrize("quality", [float("nan"), 90.5, "95", True, 0, 101])
+    def test_quality_is_a_whole_number_from_1_to_100(self, tmp_path, quality):
+        with pytest.raises(ValueError, match="quality"):
+            save_image(tmp_path / "x.jpg", np.zeros((4, 4, 3), np.uint8), quality=quality)
+        assert not (tmp_path / "x.jpg").exists()
+
 
 class TestFloatToUint8:
     """Floats to bytes by bands of rows: the same bytes as the whole-picture formula."""

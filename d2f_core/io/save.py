@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from ..errors import InputTypeError
+from ..errors import InputTypeError, whole_number
 from .formats import strip_orientation
 from .image import SAVE_FORMATS
 
@@ -145,6 +145,21 @@ def _jpeg_bytes(img: Image.Image, params: dict) -> bytes:
     return encode(optimize=True)
 
 
+def check_side_limit(path: str | os.PathLike, size: tuple[int, int]) -> None:
+    """Refuse a picture of ``size`` ``(H, W)`` that the format of ``path`` cannot hold (JPEG:
+    65,500 px a side, WebP: 16,383), as :func:`save_image` would; a command checks it before
+    it renders."""
+    out = Path(path)
+    fmt = SAVE_FORMATS.get(out.suffix.lower())
+    limit = _SIDE_LIMITS.get(fmt)
+    h, w = (int(n) for n in size)
+    if limit is not None and max(h, w) > limit:
+        raise ValueError(
+            f"cannot save {out.name!r}: {fmt} holds at most {limit} px a side and the "
+            f"image is {w}x{h}; save it as .png or .tif"
+        )
+
+
 def save_image(
     path: str | os.PathLike,
     array: np.ndarray,
@@ -176,7 +191,7 @@ def save_image(
     if fmt is None:
         known = ", ".join(sorted(SAVE_FORMATS))
         raise ValueError(f"path: cannot save {out.name!r}: unknown extension (use one of {known})")
-    if not 1 <= int(quality) <= 100:
+    if not 1 <= whole_number(quality, "quality", 1) <= 100:
         raise ValueError(f"quality: expected 1..100, got {quality}")
     if protect is not None:
         protected = [protect] if isinstance(protect, (str, os.PathLike)) else list(protect)
@@ -187,13 +202,8 @@ def save_image(
         raise ValueError(f"path: {os.fspath(out)!r} is a directory")
     if not out.parent.exists():
         raise ValueError(f"path: directory {os.fspath(out.parent)!r} does not exist")
-    limit = _SIDE_LIMITS.get(fmt)
-    if limit is not None and np.ndim(array) >= 2 and max(np.shape(array)[:2]) > limit:
-        h, w = np.shape(array)[:2]  # refused before the picture is converted
-        raise ValueError(
-            f"path: cannot save {out.name!r}: {fmt} holds at most {limit} px a side and the "
-            f"image is {w}x{h}; save it as .png or .tif"
-        )
+    if np.ndim(array) >= 2:  # refused before the picture is converted
+        check_side_limit(out, np.shape(array)[:2])
     pixels = to_uint8(array, "array")
     if pixels.ndim == 3 and pixels.shape[2] == 4:
         pixels = pixels[..., :3]
