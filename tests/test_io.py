@@ -155,6 +155,23 @@ class TestModes:
         assert r > 0.9 and g < 0.1 and b > 0.9  # magenta
         assert info.icc_profile is None or info.icc_profile != srgb
 
+    @pytest.mark.parametrize("fmt", ["PNG", "JPEG"])
+    def test_a_grey_photos_gray_profile_is_not_kept_for_its_rgb_pixels(self, tmp_path, fmt):
+        # a profile of the GRAY colour space (an sRGB one relabelled: lcms builds no grey
+        # profile) describes one channel, not the RGB copy every loaded photo is
+        srgb = ImageCms.ImageCmsProfile(ImageCms.createProfile("sRGB")).tobytes()
+        gray = srgb[:16] + b"GRAY" + srgb[20:]
+        grey = Image.fromarray(np.linspace(0, 255, 64, dtype=np.uint8).reshape(8, 8))
+        out, info = load_image_with_info(_encode(grey, fmt, icc_profile=gray))
+        assert out.shape == (8, 8, 3) and info.icc_profile is None
+        assert "the GRAY ICC profile dropped (it does not describe RGB pixels)" in info.conversions
+        written = save_image(tmp_path / f"o.{fmt.lower()}", out, icc_profile=info.icc_profile)
+        with Image.open(written) as im:
+            assert im.mode == "RGB" and "icc_profile" not in im.info
+        # an RGB photo keeps its profile
+        _, info = load_image_with_info(_encode(grey.convert("RGB"), fmt, icc_profile=srgb))
+        assert info.icc_profile == srgb
+
     def test_int32_and_float_tiff(self, caplog):
         i32 = (np.arange(12, dtype=np.int32).reshape(3, 4) * 5000).astype(np.int32)
         out, info = load_image_with_info(_encode(Image.fromarray(i32), "TIFF"))

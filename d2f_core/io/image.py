@@ -256,6 +256,18 @@ def _composite_over_white(rgb: np.ndarray, alpha: np.ndarray, conv: list[str]) -
     return rgb * a + (1.0 - a)
 
 
+def _rgb_profile(icc: bytes | None, conv: list[str]) -> bytes | None:
+    """``icc`` when it describes RGB pixels, as the loaded picture's are; else ``None``. A grey
+    photo's GRAY profile, written with its RGB copy, makes a file that colour-managed
+    software cannot convert; its tone curve is close to sRGB's, which a file with no profile
+    is taken for."""
+    if not icc or icc[16:20] == b"RGB ":
+        return icc
+    space = icc[16:20].decode("latin-1").strip() or "unknown"
+    conv.append(f"the {space} ICC profile dropped (it does not describe RGB pixels)")
+    return None
+
+
 def _to_float_rgb(im: Image.Image, conv: list[str]) -> tuple[np.ndarray, bytes | None]:
     """Convert any Pillow mode to HxWx3 float32 in [0, 1]. Also returns the ICC profile that
     describes the result (changed when CMYK is converted to sRGB)."""
@@ -533,7 +545,7 @@ def _decode_image(
         rgb = apply_orientation(rgb, orientation)
         conv.append(f"applied EXIF orientation {orientation}")
     rgb = np.clip(rgb, 0.0, 1.0, out=np.ascontiguousarray(rgb, dtype=np.float32))
-    info.icc_profile = icc
+    info.icc_profile = _rgb_profile(icc, conv)
     info.exif = strip_orientation(exif_raw)
     info.size = (rgb.shape[0], rgb.shape[1])
     return rgb, info
