@@ -6,6 +6,7 @@ renders the loupe's region again.
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import gradio as gr
@@ -70,6 +71,8 @@ class LoupeEvents:
             x, y = (float(v) for v in index)
         except (TypeError, ValueError):
             raise user_error(f"Click position must be [x, y], got {index!r}.") from None
+        if not (math.isfinite(x) and math.isfinite(y)):
+            raise user_error(f"Click position: x and y must be finite, got {index!r}.")
         shown = session.views["Bokeh"]
         sh, sw = shown.shape[:2]
         w, h = session.size

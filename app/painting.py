@@ -20,6 +20,7 @@ from PIL import Image
 from app.reporting import NO_PHOTO, SKIP4, user_error
 from app.sessions import Session, reported
 from d2f_core.depth.brushes import Brushes
+from d2f_core.io.depth import check_aspect
 
 log = logging.getLogger("app.handlers")
 
@@ -38,6 +39,12 @@ def masks_from_layers(layers: Any) -> tuple[np.ndarray | None, np.ndarray | None
         a = np.asarray(layer)
         if a.ndim != 3 or a.shape[2] != 4 or a.size == 0:
             raise user_error(f"The paint layer must be an RGBA picture, got shape {a.shape}.")
+        if sharp is not None and a.shape[:2] != sharp.shape:
+            (h, w), (h0, w0) = a.shape[:2], sharp.shape
+            raise user_error(
+                f"The paint layers differ in size ({w0}x{h0} and {w}x{h}): paint them all "
+                "on the photo shown in the brushes' panel."
+            )
         painted = a[..., 3] > 0
         green = a[..., 1].astype(np.int16) > a[..., 0].astype(np.int16)
         here_sharp, here_blur = painted & green, painted & ~green
@@ -79,11 +86,14 @@ class PaintEvents:
         if name:
             w, h = session.size
             for what, m in (("painted keep-sharp", sharp), ("painted blur", blur)):
-                if m is not None and abs(np.log((m.shape[1] / m.shape[0]) / (w / h))) > 0.05:
+                try:
+                    if m is not None:
+                        check_aspect(m.shape, (h, w), "paint")
+                except ValueError:
                     raise user_error(
                         f"The {what} mask is {m.shape[1]}x{m.shape[0]}, not the photo's shape "
                         f"({w}x{h}): paint on the photo shown in the brushes' panel."
-                    )
+                    ) from None
             image = session.get_scene().image
             brushes = Brushes.painted(image, sharp, blur, edges=edges)
             folder = self._session_dir(session, "paint")

@@ -239,15 +239,13 @@ class RenderEvents:
         )
         if blur_on in (False, None, 0, "false", "False"):
             return f"Blur is off: the photo as it is ({lens})"
-        try:
-            n = round(float(f_number), 3)
-            if not n > 0:
-                raise ValueError
-        except (TypeError, ValueError):
-            return lens
         live = isinstance(session, Session) and not session.closed
         w, h = session.size if live else REFERENCE_SIZE
-        k = blur_px(n, max(w, h))
+        try:
+            n = round(float(f_number), 3)
+            k = blur_px(n, max(w, h))  # refuses an f-number outside the lens's range
+        except (TypeError, ValueError, OverflowError):
+            return lens
         capped = " (the most the app renders)" if k >= MAX_BLUR_PX else ""
         where = f"this {w}x{h} photo" if live else f"a {w}x{h} photo"
         return f"f/{n:g}: blur K = {k:g} px{capped} on {where} ({lens})"

@@ -441,12 +441,21 @@ def normalize_disparity(
     return np.clip((d - lo) / (hi - lo), 0.0, 1.0).astype(np.float32)
 
 
+def _rounded_alike(a: tuple[int, int], b: tuple[int, int]) -> bool:
+    """Whether ``(H, W)`` ``a`` and ``b`` are one picture at two sizes, a side of the smaller
+    rounded to a whole pixel: a 4000x16 photo shown 1600 px wide is 6 px tall (6.4), 7 %
+    off its aspect."""
+    (sh, sw), (lh, lw) = sorted((a, b), key=lambda s: s[0] * s[1])
+    return abs(sh - lh * sw / lw) <= 1.0 or abs(sw - lw * sh / lh) <= 1.0
+
+
 def check_aspect(
     map_shape: tuple[int, ...], image_shape: tuple[int, ...], name: str, what: str = "depth map"
 ) -> None:
     """Raise ``ValueError`` when a depth map of ``(H, W)`` ``map_shape`` would be stretched onto
-    an image of ``(H, W)`` ``image_shape``: their aspect ratios differ by more than 5 % (a map
-    of another resolution and the same shape is only resized). The message says when the map
+    an image of ``(H, W)`` ``image_shape``: their aspect ratios differ by more than 5 %, and
+    by more than a side of the smaller rounded to a whole pixel (a map of another resolution
+    and the same shape is only resized). The message says when the map
     looks turned a quarter relative to the image. A map or an image of one pixel passes.
     ``what`` names the map in the message (a painted mask is checked the same way).
     """
@@ -456,7 +465,7 @@ def check_aspect(
     if max(mh, mw) <= 1 or max(h, w) <= 1:
         return
     ar_map, ar_img = mw / mh, w / h
-    if abs(math.log(ar_map / ar_img)) > 0.05:
+    if abs(math.log(ar_map / ar_img)) > 0.05 and not _rounded_alike((mh, mw), (h, w)):
         hint = ""
         if abs(math.log(ar_map * ar_img)) <= 0.05:
             hint = " (it looks rotated by 90 degrees relative to the image)"
