@@ -145,6 +145,7 @@ def load_depth_map(
     size: tuple[int, int],
     kind: str = "disparity",
     name: str = "depth map",
+    notes: list[str] | None = None,
 ) -> tuple[np.ndarray, tuple[int, int]]:
     """Read a user's depth or disparity map with ``d2f_core.io`` and express it as disparity.
 
@@ -153,6 +154,8 @@ def load_depth_map(
         size: ``(width, height)`` of the photo; the map is resized to it.
         kind: ``"disparity"`` (bright = near) or ``"depth"`` (distances, small = near).
         name: the user's file name, used in messages.
+        notes: where to add what the user should know of a map that loaded: its holes
+            (filled from around them) and a map of one value (the photo at one depth).
 
     Returns:
         ``(disparity, stored_size)``: ``(H, W)`` float32 disparity in [0, 1], 1 = nearest, at
@@ -171,7 +174,34 @@ def load_depth_map(
         raise ValueError(f"{name}: the upload could not be found on the server.") from None
     except ValueError as err:
         raise ValueError(_user_message(err, path, name)) from None
+    if notes is not None:
+        notes.extend(depth_notes(raw, kind, name))
     return disparity, (raw.shape[1], raw.shape[0])
+
+
+def depth_notes(raw: np.ndarray, kind: str, name: str) -> list[str]:
+    """What a map's values say that its picture does not: pixels with no depth (NaN,
+    infinite; zero or negative in a depth map), which the library fills from around them, and
+    a map of one value, which the library takes for the photo at one depth (a map it would
+    refuse, with no valid pixel, never gets here)."""
+    valid = np.isfinite(raw)
+    if kind == "depth":
+        valid &= raw > 0
+    notes = []
+    holes = int(valid.size - np.count_nonzero(valid))
+    if holes:
+        what = "NaN, infinite, zero or negative" if kind == "depth" else "NaN or infinite"
+        notes.append(
+            f"{name}: {holes} of its {raw.size} pixels ({100 * holes / raw.size:.1f} %) hold no "
+            f"depth ({what}); they were filled from the depth around them."
+        )
+    values = raw[valid]
+    if values.size and values.min() == values.max():
+        notes.append(
+            f"{name} holds one value everywhere: the whole photo is at one depth, and it is "
+            "blurred evenly or not at all."
+        )
+    return notes
 
 
 def steady_page_faults() -> bool:

@@ -276,9 +276,12 @@ class LoadEvents:
         if depth_path is not None:
             self._check_file(depth_path)
         depth_name = _payload_name(depth, "depth map", ext=True)
+        notes: list[str] = []
         photo, disparity, source, depth_size = self._decode(
-            path, photo_name, depth_path, depth_kind, depth_name
+            path, photo_name, depth_path, depth_kind, depth_name, notes
         )
+        for note in notes:
+            gr.Warning(note)
         # the "Depth source" control (app/sources.py): the scene cache keys on the source
         chosen, note = sources.resolve(
             depth_source,
@@ -352,13 +355,17 @@ class LoadEvents:
         depth_path: str | None,
         depth_kind: Any,
         depth_name: str,
+        notes: list[str] | None = None,
     ) -> tuple[imaging.Photo, np.ndarray | None, str, tuple[int, int] | None]:
         """``(photo, disparity or None, where the disparity comes from, the depth file's
-        size or None)`` of an upload."""
+        size or None)`` of an upload; what the user should know of the map is added to
+        ``notes`` (:func:`app.imaging.depth_notes`)."""
         photo = imaging.load_photo(path, name)
         if depth_path is not None:
             kind = "depth" if str(depth_kind).startswith("depth") else "disparity"
-            disparity, size = imaging.load_depth_map(depth_path, photo.size, kind, depth_name)
+            disparity, size = imaging.load_depth_map(
+                depth_path, photo.size, kind, depth_name, notes
+            )
             return photo, disparity, f"your {kind} map", size
         if photo.disparity is not None:
             source = f"depth embedded in the photo ({photo.depth_source})"

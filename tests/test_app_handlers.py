@@ -192,6 +192,44 @@ class TestLoadDepth:
             imaging.load_depth_map(tall, (64, 16))
 
 
+class TestDepthNotes:
+    """A map's holes and a map of one value are said to the user, not only to the log."""
+
+    def test_holes_and_one_value(self, tmp_path):
+        holed = np.linspace(1, 3, 12 * 16, dtype=np.float32).reshape(12, 16)
+        holed[:3] = np.nan
+        np.save(tmp_path / "holed.npy", holed)
+        notes: list[str] = []
+        d, _ = imaging.load_depth_map(
+            tmp_path / "holed.npy", (16, 12), name="holed.npy", notes=notes
+        )
+        assert np.isfinite(d).all()
+        assert notes == [
+            "holed.npy: 48 of its 192 pixels (25.0 %) hold no depth (NaN or infinite); "
+            "they were filled from the depth around them."
+        ]
+        flat = np.full((12, 16), 2.0)
+        flat[:, :4] = 0.0  # zero is no distance: holes of a depth map
+        np.save(tmp_path / "flat.npy", flat)
+        notes = []
+        imaging.load_depth_map(tmp_path / "flat.npy", (16, 12), "depth", "flat.npy", notes)
+        assert len(notes) == 2 and "(NaN, infinite, zero or negative)" in notes[0]
+        assert notes[1].startswith("flat.npy holds one value everywhere")
+        notes = []  # a map with depth in it says nothing
+        imaging.load_depth_map(tmp_path / "holed.npy", (16, 12), "disparity", "x", None)
+        np.save(tmp_path / "ramp.npy", np.linspace(1, 3, 192).reshape(12, 16))
+        imaging.load_depth_map(tmp_path / "ramp.npy", (16, 12), notes=notes)
+        assert notes == []
+
+    def test_an_upload_with_a_flat_map_warns(self, logic, two_plane_scene, tmp_path):
+        np.save(tmp_path / "flat.npy", np.full((240, 320), 0.7, np.float32))
+        with pytest.warns(UserWarning, match="flat.npy holds one value everywhere"):
+            out = logic.load(
+                str(two_plane_scene.photo), str(tmp_path / "flat.npy"), "disparity", None, 0.5, 1.0
+            )
+        assert out[0] is not None
+
+
 class TestDisplayHelpers:
     def test_colorize_known_stops(self):
         v = np.array([[0.0, 0.5, 1.0, -3.0, 7.0]], np.float32)
