@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from _io_writers import apple_mpo, lensblur_jpeg
-from PIL import Image
+from PIL import Image, ImageOps
 
 from d2f_core.io import (
     depth_to_disparity,
@@ -154,6 +154,27 @@ class TestLoadDepth:
         with pytest.raises(ValueError, match=r"2-D depth map, got shape \(50,\)"):
             np.save(tmp_path / "v.npy", np.ones(50))
             read_depth_array(tmp_path / "v.npy")
+
+    @pytest.mark.parametrize("orientation", [3, 6, 8])
+    def test_a_rotated_map_is_read_upright_as_its_photo(self, tmp_path, orientation):
+        """A PNG or JPEG map with an EXIF orientation is read as a viewer shows it, the way
+        its photo is loaded: upright, its size checked upright."""
+        upright = np.add.outer(np.arange(6) * 40, np.arange(10) * 4).astype(np.uint8)  # 6x10
+        turn = {3: 2, 6: 1, 8: 3}[orientation]  # quarter turns anticlockwise it is stored in
+        stored = Image.fromarray(np.rot90(upright, turn))
+        exif = Image.Exif()
+        exif[0x0112] = orientation
+        for ext in ("png", "jpg"):
+            path = tmp_path / f"d{orientation}.{ext}"
+            stored.save(path, exif=exif, **({"quality": 100} if ext == "jpg" else {}))
+            with Image.open(path) as im:
+                viewer = np.asarray(ImageOps.exif_transpose(im), dtype=np.float64)
+            read = read_depth_array(path, size=(60, 100))  # the photo upright, 100x60
+            assert read.shape == (6, 10)
+            np.testing.assert_array_equal(read, viewer)
+            assert np.abs(read - upright).max() <= (0 if ext == "png" else 3)
+            with pytest.raises(ValueError, match="rotated by 90 degrees"):
+                read_depth_array(path, size=(100, 60))
 
     def test_multichannel_float_tiff(self, tmp_path):
         tifffile = pytest.importorskip("tifffile")

@@ -20,6 +20,7 @@ import numpy as np
 from PIL import Image
 
 from ..errors import whole_number
+from .formats import apply_orientation, exif_orientation
 from .holes import fill_holes  # noqa: F401  (part of this module's API, as before)
 from .image import MAX_DECODE_PIXELS, open_pil, read_source_bytes, resize_float, source_name
 from .save import atomic_write, to_uint8
@@ -398,9 +399,12 @@ def _depth_values(data: bytes, name: str, size: tuple[int, int] | None) -> np.nd
         try:
             im = open_pil(data, name)  # refuses a header above the pixel limit, unread
             with im:
-                _check_map_header((im.size[1], im.size[0]), size, name)
+                # upright, as a viewer shows it and as the photo is loaded
+                orientation = exif_orientation(im, data)
+                w, h = im.size if orientation < 5 else im.size[::-1]
+                _check_map_header((h, w), size, name)
                 im.load()
-                arr = _grey_from_pil(im, name)
+                arr = apply_orientation(_grey_from_pil(im, name), orientation)
         except (OSError, SyntaxError, EOFError) as exc:
             raise ValueError(f"{name}: truncated or corrupt depth image: {exc}") from exc
     arr = np.asarray(arr)
