@@ -499,9 +499,12 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     argv = _join_negative_points(list(sys.argv[1:] if argv is None else argv))
     try:
-        args = parser.parse_args(argv)
+        args = parser.parse_args(argv)  # its checks import the renderer (torch): a second
     except SystemExit as exc:  # argparse already printed usage and the message
         return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 2)
+    except KeyboardInterrupt:
+        print(f"{PROG}: interrupted", file=sys.stderr)
+        return 130
     handler, old_level = _setup_logging(args.quiet, args.verbose)
     try:
         if args.command == "render":

@@ -190,6 +190,20 @@ class TestOneLine:
         assert "cannot save 'o.webp': WEBP holds at most 16383 px a side" in err
         assert "16384x2; save it as .png or .tif" in err
 
+    def test_ctrl_c_while_the_arguments_are_checked(self, tmp_path, capsys, monkeypatch):
+        """The blur's check imports the renderer (torch, about a second): Ctrl-C then is an
+        interruption like any other, not a traceback."""
+        import d2f_core.cli as cli
+
+        def interrupted(text):
+            raise KeyboardInterrupt
+
+        monkeypatch.setattr(cli, "_blur_px", interrupted)
+        code, err = _run(
+            capsys, "render", tmp_path / "p.png", "-o", tmp_path / "o.png", "--blur", 5
+        )
+        assert (code, err) == (130, "d2f: interrupted\n")
+
     def test_a_line_break_in_a_name_stays_in_the_line(self, tmp_path, capsys):
         missing = tmp_path / "a\nb.png"
         code, err = _run(capsys, "render", missing, "-o", tmp_path / "o.png", "--blur", 5)
