@@ -548,13 +548,13 @@ def map_targets(
         raise RenderError(f"--save-maps {os.fspath(folder)}: a file, not a folder")
     try:
         folder.mkdir(parents=True, exist_ok=True)
-        with tempfile.TemporaryFile(dir=folder):
-            pass
     except OSError as exc:
-        reason = exc.strerror or type(exc).__name__
         raise RenderError(
-            f"--save-maps {os.fspath(folder)}: cannot write there ({reason})"
+            f"--save-maps {os.fspath(folder)}: cannot write there ({_reason(exc)})"
         ) from exc
+    reason = _unwritable(folder)
+    if reason:
+        raise RenderError(f"--save-maps {os.fspath(folder)}: cannot write there ({reason})")
     out = []
     for name, arr in maps.items():
         target = folder / f"{dst.stem}_{name}.png"
@@ -589,14 +589,25 @@ def check_output_folder(path: Path) -> None:
         raise RenderError(f"output folder {os.fspath(folder)!r} does not exist")
     if not folder.is_dir():
         raise RenderError(f"output {os.fspath(path)!r}: {os.fspath(folder)!r} is not a folder")
-    try:
-        with tempfile.TemporaryFile(dir=folder):
-            pass
-    except OSError as exc:
-        reason = exc.strerror or type(exc).__name__
+    reason = _unwritable(folder)
+    if reason:
         raise RenderError(
             f"output {os.fspath(path)!r}: cannot write in {os.fspath(folder)!r} ({reason})"
-        ) from exc
+        )
+
+
+def _reason(exc: OSError) -> str:
+    return exc.strerror or type(exc).__name__
+
+
+def _unwritable(folder: Path) -> str:
+    """Why no file can be made in ``folder`` ("" when one can): a temporary file is made
+    and removed there."""
+    try:
+        with tempfile.TemporaryFile(dir=folder):
+            return ""
+    except OSError as exc:
+        return _reason(exc)
 
 
 def check_output_name(path: Path) -> None:
