@@ -888,6 +888,7 @@ class TestFocusBlurChecks:
         expected = {name: 1 for name in calls} | {"LayeredRenderer": 2, "render, a batch": 2}
         assert counts == expected
 
+    @pytest.mark.usefixtures("one_thread")  # two threads differ by an ulp now and then
     def test_checked_values_render_the_same(self):
         img = torch.cat([_texture(seed=1), _texture(seed=2)])
         disp = torch.cat([_ramp(), 1 - _ramp()])

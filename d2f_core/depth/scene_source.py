@@ -207,15 +207,19 @@ def scene_maps(
     return SceneMaps(target.astype(np.float32), ade, ran, strength)
 
 
-def reading_copy(image: np.ndarray, side: int = READ_SIDE) -> np.ndarray:
-    """``image`` with its long side brought down to ``side`` (antialiased) when it is
-    larger: every teacher and the network read it at 513 px or less, and one resize of a
-    12 MP photo costs what each teacher's own would (about 0.2 s each on one thread)."""
-    h, w = image.shape[:2]
-    if max(h, w) <= side:
+def reading_copy(image: np.ndarray | torch.Tensor, side: int = READ_SIDE) -> np.ndarray:
+    """``image`` (``H x W x 3``, or a checked ``[1, 3, H, W]`` float tensor) as an ``H x W x
+    3`` array with its long side brought down to ``side`` (antialiased) when it is larger:
+    every teacher and the network read it at 513 px or less, and one resize of a 12 MP
+    photo costs what each teacher's own would (about 0.2 s each on one thread)."""
+    tensor = isinstance(image, torch.Tensor)
+    h, w = image.shape[-2:] if tensor else image.shape[:2]
+    if max(h, w) > side:
+        x = image if tensor else image_tensor(image)
+        image = resize(x, work_size(h, w, side)).clamp_(0, 1)
+    elif not tensor:
         return image
-    small = resize(image_tensor(image), work_size(h, w, side)).clamp_(0, 1)
-    return small[0].permute(1, 2, 0).contiguous().numpy()
+    return image[0].permute(1, 2, 0).contiguous().cpu().numpy()
 
 
 def foreground_label(probs: np.ndarray, furniture: np.ndarray | None = None) -> np.ndarray:
