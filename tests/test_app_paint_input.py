@@ -88,6 +88,10 @@ def test_a_downscaled_side_rounded_to_a_pixel_keeps_the_aspect():
     check_aspect((6, 1600), (16, 4000), "m")  # 6.4 rounded
     check_aspect((4000, 16), (1600, 6), "m")  # either way round
     check_aspect((1, 250), (3, 1000), "m")  # 0.75 px rounded up
+    # rounding cannot make these: a 33 % stretch, twice the aspect, and again at 1-2 px
+    for shape, photo in (((3, 4000), (4, 4000)), ((2, 2), (3, 6)), ((557, 2), (4452, 8))):
+        with pytest.raises(ValueError, match="aspect ratios differ"):
+            check_aspect(shape, photo, "m")
     for shape in ((12, 1600), (6, 1000), (1600, 6)):
         with pytest.raises(ValueError, match="aspect ratios differ"):
             check_aspect(shape, (16, 4000), "m")

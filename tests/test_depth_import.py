@@ -137,6 +137,17 @@ class TestLoadDepth:
         with pytest.raises(ValueError, match="unreadable .npy header"):
             read_depth_array(tmp_path / "bad.npy")
 
+    def test_npy_header_over_the_limit_is_refused_unread(self, tmp_path):
+        # a 3.0 header holding a list of a million numbers: parsing it took seconds and GBs
+        body = "{'descr': '<f4', 'fortran_order': False, 'shape': (2, 2), 'x': [%s]}" % (
+            "1," * 1_000_000
+        )
+        header = body.encode() + b" " * (-(len(body) + 13) % 64) + b"\n"
+        data = b"\x93NUMPY\x03\x00" + len(header).to_bytes(4, "little") + header + bytes(16)
+        (tmp_path / "big.npy").write_bytes(data)
+        with pytest.raises(ValueError, match=r"header is \d+ bytes, over the 10000 allowed"):
+            read_depth_array(tmp_path / "big.npy")
+
     @pytest.mark.parametrize(
         ("shape", "sides"),
         [((1, 50), (1, 50)), ((1, 50, 1), (1, 50)), ((1, 1), (1, 1)), ((1, 6, 10), (6, 10)),

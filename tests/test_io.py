@@ -563,7 +563,15 @@ def test_a_source_that_is_no_path_nor_bytes_is_named(src):
             load(src)
 
 
-@pytest.mark.parametrize("size", [(240,), (0, 5), (1.5, 5), (True, 4), "ab", 7])
+def test_load_depth_takes_the_photos_shape_as_its_size(tmp_path):
+    from d2f_core import load_depth
+
+    np.save(tmp_path / "d.npy", np.linspace(0, 1, 12).reshape(3, 4))
+    image = np.zeros((30, 40, 3), np.float32)
+    assert load_depth(tmp_path / "d.npy", size=image.shape).shape == (30, 40)
+
+
+@pytest.mark.parametrize("size", [(240,), (0, 5), (1.5, 5), (True, 4), "ab", 7, (30, 40, 5)])
 def test_load_depth_names_a_bad_photo_size(tmp_path, size):
     from d2f_core import load_depth
 

@@ -2,7 +2,8 @@
 
 Every caller (``D2F.prepare``, the ``d2f`` CLI, the app) asks :func:`depth_map` for the map;
 the result is a :class:`DepthMap`, ``H x W`` float32 disparity in [0, 1] (1 = nearest) at the
-photo's size, with the source's name and what kind of output it gave.
+photo's size (the ``scene`` source's at its working size, with the photo's aspect), with the
+source's name and what kind of output it gave.
 
 Sources (:data:`SOURCES`), written as a string:
 

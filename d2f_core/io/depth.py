@@ -188,6 +188,10 @@ def _check_npy_header(data: bytes, name: str) -> tuple[int, ...]:
     return tuple(int(n) for n in shape)
 
 
+#: the longest ``.npy`` header read (numpy's own readers refuse longer ones the same way)
+NPY_HEADER_LIMIT = 10_000
+
+
 def _npy_header_3_0(fh: io.BytesIO) -> tuple[tuple[int, ...], np.dtype]:
     """``(shape, dtype)`` from a version 3.0 ``.npy`` header (after its magic): version 2.0's
     layout, a 4-byte length then the header's dict, in UTF-8. numpy reads it with no public
@@ -196,6 +200,8 @@ def _npy_header_3_0(fh: io.BytesIO) -> tuple[tuple[int, ...], np.dtype]:
     import struct
 
     (length,) = struct.unpack("<I", fh.read(4))
+    if length > NPY_HEADER_LIMIT:  # literal_eval of a huge header takes seconds and GBs
+        raise ValueError(f"the header is {length} bytes, over the {NPY_HEADER_LIMIT} allowed")
     header = fh.read(length)
     if len(header) != length:
         raise ValueError("the header is cut short")
@@ -374,6 +380,8 @@ def _photo_size(size: Any) -> tuple[int, int] | None:
     if size is None:
         return None
     try:
+        if len(size) == 3 and size[2] in (3, 4):  # an image's shape, (H, W, channels)
+            size = tuple(size)[:2]
         h, w = size
         sides = (whole_number(h, "size's H", 1), whole_number(w, "size's W", 1))
     except (TypeError, ValueError):
@@ -424,6 +432,16 @@ def _depth_values(data: bytes, name: str, size: tuple[int, int] | None) -> np.nd
 # --------------------------------------------------------------------------- normalising
 
 
+def value_range(values: np.ndarray, *, robust: bool = True) -> tuple[float, float]:
+    """The range :func:`normalize_disparity` stretches to [0, 1]: the 0.5th and 99.5th
+    percentiles of ``values`` (finite, 1-D) with ``robust`` and 1000 values or more, else
+    their extremes. A map whose range is empty is one value to the renderer."""
+    if robust and values.size >= 1000:
+        lo, hi = np.percentile(values, ROBUST_PERCENTILES)
+        return float(lo), float(hi)
+    return float(values.min()), float(values.max())
+
+
 def normalize_disparity(
     disparity: np.ndarray, valid: np.ndarray | None = None, *, robust: bool = True
 ) -> np.ndarray:
@@ -435,10 +453,7 @@ def normalize_disparity(
     sample = d[valid] if valid is not None else d[np.isfinite(d)]
     if sample.size == 0:
         raise ValueError("disparity map has no valid pixels")
-    if robust and sample.size >= 1000:
-        lo, hi = np.percentile(sample, ROBUST_PERCENTILES)
-    else:
-        lo, hi = float(sample.min()), float(sample.max())
+    lo, hi = value_range(sample, robust=robust)
     if not hi - lo > 1e-12 * max(abs(hi), 1.0):
         logger.warning("depth map is constant; using disparity 0.5 everywhere")
         return np.full(d.shape, 0.5, np.float32)
@@ -446,11 +461,17 @@ def normalize_disparity(
 
 
 def _rounded_alike(a: tuple[int, int], b: tuple[int, int]) -> bool:
-    """Whether ``(H, W)`` ``a`` and ``b`` are one picture at two sizes, a side of the smaller
-    rounded to a whole pixel: a 4000x16 photo shown 1600 px wide is 6 px tall (6.4), 7 %
-    off its aspect."""
+    """Whether ``(H, W)`` ``a`` and ``b`` are one picture at two sizes, the smaller's sides
+    the larger's at one scale, each rounded to a whole pixel: a 4000x16 photo shown 1600 px
+    wide is 6 px tall (6.4), 7 % off its aspect."""
     (sh, sw), (lh, lw) = sorted((a, b), key=lambda s: s[0] * s[1])
-    return abs(sh - lh * sw / lw) <= 1.0 or abs(sw - lw * sh / lh) <= 1.0
+
+    def scales(small: int, large: int) -> tuple[float, float]:
+        """The scales at which ``large`` px round to ``small`` (1 px: anything smaller)."""
+        return (0.0 if small <= 1 else (small - 0.5) / large), (small + 0.5) / large
+
+    (h0, h1), (w0, w1) = scales(sh, lh), scales(sw, lw)
+    return max(h0, w0) <= min(h1, w1)  # one scale gives both sides
 
 
 def check_aspect(
