@@ -134,6 +134,19 @@ class TestUsage:
             assert ".tmp" not in err  # the output is named, not a temporary file
         assert rendered == []
 
+    def test_batch_with_a_depth_folder_and_a_depth_model_is_refused_up_front(
+        self, tmp_path, capsys
+    ):
+        img, _ = _scene()
+        (tmp_path / "in").mkdir()
+        (tmp_path / "maps").mkdir()
+        _write_photo(tmp_path / "in" / "a.png", img)
+        argv = ["--depth", tmp_path / "maps", "--depth-model", "d2f", "--blur", 5]
+        code, err = _batch(capsys, tmp_path / "in", "-o", tmp_path / "out", *argv)
+        assert code == 2 and err.count("\n") == 1, err
+        assert "--depth DIR and --depth-model d2f name two depth sources" in err
+        assert not (tmp_path / "out").exists()
+
     def test_unknown_output_extension(self, tmp_path, capsys):
         img, _ = _scene()
         src = _write_photo(tmp_path / "photo.png", img)

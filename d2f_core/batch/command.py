@@ -126,6 +126,11 @@ def _check(args: argparse.Namespace) -> None:
         raise UsageError("--suffix must not contain a path separator")
     if args.depth is not None and not args.depth.is_dir():
         raise UsageError("--depth must be a folder of depth maps for 'd2f batch'")
+    if args.depth is not None and args.depth_model is not None:
+        raise UsageError(
+            f"--depth DIR and --depth-model {args.depth_model.name} name two depth sources: "
+            "give one"
+        )
     if args.weights is not None and not args.weights.is_file():
         raise UsageError(f"--weights {os.fspath(args.weights)!r}: no such file")
     if args.engine == "local" and args.ray_address:
