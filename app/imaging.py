@@ -159,7 +159,7 @@ def load_depth_map(
 
     Returns:
         ``(disparity, stored_size)``: ``(H, W)`` float32 disparity in [0, 1], 1 = nearest, at
-        the photo's size, and the ``(width, height)`` the file had.
+        the photo's size, and the file's ``(width, height)``, upright.
 
     Raises:
         ValueError: unreadable or colour-mapped file, no valid pixels, or an aspect ratio
@@ -182,8 +182,9 @@ def load_depth_map(
 def depth_notes(raw: np.ndarray, kind: str, name: str) -> list[str]:
     """What a map's values say that its picture does not: pixels with no depth (NaN,
     infinite; zero or negative in a depth map), which the library fills from around them, and
-    a map of one value, which the library takes for the photo at one depth (a map it would
-    refuse, with no valid pixel, never gets here)."""
+    a map of one value (bar a 1 % of outliers, as the library stretches a map), which the
+    library takes for the photo at one depth (a map it would refuse, with no valid pixel,
+    never gets here)."""
     valid = np.isfinite(raw)
     if kind == "depth":
         valid &= raw > 0
@@ -196,10 +197,13 @@ def depth_notes(raw: np.ndarray, kind: str, name: str) -> list[str]:
             f"depth ({what}); they were filled from the depth around them."
         )
     values = raw[valid]
-    if values.size and values.min() == values.max():
+    if kind == "depth":
+        values = 1.0 / values
+    lo, hi = d2f_io.depth.value_range(values) if values.size else (0.0, 1.0)
+    if not hi - lo > 1e-12 * max(abs(hi), 1.0):  # as the library finds a map of one value
         notes.append(
-            f"{name} holds one value everywhere: the whole photo is at one depth, and it is "
-            "blurred evenly or not at all."
+            f"{name} holds one value nearly everywhere: the whole photo is taken to be at one "
+            "depth, and it is blurred evenly or not at all."
         )
     return notes
 

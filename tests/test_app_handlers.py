@@ -214,7 +214,22 @@ class TestDepthNotes:
         notes = []
         imaging.load_depth_map(tmp_path / "flat.npy", (16, 12), "depth", "flat.npy", notes)
         assert len(notes) == 2 and "(NaN, infinite, zero or negative)" in notes[0]
-        assert notes[1].startswith("flat.npy holds one value everywhere")
+        assert notes[1].startswith("flat.npy holds one value nearly everywhere")
+        almost = np.full((100, 100), 0.3, np.float32)
+        almost[:5, :5] = 0.9  # 0.25 % of the map: outside the range the library stretches
+        np.save(tmp_path / "almost.npy", almost)
+        notes = []
+        imaging.load_depth_map(
+            tmp_path / "almost.npy", (100, 100), "disparity", "almost.npy", notes
+        )
+        assert len(notes) == 1 and notes[0].startswith("almost.npy holds one value nearly")
+        almost[:10, :10] = 0.9  # 1 %: a subject the render sets apart
+        np.save(tmp_path / "almost.npy", almost)
+        notes = []
+        imaging.load_depth_map(
+            tmp_path / "almost.npy", (100, 100), "disparity", "almost.npy", notes
+        )
+        assert notes == []
         notes = []  # a map with depth in it says nothing
         imaging.load_depth_map(tmp_path / "holed.npy", (16, 12), "disparity", "x", None)
         np.save(tmp_path / "ramp.npy", np.linspace(1, 3, 192).reshape(12, 16))
@@ -223,7 +238,7 @@ class TestDepthNotes:
 
     def test_an_upload_with_a_flat_map_warns(self, logic, two_plane_scene, tmp_path):
         np.save(tmp_path / "flat.npy", np.full((240, 320), 0.7, np.float32))
-        with pytest.warns(UserWarning, match="flat.npy holds one value everywhere"):
+        with pytest.warns(UserWarning, match="flat.npy holds one value nearly everywhere"):
             out = logic.load(
                 str(two_plane_scene.photo), str(tmp_path / "flat.npy"), "disparity", None, 0.5, 1.0
             )

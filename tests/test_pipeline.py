@@ -323,7 +323,9 @@ class TestInputChecks:
         # text and bools are no numbers, though float() takes them ("0.5", True as 1 px)
         for focus, blur, name in (("0.5", 10.0, "focus"), (True, 10.0, "focus"),
                                   (0.5, True, "blur"), (0.5, np.bool_(True), "blur"),
-                                  (0.5, b"10", "blur")):  # fmt: skip
+                                  (0.5, b"10", "blur"), (np.array(True), 10.0, "focus"),
+                                  (0.5, torch.tensor(True), "blur"),
+                                  (np.array("0.5"), 10.0, "focus")):  # fmt: skip
             with pytest.raises(InputTypeError, match=f"{name} must be a number, got"):
                 model.render(scene, focus=focus, blur=blur)
         with pytest.raises(ValueError, match="max_side"):

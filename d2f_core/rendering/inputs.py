@@ -48,7 +48,12 @@ MAX_BLUR = 10000.0
 def _number(name: str, value) -> float:
     """``value`` as a float: a Python or NumPy number, or a one-value tensor; never text or a
     bool, which ``float()`` would take ("0.5", ``True`` as 1 px)."""
-    if isinstance(value, (str, bytes, bool, np.bool_)):
+    dtype = getattr(value, "dtype", None)  # a 0-d array or a one-value tensor of bools or text
+    if (
+        isinstance(value, (str, bytes, bool, np.bool_))
+        or dtype in (torch.bool,)
+        or (isinstance(dtype, np.dtype) and dtype.kind in "bUSO")
+    ):
         raise InputTypeError(f"{name} must be a number, got {value!r}")
     try:
         return float(value)
