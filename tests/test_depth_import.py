@@ -187,6 +187,26 @@ class TestLoadDepth:
             with pytest.raises(ValueError, match="rotated by 90 degrees"):
                 read_depth_array(path, size=(100, 60))
 
+    @pytest.mark.parametrize("orientation", [3, 6, 8])
+    def test_a_rotated_tiff_map_is_read_upright(self, tmp_path, orientation):
+        """The same for a TIFF's orientation tag, whether Pillow decodes the page (8-bit grey)
+        or tifffile does (float RGB), its size checked from the header upright."""
+        tifffile = pytest.importorskip("tifffile")
+        upright = np.add.outer(np.arange(6) * 40, np.arange(10) * 4).astype(np.float32)
+        stored = np.rot90(upright, {3: 2, 6: 1, 8: 3}[orientation]).copy()
+        exif = Image.Exif()
+        exif[0x0112] = orientation
+        Image.fromarray(stored.astype(np.uint8)).save(tmp_path / "grey.tif", exif=exif.tobytes())
+        tag = [(274, "H", 1, orientation, True)]
+        rgb = np.dstack([stored] * 3)
+        tifffile.imwrite(tmp_path / "rgb.tif", rgb, photometric="rgb", extratags=tag)
+        for name in ("grey.tif", "rgb.tif"):
+            np.testing.assert_array_equal(
+                read_depth_array(tmp_path / name, size=(60, 100)), upright, err_msg=name
+            )
+            with pytest.raises(ValueError, match="rotated by 90 degrees"):
+                read_depth_array(tmp_path / name, size=(100, 60))
+
     def test_multichannel_float_tiff(self, tmp_path):
         tifffile = pytest.importorskip("tifffile")
         z = np.linspace(1.0, 2.0, 24, dtype=np.float32).reshape(4, 6)

@@ -172,6 +172,22 @@ class TestModes:
         _, info = load_image_with_info(_encode(grey.convert("RGB"), fmt, icc_profile=srgb))
         assert info.icc_profile == srgb
 
+    @pytest.mark.parametrize("compression", ["raw", "tiff_lzw"])
+    @pytest.mark.parametrize("orientation", [2, 3, 5, 6, 7, 8])
+    def test_a_tiffs_orientation_is_applied_once(self, tmp_path, orientation, compression):
+        """Pillow turns a TIFF upright itself (it reports the upright size and transposes on
+        load): the photo is as a viewer shows it, not turned a second time."""
+        rgb = _rgb(20, 40)
+        exif = Image.Exif()
+        exif[0x0112] = orientation
+        path = tmp_path / "o.tif"
+        Image.fromarray(rgb).save(path, exif=exif.tobytes(), compression=compression)
+        with Image.open(path) as im:
+            viewer = np.asarray(ImageOps.exif_transpose(im).convert("RGB"), np.float32) / 255
+        out, info = load_image_with_info(path)
+        np.testing.assert_allclose(out, viewer, atol=1e-6)
+        assert info.original_size == viewer.shape[:2]
+
     def test_int32_and_float_tiff(self, caplog):
         i32 = (np.arange(12, dtype=np.int32).reshape(3, 4) * 5000).astype(np.int32)
         out, info = load_image_with_info(_encode(Image.fromarray(i32), "TIFF"))

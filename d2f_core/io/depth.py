@@ -269,6 +269,15 @@ MAX_TIFF_PAGE_BYTES = 4 * MAX_DECODE_PIXELS
 MAX_TIFF_TILE_BYTES = 4 << 20
 
 
+def _tiff_orientation(page: Any) -> int:
+    """The orientation (1-8) a tifffile page's tag 274 gives; 1 when it has none."""
+    try:
+        value = int(page.tags[274].value)
+    except Exception:  # noqa: BLE001 (no tag, or one that is not a number)
+        return 1
+    return value if 1 <= value <= 8 else 1
+
+
 def _tiff_header(data: bytes, name: str):
     """``(first page, (H, W, samples, bytes decoded))`` of a TIFF from its header (tifffile
     parses the IFD; nothing is decoded), or None when tifffile is missing or cannot parse
@@ -320,8 +329,13 @@ def _read_tiff(data: bytes, name: str, size: tuple[int, int] | None) -> np.ndarr
     limits, the photo's aspect), then decoded by Pillow or, for what Pillow cannot decode
     (float pages with several samples, some tiled pages), by tifffile."""
     header = _tiff_header(data, name)
+    turn = 1  # the TIFF's orientation, upright as its photo is loaded
     if header is not None:
-        _check_map_header(_map_sides(header[1][:3]), size, name)  # (H, W, samples)
+        turn = _tiff_orientation(header[0])
+        sides = _map_sides(header[1][:3])  # (H, W, samples) as stored
+        if sides is not None and turn >= 5:
+            sides = sides[::-1]
+        _check_map_header(sides, size, name)
     try:
         im = open_pil(data, name)  # refuses a header above the pixel limit, unread
     except ValueError:
@@ -330,17 +344,19 @@ def _read_tiff(data: bytes, name: str, size: tuple[int, int] | None) -> np.ndarr
         im = None
     if im is not None:
         with im:
-            _check_map_header((im.size[1], im.size[0]), size, name)
+            pending = exif_orientation(im)  # 1 where Pillow turns a TIFF itself
+            w, h = im.size if pending < 5 else im.size[::-1]
+            _check_map_header((h, w), size, name)
             try:
                 im.load()
-                return _grey_from_pil(im, name)
+                return apply_orientation(_grey_from_pil(im, name), pending)
             except (OSError, SyntaxError, EOFError, ValueError) as exc:
                 if header is None:
                     raise ValueError(f"{name}: truncated or corrupt depth image: {exc}") from exc
     if header is None:  # tifffile is missing (it comes with scikit-image)
         raise ValueError(f"{name}: cannot decode this TIFF (tifffile is not installed)")
     try:
-        return header[0].asarray(maxworkers=1)
+        return apply_orientation(header[0].asarray(maxworkers=1), turn)
     except MemoryError as exc:
         raise ValueError(
             f"{name}: not enough memory to decode the {header[1][3]}-byte TIFF page"

@@ -4,6 +4,8 @@ to the pixels, stripped from what is saved) and 16-bit PNG, decoded at full prec
 
 from __future__ import annotations
 
+import functools
+import io
 import logging
 import struct
 
@@ -19,13 +21,31 @@ EXIF_ORIENTATION = 0x0112
 # --------------------------------------------------------------------------- orientation
 
 
+@functools.cache
+def pillow_orients_tiff() -> bool:
+    """Whether this Pillow turns a TIFF upright itself: it reports the upright size when it
+    opens one and transposes the pixels when it loads them (Pillow 12 does). Found once, on a
+    2x1 TIFF with orientation 6, whatever the version."""
+    buf = io.BytesIO()
+    exif = Image.Exif()
+    exif[EXIF_ORIENTATION] = 6
+    Image.new("L", (2, 1)).save(buf, format="TIFF", exif=exif)
+    buf.seek(0)
+    with Image.open(buf) as im:
+        im.load()
+        return im.size == (1, 2)
+
+
 def exif_orientation(im: Image.Image, data: bytes | None = None) -> int:
-    """EXIF orientation (1..8) of a Pillow image; 1 when absent or invalid.
+    """EXIF orientation (1..8) of a Pillow image that is still to be applied; 1 when absent,
+    invalid, or applied by Pillow itself (a TIFF, where :func:`pillow_orients_tiff`).
 
     For a PNG pass its bytes as ``data``: its eXIf chunk is then found by a scan of its
     chunks. Pillow's ``getexif`` decodes the whole image to look for an eXIf chunk after the
     image data, before any size check could refuse it.
     """
+    if im.format == "TIFF" and pillow_orients_tiff():
+        return 1
     try:
         if data is not None and im.format == "PNG":
             raw = _png_exif(data)
