@@ -29,6 +29,13 @@ def check_tensor(name: str, x: torch.Tensor, channels: int | None) -> tuple[floa
         raise InputTypeError(f"{name} must be a floating-point tensor, got {x.dtype}")
     if not x.numel():
         return 0.0, 0.0
+    return finite_extremes(name, x)
+
+
+def finite_extremes(name: str, x: torch.Tensor) -> tuple[float, float]:
+    """(min, max) of a non-empty ``x``; ``ValueError`` naming ``name`` when it holds NaN or
+    an infinity. NaN carries through the extremes and an infinity is one of them, so one pass
+    checks it all (isfinite, min and max took three: 0.15 s for a 12 MP image)."""
     extremes = tensor_extremes(x)
     if not all(math.isfinite(v) for v in extremes):
         raise ValueError(f"{name} contains NaN or inf")
@@ -51,7 +58,7 @@ def _number(name: str, value) -> float:
     dtype = getattr(value, "dtype", None)  # a 0-d array or a one-value tensor of bools or text
     if (
         isinstance(value, (str, bytes, bool, np.bool_))
-        or dtype in (torch.bool,)
+        or dtype == torch.bool
         or (isinstance(dtype, np.dtype) and dtype.kind in "bUSO")
     ):
         raise InputTypeError(f"{name} must be a number, got {value!r}")
@@ -165,11 +172,7 @@ def image_tensor(image) -> torch.Tensor:
         raise InputTypeError(f"image must be a numpy array or torch tensor, got {kind}")
     if min(x.shape[-2:]) < 1:
         raise ValueError(f"image is empty: shape {tuple(x.shape)}")
-    # NaN carries through the extremes, and an infinity is one of them: one pass checks it
-    # all (isfinite, min and max took three; 0.15 s at 12 MP)
-    lo, hi = tensor_extremes(x)
-    if not (math.isfinite(lo) and math.isfinite(hi)):
-        raise ValueError("image contains NaN or inf")
+    lo, hi = finite_extremes("image", x)
     if lo < 0 or hi > 1:
         raise ValueError(f"image float values must be in [0, 1], got [{lo:.3g}, {hi:.3g}]")
     return x.contiguous()
@@ -208,9 +211,7 @@ def disparity_tensor(disparity) -> torch.Tensor:
     if d.ndim != 2 or min(d.shape) < 1:
         raise ValueError(f"disparity must have shape (H, W), got {tuple(disparity.shape)}")
     d = d.float()
-    lo, hi = tensor_extremes(d)  # NaN and infinities show in the extremes
-    if not (math.isfinite(lo) and math.isfinite(hi)):
-        raise ValueError("disparity contains NaN or inf")
+    lo, hi = finite_extremes("disparity", d)
     if lo < -_DISPARITY_SLACK or hi > 1 + _DISPARITY_SLACK:
         raise ValueError(f"disparity must be in [0, 1], got [{lo:.3g}, {hi:.3g}]")
     return d.clamp(0, 1)[None, None].contiguous()
