@@ -185,9 +185,7 @@ def depth_notes(raw: np.ndarray, kind: str, name: str) -> list[str]:
     a map of one value (bar a 1 % of outliers, as the library stretches a map), which the
     library takes for the photo at one depth (a map it would refuse, with no valid pixel,
     never gets here)."""
-    valid = np.isfinite(raw)
-    if kind == "depth":
-        valid &= raw > 0
+    valid = d2f_io.depth.holding_depth(raw, kind)
     notes = []
     holes = int(valid.size - np.count_nonzero(valid))
     if holes:
@@ -199,8 +197,7 @@ def depth_notes(raw: np.ndarray, kind: str, name: str) -> list[str]:
     values = raw[valid]
     if kind == "depth":
         values = 1.0 / values
-    lo, hi = d2f_io.depth.value_range(values) if values.size else (0.0, 1.0)
-    if not hi - lo > 1e-12 * max(abs(hi), 1.0):  # as the library finds a map of one value
+    if values.size and d2f_io.depth.one_value(*d2f_io.depth.value_range(values)):
         notes.append(
             f"{name} holds one value nearly everywhere: the whole photo is taken to be at one "
             "depth, and it is blurred evenly or not at all."

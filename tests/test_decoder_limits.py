@@ -238,7 +238,7 @@ class TestTiffHeader:
         says = "depth map is 12000x12000 = 144000000 pixels for a 64x64 photo"
         _refused_unread(tiffs[12000], (64, 64), says)
         # as large as the floor: read whatever the photo (a 4096^2 map for a 64x64 photo)
-        from d2f_core.io.depth import _check_map_header
+        from d2f_core.io.depth_files import _check_map_header
 
         _check_map_header((4096, 4096), (64, 64), "d.tif")
         with pytest.raises(ValueError, match="more than 4 times the photo's pixels"):

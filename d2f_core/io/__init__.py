@@ -1,8 +1,9 @@
 """File input and output for d2f: the only part of the package that touches files.
 
 * :mod:`.image`: photos in (JPEG, PNG 8/16-bit, TIFF, WebP, HEIC) and out.
-* :mod:`.depth`: depth/disparity maps (PNG, ``.npy``, PFM, float TIFF), hole filling
-  (:mod:`.holes`), normalisation to disparity in [0, 1] (1 = nearest).
+* :mod:`.depth`: depth/disparity maps (PNG, ``.npy``, PFM, float TIFF, read by
+  :mod:`.depth_files`), hole filling (:mod:`.holes`), normalisation to disparity in [0, 1]
+  (1 = nearest).
 * :mod:`.embedded`: phone depth embedded in photos (Google Lens Blur XMP, Apple portrait
   MPO, Apple HEIC) and :func:`load_photo`, which combines all of it.
 """
