@@ -139,9 +139,7 @@ def read_source_bytes(src: ImageSource, max_bytes: int = MAX_FILE_BYTES) -> byte
         data = bytes(src)
         if len(data) > max_bytes:
             raise ValueError(f"{name}: {len(data)} bytes, more than the limit of {max_bytes}")
-    else:
-        if not isinstance(src, (str, os.PathLike)):
-            raise InputTypeError(f"src: expected a path or bytes, got {type(src).__name__}")
+    else:  # a path: source_name refused anything else
         data = _read_regular_file(Path(src), name, max_bytes)
     if len(data) == 0:
         raise ValueError(f"{name}: file is empty (0 bytes)")

@@ -4,6 +4,7 @@ target's permissions, and :func:`save_image` (PNG, JPEG, TIFF, WebP; ``.npy`` fl
 
 from __future__ import annotations
 
+import io
 import os
 import tempfile
 from collections.abc import Sequence
@@ -131,7 +132,6 @@ def _jpeg_bytes(img: Image.Image, params: dict) -> bytes:
     "Suspension not allowed here" on stderr. The file with the standard tables streams and
     tells the size first (about a tenth of a second at 12 MP): the optimised one is made only
     when that fits the buffer, else the standard one is kept (a few per cent larger)."""
-    import io
 
     def encode(**extra) -> bytes:
         buf = io.BytesIO()
