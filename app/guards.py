@@ -11,7 +11,7 @@ import gradio as gr
 
 from app.reporting import one_line
 
-__all__ = ["refuse_bad_requests", "refuse_unknown_event", "request_fault"]
+__all__ = ["refuse_bad_requests", "refuse_unknown_event", "request_fault", "request_cut_short"]
 
 # the app's own log: these are its messages
 log = logging.getLogger("app.main")
@@ -85,3 +85,19 @@ async def refuse_unknown_event(request: Any, err: Exception) -> Any:
         reason = request_fault(err)
     log.warning("refused a request to %s: %s", path, reason)
     return JSONResponse({"error": f"Invalid request: {reason}"}, status_code=404)
+
+
+async def request_cut_short(request: Any, err: Exception) -> Any:
+    """Exception handler of the web server for a request whose body ended before its declared
+    length (the client closed the connection mid-upload, or sent less than its
+    ``Content-Length`` says): one line in the log, no traceback. Nobody is left to read
+    the answer."""
+    from fastapi.responses import PlainTextResponse
+
+    client = getattr(request, "client", None)
+    who = f" from {client.host}" if client is not None else ""
+    log.warning(
+        "a request to %s%s ended before its declared length (the client disconnected)",
+        request.url.path, who,
+    )  # fmt: skip
+    return PlainTextResponse("request body cut short", status_code=400)

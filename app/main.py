@@ -15,11 +15,12 @@ from typing import Any
 
 import gradio as gr
 from gradio.route_utils import FnIndexInferError
+from starlette.requests import ClientDisconnect
 
 from app import imaging
 from app import sources as depth_choice
 from app.cache import SceneCache
-from app.guards import refuse_bad_requests, refuse_unknown_event
+from app.guards import refuse_bad_requests, refuse_unknown_event, request_cut_short
 from app.handlers import RefocusApp
 from app.panels import (
     SAMPLES_DIR,
@@ -154,8 +155,9 @@ def launch_options() -> dict[str, Any]:
     """Keyword arguments of ``demo.launch`` that the app needs besides host and port: the
     page script (:data:`RELEASE_JS`), the style sheet, the examples' folder, the upload
     limit (``D2F_APP_MAX_UPLOAD_MB``, default 100), how many sessions' page state Gradio
-    keeps (:data:`STATE_SESSIONS`) and the server's answer to a request for an event that
-    does not exist (:func:`refuse_unknown_event`)."""
+    keeps (:data:`STATE_SESSIONS`) and the server's answers to a request for an event that
+    does not exist (:func:`refuse_unknown_event`) and to an upload cut short
+    (:func:`request_cut_short`)."""
     upload_mb = os.environ.get("D2F_APP_MAX_UPLOAD_MB", str(DEFAULT_MAX_UPLOAD_MB))
     return {
         "js": RELEASE_JS,
@@ -167,6 +169,7 @@ def launch_options() -> dict[str, Any]:
             "exception_handlers": {
                 FnIndexInferError: refuse_unknown_event,
                 KeyError: refuse_unknown_event,
+                ClientDisconnect: request_cut_short,
             }
         },
     }

@@ -11,12 +11,17 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import struct
+import warnings
+import zlib
 from pathlib import Path
 from typing import Any
 
+import gradio as gr
 import numpy as np
 from PIL import Image
 
+from app.imaging import DISPLAY_MAX_SIDE
 from app.reporting import NO_PHOTO, SKIP4, user_error
 from app.sessions import Session, reported
 from d2f_core.depth.brushes import Brushes
@@ -28,6 +33,56 @@ log = logging.getLogger("app.handlers")
 SHARP_COLOUR = "#22c55e"
 BLUR_COLOUR = "#ef4444"
 BRUSH_OPACITY = 0.6
+
+
+#: The largest side a canvas image (background, paint layer, composite) may have: the canvas
+#: is the photo at display size (:data:`app.imaging.DISPLAY_MAX_SIDE`), and a request's
+#: memory stays bounded by it whatever a client sends.
+CANVAS_MAX_SIDE = DISPLAY_MAX_SIDE
+#: What Pillow raises on a truncated or corrupt file.
+_DECODE_ERRORS = (OSError, SyntaxError, ValueError, EOFError, struct.error, zlib.error, IndexError)
+
+
+def check_canvas_image(file: Any) -> None:
+    """Refuse a canvas image larger than the canvas from its header, before any pixel is
+    decoded (Gradio decodes every layer of the editor's value to a full-size array)."""
+    from io import BytesIO
+
+    path = getattr(file, "path", None)
+    source = path if path is not None else BytesIO(bytes(file))
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            with Image.open(source) as im:
+                w, h = im.size
+    except (*_DECODE_ERRORS, Image.DecompressionBombError) as exc:
+        raise gr.Error(f"The paint layer is not an image: {exc}", print_exception=False) from None
+    if max(w, h) > CANVAS_MAX_SIDE:
+        raise gr.Error(
+            f"The paint layer is {w}x{h}: the canvas is at most {CANVAS_MAX_SIDE} px on a side.",
+            print_exception=False,
+        )
+
+
+def bound_canvas(editor: gr.ImageEditor) -> gr.ImageEditor:
+    """``editor`` with its images checked from their headers (:func:`check_canvas_image`)
+    before Gradio decodes them; returns it. (An instance's method is wrapped: a subclass of
+    a Gradio component makes Gradio write a stub file beside this module.)"""
+    convert = editor.convert_and_format_image
+
+    def checked(file: Any, flatten_on_white: bool = False) -> Any:
+        if file is None:
+            return convert(file, flatten_on_white)
+        check_canvas_image(file)
+        try:
+            return convert(file, flatten_on_white)
+        except _DECODE_ERRORS as exc:
+            raise gr.Error(
+                f"The paint layer is truncated or corrupt: {exc}", print_exception=False
+            ) from None
+
+    editor.convert_and_format_image = checked
+    return editor
 
 
 def masks_from_layers(layers: Any) -> tuple[np.ndarray | None, np.ndarray | None]:

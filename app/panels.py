@@ -12,7 +12,7 @@ import gradio as gr
 
 from app import sources as depth_choice
 from app.handlers import RefocusApp
-from app.painting import BLUR_COLOUR, BRUSH_OPACITY, SHARP_COLOUR
+from app.painting import BLUR_COLOUR, BRUSH_OPACITY, SHARP_COLOUR, bound_canvas
 from app.settings import (
     BOOST_MAX,
     DEFAULT_F_NUMBER,
@@ -31,6 +31,31 @@ SAMPLES_DIR = bundled.assets_dir() / "samples"
 #: Height in px of the photo and result panels: at 1400x900 the photo, the examples and
 #: both sliders fit above the fold.
 PANEL_HEIGHT = 360
+
+
+def integer_choices(dropdown: gr.Dropdown) -> gr.Dropdown:
+    """``dropdown`` (of whole-number choices) advertised to API clients as the integers it
+    takes (Gradio says "string" for any choice), and taking a number written as text ("6")
+    too; returns it. (An instance's methods are replaced: a subclass of a Gradio component
+    makes Gradio write a stub file beside this module.)"""
+    preprocess = dropdown.preprocess
+
+    def api_info() -> dict[str, Any]:
+        return {"type": "integer", "enum": [value for _, value in dropdown.choices]}
+
+    def as_number(payload: Any) -> Any:
+        if isinstance(payload, str):
+            try:
+                number = float(payload.strip())
+            except ValueError:
+                pass  # refused by the choices' check, naming the value
+            else:
+                payload = int(number) if number.is_integer() else payload
+        return preprocess(payload)
+
+    dropdown.api_info = api_info
+    dropdown.preprocess = as_number
+    return dropdown
 
 
 def sample_paths() -> list[str]:
@@ -117,11 +142,13 @@ def lens_controls() -> SimpleNamespace:
         elem_id="hdr",
     )
     with gr.Accordion("Advanced", open=False):
-        blades = gr.Dropdown(
-            choices=[("round", 0), *((f"{n} blades", n) for n in range(5, 10))],
-            value=0,
-            label="Aperture shape (blades)",
-            elem_id="blades",
+        blades = integer_choices(
+            gr.Dropdown(
+                choices=[("round", 0), *((f"{n} blades", n) for n in range(5, 10))],
+                value=0,
+                label="Aperture shape (blades)",
+                elem_id="blades",
+            )
         )
         rotation = gr.Slider(
             0.0, 180.0, value=0.0, step=1.0, label="Blade rotation (degrees)", elem_id="rotation"
@@ -145,21 +172,23 @@ def brush_panel() -> SimpleNamespace:
     """The focus and blur brushes (:mod:`app.painting`): the photo as a canvas, green keeps
     sharp, red blurs; applied and cleared by buttons."""
     with gr.Accordion("Brushes: keep sharp / blur (correct the depth)", open=False):
-        editor = gr.ImageEditor(
-            label="Paint: green keeps sharp, red blurs (then Apply paint)",
-            type="numpy",
-            image_mode="RGBA",
-            sources=[],
-            transforms=[],
-            layers=False,
-            brush=gr.Brush(
-                colors=[(SHARP_COLOUR, BRUSH_OPACITY), (BLUR_COLOUR, BRUSH_OPACITY)],
-                default_color=(SHARP_COLOUR, BRUSH_OPACITY),
-                color_mode="fixed",
-            ),
-            eraser=gr.Eraser(),
-            height=PANEL_HEIGHT + 120,
-            elem_id="paint",
+        editor = bound_canvas(
+            gr.ImageEditor(
+                label="Paint: green keeps sharp, red blurs (then Apply paint)",
+                type="numpy",
+                image_mode="RGBA",
+                sources=[],
+                transforms=[],
+                layers=False,
+                brush=gr.Brush(
+                    colors=[(SHARP_COLOUR, BRUSH_OPACITY), (BLUR_COLOUR, BRUSH_OPACITY)],
+                    default_color=(SHARP_COLOUR, BRUSH_OPACITY),
+                    color_mode="fixed",
+                ),
+                eraser=gr.Eraser(),
+                height=PANEL_HEIGHT + 120,
+                elem_id="paint",
+            )
         )
         edges = gr.Checkbox(
             value=True,

@@ -49,7 +49,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from d2f_core.io import load_photo, read_depth_array, read_embedded_depth, write_pfm
+from d2f_core.io import load_mask, load_photo, read_depth_array, read_embedded_depth, write_pfm
 from d2f_core.io.image import MAX_DECODE_PIXELS
 
 pytestmark = pytest.mark.slow
@@ -481,6 +481,101 @@ def _inflations_none(data: bytes) -> list[bytes]:
     return []
 
 
+def _mask_png() -> bytes:
+    """A brush's mask: a soft grey stroke under alpha, 8-bit grey + alpha."""
+    grey = np.round(_photo()[..., 0] * 255).astype(np.uint8)
+    alpha = np.where(_photo()[..., 1] > 0.5, 255, 0).astype(np.uint8)
+    buf = io.BytesIO()
+    Image.fromarray(np.stack([grey, alpha], axis=-1), "LA").save(buf, "PNG")
+    return buf.getvalue()
+
+
+def _mask_tiff() -> bytes:
+    """A float mask in [0, 1], tiled float TIFF."""
+    return writers.tiled_float_tiff(TIFF_W, TIFF_H, TILE, lambda ty, tx: (ty * 5 + tx) % 11 / 10)
+
+
+def _mask_extras(size: tuple[int, int]):
+    """Masks of every mode and of values out of range: integers past 255 or 65535,
+    negatives, NaN and infinities in float ones, 0/1 integers, and sizes far past the
+    photo's (refused from the header)."""
+    h, w = size
+    ramp = np.linspace(0, 1, h * w).reshape(h, w)
+    out = []
+    for mode, values in (
+        ("1", ramp > 0.5), ("L", ramp * 255), ("L", ramp > 0.5), ("P", ramp * 255),
+        ("I;16", ramp * 65535), ("I;16", ramp > 0.5), ("I", ramp * 70000), ("I", -ramp),
+        ("I", ramp > 0.5), ("F", ramp), ("F", np.where(ramp > 0.5, np.nan, ramp)),
+        ("F", ramp * np.inf), ("F", ramp * 2 - 1), ("RGB", ramp * 255), ("RGBA", ramp * 255),
+    ):  # fmt: skip
+        a = np.asarray(values)
+        if mode == "1":
+            im = Image.fromarray(a)
+        elif mode in ("L", "P"):
+            im = Image.fromarray(a.astype(np.uint8), "L").convert(mode)
+        elif mode == "I;16":
+            im = Image.fromarray(a.astype(np.uint16))
+        elif mode == "I":
+            im = Image.fromarray(a.astype(np.int32))
+        elif mode == "F":
+            im = Image.fromarray(a.astype(np.float32))
+        else:
+            im = Image.fromarray(np.repeat(a.astype(np.uint8)[..., None], len(mode), axis=2))
+        buf = io.BytesIO()
+        im.save(buf, "TIFF" if mode in ("I", "F") else "PNG")
+        out.append(buf.getvalue())
+    for scale in (3, 64, 4096):  # a header that claims far more than the photo's pixels
+        out.append(writers.png_bomb_header(w * scale, h * scale))
+    return out
+
+
+def _mask_png_inflations(data: bytes) -> list[bytes]:
+    return _mask_extras((H, W))
+
+
+def _mask_tiff_inflations(data: bytes) -> list[bytes]:
+    nan = writers.tiled_float_tiff(TIFF_W, TIFF_H, TILE, lambda ty, tx: np.nan if tx else 0.5)
+    huge = writers.tiled_float_tiff(40_000, 40_000, 256, lambda ty, tx: 1.0)
+    return [nan, huge]
+
+
+def _load_mask_png(data: bytes) -> int:
+    return _pixels(load_mask(data, size=(H, W)))
+
+
+def _load_mask_tiff(data: bytes) -> int:
+    return _pixels(load_mask(data, size=(TIFF_H, TIFF_W)))
+
+
+def _paint_layer_png() -> bytes:
+    """The editor's paint layer: RGBA, a green stroke at 60 % over transparency."""
+    layer = np.zeros((H, W, 4), np.uint8)
+    layer[H // 4 : H // 2, W // 4 :] = (34, 197, 94, 153)
+    buf = io.BytesIO()
+    Image.fromarray(layer, "RGBA").save(buf, "PNG")
+    return buf.getvalue()
+
+
+def _paint_layer(data: bytes) -> int:
+    """The app's way with a paint layer: checked from its header, decoded by Gradio's
+    editor, made into masks; a refusal (``gr.Error``) counts as a ``ValueError``."""
+    import gradio as gr
+
+    from app.painting import bound_canvas, masks_from_layers
+
+    editor = bound_canvas(gr.ImageEditor(type="numpy", image_mode="RGBA"))
+    try:
+        layer = editor.convert_and_format_image(data)
+        sharp, blur = masks_from_layers([layer])
+    except gr.Error as exc:
+        raise ValueError(str(exc)) from None
+    return _pixels(layer)
+
+
+def _paint_layer_inflations(data: bytes) -> list[bytes]:
+    return [writers.png_bomb_header(s, s) for s in (1601, 14_000, 100_000)] + _mask_extras((H, W))
+
+
 KINDS = {
     # kind: (valid file, decoder, decoded bytes a pixel, inflations, extremes, duplicates)
     # 16-bit PNG: 4 float32 channels a pixel (a mutant's colour type may add alpha)
@@ -496,6 +591,14 @@ KINDS = {
     "tiff": (_tiff, _read_depth, 8, _inflations_none, _tiff_extremes, _tiff_duplicates),
     "pfm": (_pfm_seed, _read_depth, 8, _pfm_inflations, _pfm_extremes, _span_duplicates),
     "npy": (_npy, _read_depth, 8, _npy_inflations, _npy_extremes, _span_duplicates),
+    # a brush's mask: float32 out, an RGBA copy and an LA copy on the way
+    "mask_png": (_mask_png, _load_mask_png, 4 * 4, _mask_png_inflations, _png_extremes,
+                 _png_duplicates),
+    "mask_tiff": (_mask_tiff, _load_mask_tiff, 8, _mask_tiff_inflations, _tiff_extremes,
+                  _tiff_duplicates),
+    # the app's paint layer: RGBA out, and two masks
+    "paint_layer": (_paint_layer_png, _paint_layer, 4 * 4, _paint_layer_inflations,
+                    _png_extremes, _png_duplicates),
 }  # fmt: skip
 
 

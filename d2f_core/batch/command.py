@@ -18,6 +18,7 @@ from .manifest import (
     Summary,
     check_manifest,
     fold_parts,
+    parts_dir,
     read_rows,
     render_settings,
     rows_by_output,
@@ -262,7 +263,7 @@ def _to_render(
 
 def run_batch(args: argparse.Namespace) -> int:
     """Run ``d2f batch``; returns the exit status (1 when a photo failed)."""
-    from ..photo_render import RenderError, UsageError
+    from ..photo_render import RenderError, UsageError, error_message
     from ..progress import logs_above_bar, progress
 
     _check(args)
@@ -314,6 +315,7 @@ def run_batch(args: argparse.Namespace) -> int:
 
     level = logging.getLogger("d2f_core").getEffectiveLevel()
     here = worker_name()
+    stopped: OSError | None = None
     start = time.perf_counter()
     try:
         if not todo:
@@ -340,16 +342,28 @@ def run_batch(args: argparse.Namespace) -> int:
                     _show(row, here)
                     bar.set_postfix_str(Path(row["input"]).name, refresh=False)
                     bar.update(1)
+            except OSError as exc:  # the manifest could not be written (a full disk)
+                stopped = exc
             finally:
                 bar.close()
     finally:
         summary.seconds = time.perf_counter() - start
-        fold_parts(manifest)
+        try:
+            fold_parts(manifest)
+        except OSError as exc:  # the rows stay in the parts; the next run folds them
+            logger.error(
+                "could not add this run's rows to %s (%s): they stay in %s, and the next "
+                "run adds them", manifest, error_message(exc), parts_dir(manifest),
+            )  # fmt: skip
     attempted = summary.done + summary.failed
     logger.info("%d of %d photos rendered into %s", summary.done, attempted, out)
-    if not args.quiet:
+    if not args.quiet or stopped is not None:
         for line in summary.lines():
             print(f"d2f: {line}", file=sys.stderr)
+    if stopped is not None:
+        raise RenderError(
+            f"the run stopped, its manifest cannot be written: {error_message(stopped)}"
+        )
     if summary.failed:
         logger.error("%d of %d photos failed", summary.failed, attempted)
         return 1

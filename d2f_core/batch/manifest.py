@@ -92,16 +92,33 @@ class PartWriter:
         self._file = None
 
     def write(self, row: dict[str, Any]) -> None:
-        if self._file is None:
-            self.folder.mkdir(parents=True, exist_ok=True)
-            self._file = open(self.path, "a", encoding="utf-8")  # noqa: SIM115 (kept open)
-        self._file.write(json.dumps({k: row.get(k) for k in FIELDS}) + "\n")
-        self._file.flush()
+        """Append ``row``; an ``OSError`` (a full disk) names the part file."""
+        try:
+            if self._file is None:
+                self.folder.mkdir(parents=True, exist_ok=True)
+                self._file = open(self.path, "a", encoding="utf-8")  # noqa: SIM115 (kept open)
+            self._file.write(json.dumps({k: row.get(k) for k in FIELDS}) + "\n")
+            self._file.flush()
+        except OSError as exc:
+            self._failed = True
+            raise _named(exc, self.path) from None
 
     def close(self) -> None:
+        """Close the part file; after a failed write the same error is not raised again."""
         if self._file is not None:
-            self._file.close()
-            self._file = None
+            file, self._file = self._file, None
+            try:
+                file.close()
+            except OSError as exc:
+                if not getattr(self, "_failed", False):
+                    raise _named(exc, self.path) from None
+
+
+def _named(exc: OSError, path: str | os.PathLike) -> OSError:
+    """``exc`` naming ``path`` (a failed flush names no file)."""
+    if exc.filename:
+        return exc
+    return type(exc)(exc.errno, exc.strerror or str(exc), os.fspath(path))
 
 
 _ROW_START = b'{"input": '
@@ -286,12 +303,15 @@ def fold_parts(manifest: str | os.PathLike) -> int:
     parts = sorted(folder.glob("*.jsonl"))
     rows = sorted((r for p in parts for r in _lines(p)), key=_finished)
     if rows:
-        _end_line(path)
-        with open(path, "a", encoding="utf-8") as f:
-            for row in rows:
-                f.write(json.dumps({k: row.get(k) for k in FIELDS}) + "\n")
-            f.flush()
-            os.fsync(f.fileno())
+        try:
+            _end_line(path)
+            with open(path, "a", encoding="utf-8") as f:
+                for row in rows:
+                    f.write(json.dumps({k: row.get(k) for k in FIELDS}) + "\n")
+                f.flush()
+                os.fsync(f.fileno())
+        except OSError as exc:  # the parts are kept: the next fold adds their rows
+            raise _named(exc, path) from None
     for p in parts:
         p.unlink(missing_ok=True)
     try:
@@ -425,4 +445,7 @@ class Summary:
         if self.kinds:
             kinds = ", ".join(f"{k} {v}" for k, v in self.kinds.most_common())
             out.append(f"failures by kind: {kinds}")
+        left = self.total - self.skipped - n
+        if left > 0:
+            out.append(f"{left} not rendered: the run stopped before them")
         return out

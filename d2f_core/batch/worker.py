@@ -94,6 +94,11 @@ def render_job(job: Job, args: argparse.Namespace, engine: Any) -> dict[str, Any
             settings=getattr(args, "batch_settings", None),
         )
     except Exception as exc:  # one bad photo must never stop a worker
+        if isinstance(exc, OSError) and exc.filename and Path(exc.filename).parent == partial:
+            # a write into the hidden folder (a full disk) names the output it was for
+            exc = type(exc)(
+                exc.errno, exc.strerror, os.fspath(dst.parent / Path(exc.filename).name)
+            )
         row.update(error_kind=type(exc).__name__, error=_one_line(src, exc))
     finally:
         shutil.rmtree(partial, ignore_errors=True)

@@ -42,9 +42,10 @@ AT_FOCUS = 1e-3
 def mask_tensor(mask: Any, size: tuple[int, int], name: str) -> Tensor:
     """A painted mask as ``[1, 1, H, W]`` float32 in [0, 1] at the photo's ``size``.
 
-    ``mask``: an ``H' x W'`` array (bool, integers 0-255 or floats in [0, 1]) or ``H' x W' x C``
-    (grey, RGB or RGBA: the mean of the colour channels, times alpha when there is one), of
-    the photo's aspect ratio and any size; a tensor of the same shapes.
+    ``mask``: an ``H' x W'`` array (bool, integers 0-255, or 0 and 1 only: a 0/1 mask, floats
+    in [0, 1]) or ``H' x W' x C`` (grey, RGB or RGBA: the mean of the colour channels, times
+    alpha when there is one), of the photo's aspect ratio and any size; a tensor of the same
+    shapes.
 
     Raises:
         ValueError: not 2-D or 3-D, empty, holding NaN, outside its range, or of another
@@ -62,7 +63,9 @@ def mask_tensor(mask: Any, size: tuple[int, int], name: str) -> Tensor:
     if a.ndim == 3:
         if a.shape[2] not in (1, 2, 3, 4):
             raise ValueError(f"{name}: a mask has 1-4 channels, got shape {a.shape}")
-        scale = 255.0 if np.issubdtype(a.dtype, np.integer) else 1.0
+        scale = 1.0
+        if np.issubdtype(a.dtype, np.integer):
+            scale = 1.0 if a.size and a.max() <= 1 else 255.0
         a = a.astype(np.float32) / scale
         colour = a[..., : 3 if a.shape[2] >= 3 else 1].mean(axis=2)
         alpha = a[..., -1] if a.shape[2] in (2, 4) else 1.0
@@ -76,7 +79,8 @@ def mask_tensor(mask: Any, size: tuple[int, int], name: str) -> Tensor:
     elif np.issubdtype(a.dtype, np.integer):
         if a.min() < 0 or a.max() > 255:
             raise ValueError(f"{name}: integer mask values must be 0-255")
-        a = a.astype(np.float32) / 255.0
+        # a mask of 0 and 1 only, as (a > t).astype(np.uint8) makes, is a 0/1 mask
+        a = a.astype(np.float32) / (1.0 if a.max() <= 1 else 255.0)
     else:
         a = a.astype(np.float32)
         if not np.isfinite(a).all():

@@ -8,6 +8,7 @@ import functools
 import io
 import logging
 import struct
+import zlib
 
 import numpy as np
 from PIL import Image
@@ -179,6 +180,31 @@ def _png_codec():
 _codec_missing_logged = False
 
 
+#: Most bytes inflated per step by :func:`_inflates_past` (its memory, whatever the stream).
+_INFLATE_STEP = 1 << 20
+
+
+def _inflates_past(data: bytes, needed: int) -> bool:
+    """Whether a PNG's image data (its IDAT chunks, one zlib stream) inflates to more than
+    ``needed`` bytes. Stops a step past ``needed``, so a stream of any length costs the
+    inflating of the image's own rows, with memory of one step."""
+    inflate = zlib.decompressobj()
+    total = 0
+    try:
+        for ctype, body in _png_chunks(data):
+            if ctype != b"IDAT":
+                continue
+            pending = bytes(body)
+            while pending and not inflate.eof:
+                total += len(inflate.decompress(pending, _INFLATE_STEP))
+                if total > needed:
+                    return True
+                pending = inflate.unconsumed_tail
+    except (ValueError, struct.error, zlib.error):
+        return False  # a truncated or corrupt stream: libpng says where
+    return False
+
+
 def decode_png16(data: bytes) -> tuple[np.ndarray, bytes | None] | None:
     """Decode a non-interlaced 16-bit colour PNG (RGB, RGBA, grey+alpha) at full precision.
 
@@ -229,6 +255,12 @@ def decode_png16(data: bytes) -> tuple[np.ndarray, bytes | None] | None:
         raise ValueError(
             f"truncated PNG image data: {compressed} compressed bytes cannot hold the "
             f"{needed} bytes of a {w}x{h} image"
+        )
+    if _inflates_past(data, needed + needed // 64 + 4096):
+        # libpng would inflate all of it (a 1 MB file can hold a GiB of zeros) to ignore it;
+        # a little padding past the rows, which some encoders leave, is taken
+        raise ValueError(
+            f"corrupt PNG: its image data holds more than the {needed} bytes of a {w}x{h} image"
         )
     try:
         arr = png_decode(data)

@@ -4,6 +4,7 @@ weights come from; the architecture of D2F steps 2, 3 and 6 is chosen here.
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
@@ -21,6 +22,16 @@ def default_weights_path() -> Path:
     if env:
         return Path(env)
     return bundled.shipped_weights()
+
+
+#: The range of each float setting that no other check below bounds on both sides (a
+#: checkpoint's config is read from a file: ``inf`` or ``nan`` must not pass as a setting).
+_FLOAT_RANGES = {
+    "train_blur": (0.0, 1000.0),
+    "fusion_theta": (0.0, 1.0),
+    "sharp_coc": (1e-3, 16.0),
+    "refine_eps": (1e-9, 3.0),
+}
 
 
 @dataclass
@@ -143,6 +154,12 @@ class D2FConfig:
                 setattr(self, f.name, value)
             if not isinstance(value, kind) or (isinstance(value, bool) and kind is not bool):
                 raise InputTypeError(f"config.{f.name} must be {kind.__name__}, got {value!r}")
+            if kind is float and not math.isfinite(value):
+                raise ValueError(f"config.{f.name} must be a finite number, got {value!r}")
+        for name, (low, high) in _FLOAT_RANGES.items():
+            value = getattr(self, name)
+            if not low <= value <= high:
+                raise ValueError(f"config.{name} must be in [{low:g}, {high:g}], got {value!r}")
         if self.order not in ("depth", "paper"):
             raise ValueError(f"config.order must be 'depth' or 'paper', got {self.order!r}")
         if self.placement not in rendering.PLACEMENTS:
