@@ -12,6 +12,7 @@
 
 from __future__ import annotations
 
+import os
 import shutil
 import subprocess
 import sys
@@ -30,6 +31,16 @@ from app.latency_server import BenchError, Server, app_env, wait_ready
 from app.latency_server import free_port as find_free_port
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Under pytest-xdist every worker gets its share of the cores for torch (two workers
+    of two threads each on two cores spin against each other)."""
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1") or 1)
+    if workers > 1:
+        import torch
+
+        torch.set_num_threads(max(1, (os.cpu_count() or 1) // workers))
 #: Small networks and a small render pass keep model-backed tests fast on 2 cores.
 TINY_CONFIG = {"network_size": 64, "max_render_side": 256}
 

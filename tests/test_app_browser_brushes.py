@@ -46,28 +46,33 @@ def _picture(page, old_src):
     return src, fetch_image(page, src)
 
 
-def _to_canvas(page, x: float, y: float) -> tuple[float, float]:
-    """Page coordinates of photo pixel (x, y) on the editor's canvas: the photo is drawn
-    centred at the zoom the editor shows (its "NN%")."""
+def _canvas_geometry(page) -> tuple[float, float, float]:
+    """``(left, top, zoom)``: where photo pixel (0, 0) is on the page and the zoom the editor
+    shows (its "NN%"), the photo drawn centred on the canvas."""
     box = page.locator("#paint canvas").first.bounding_box()
     zoom_text = page.locator("#paint").get_by_text(re.compile(r"^\d+%$")).first.inner_text()
     zoom = float(zoom_text.rstrip("%")) / 100.0
-    ox = box["x"] + (box["width"] - WIDTH * zoom) / 2
-    oy = box["y"] + (box["height"] - HEIGHT * zoom) / 2
-    return ox + (x + 0.5) * zoom, oy + (y + 0.5) * zoom
+    return (
+        box["x"] + (box["width"] - WIDTH * zoom) / 2,
+        box["y"] + (box["height"] - HEIGHT * zoom) / 2,
+        zoom,
+    )
 
 
 def _paint(page, rect, rows: int = 8) -> None:
     """Strokes across ``rect`` (photo pixels), row after row, with the tool selected."""
     x0, y0, x1, y1 = rect
     viewport = page.viewport_size
+    ox, oy, zoom = _canvas_geometry(page)
     for y in np.linspace(y0 + 10, y1 - 10, rows):
-        ax, ay = _to_canvas(page, x0 + 10, y)
-        bx, _ = _to_canvas(page, x1 - 10, y)
+        ax, ay = ox + (x0 + 10.5) * zoom, oy + (y + 0.5) * zoom
+        bx = ox + (x1 - 9.5) * zoom
         assert 0 < ay < viewport["height"] and 0 < bx < viewport["width"], "canvas off screen"
         page.mouse.move(ax, ay)
         page.mouse.down()
-        for t in np.linspace(0.0, 1.0, 12):
+        # the editor draws a straight segment between two pointer events: a stroke across is
+        # its two ends and its middle (each event redraws the canvas: 0.2-0.3 s here)
+        for t in (0.5, 1.0):
             page.mouse.move(ax + (bx - ax) * t, ay)
         page.mouse.up()
 
