@@ -1,6 +1,7 @@
 """Make the README's before/after picture from a bundled sample photo.
 
-    python docs/before_after.py                     # -> assets/charts/before_after.jpg
+    python docs/before_after.py                     # -> out/before_after.jpg
+    python docs/before_after.py --readme            # -> assets/charts/before_after.jpg
     python docs/before_after.py --photo chelsea.jpg --blur 40 --out /tmp/cat.jpg
 
 The photo (left) and d2f's render (right) with the shipped weights and their own depth
@@ -36,17 +37,38 @@ def detail(out: np.ndarray, photo: np.ndarray, box: tuple[int, int, int, int]) -
     return float(gradient(out)[y0:y1, x0:x1].mean() / gradient(photo)[y0:y1, x0:x1].mean())
 
 
+#: The README's picture, tracked by git: written only with ``--readme``.
+README_PICTURE = ROOT / "assets" / "charts" / "before_after.jpg"
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--photo", default="coffee.jpg", help="a bundled sample's file name")
+    p.add_argument("--blur", type=float, default=60.0, help="K, px at |d - focus| = 1")
+    p.add_argument("--gap", type=int, default=6, help="white px between the two")
+    where = p.add_mutually_exclusive_group()
+    where.add_argument("--out", type=Path, help="the picture (default: out/before_after.jpg)")
+    where.add_argument("--readme", action="store_true", help=f"write {README_PICTURE.name} "
+                       "in assets/charts/, the README's picture")  # fmt: skip
+    return p
+
+
+def output_path(args: argparse.Namespace) -> Path:
+    """Where the picture goes: the README's only when asked (``--readme``)."""
+    if args.readme:
+        return README_PICTURE
+    return args.out if args.out is not None else ROOT / "out" / "before_after.jpg"
+
+
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--photo", default="coffee.jpg", help="a bundled sample's file name")
-    parser.add_argument("--blur", type=float, default=60.0, help="K, px at |d - focus| = 1")
-    parser.add_argument("--gap", type=int, default=6, help="white px between the two")
-    parser.add_argument("--out", type=Path, default=ROOT / "assets" / "charts" / "before_after.jpg")
-    args = parser.parse_args(argv)
+    cli = parser()
+    args = cli.parse_args(argv)
+    args.out = output_path(args)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
 
     by_name = {p.name: p for p in sample_photos()}
     if args.photo not in by_name:
-        parser.error(f"--photo must be one of {sorted(by_name)}, got {args.photo!r}")
+        cli.error(f"--photo must be one of {sorted(by_name)}, got {args.photo!r}")
     photo = load_image(by_name[args.photo])  # H x W x 3 float32 in [0, 1]
     model = D2F.from_pretrained()
     scene = model.prepare(photo)

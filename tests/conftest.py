@@ -41,6 +41,8 @@ def pytest_configure(config: pytest.Config) -> None:
         import torch
 
         torch.set_num_threads(max(1, (os.cpu_count() or 1) // workers))
+
+
 #: Small networks and a small render pass keep model-backed tests fast on 2 cores.
 TINY_CONFIG = {"network_size": 64, "max_render_side": 256}
 

@@ -56,10 +56,12 @@ def test_python_examples_run(folder):
     for code in blocks:
         env: dict = {}
         exec(compile(code, str(README), "exec"), env)  # noqa: S102
-    assert (tmp / "bokeh.jpg").is_file() and (tmp / "bokeh2.jpg").is_file()
+    assert (tmp / "out" / "bokeh.jpg").is_file() and (tmp / "out" / "bokeh2.jpg").is_file()
+    # the examples write into out/ only
+    assert sorted(p.name for p in tmp.iterdir()) == ["depth.png", "out", "photo.jpg", "photos"]
     assert env["small"].bokeh.shape == (150, 200, 3)  # 288x384 at a 200 px screen
     assert env["loupe"].bokeh.shape == (150, 200, 3)
-    painted = np.asarray(Image.open(tmp / "painted.jpg"), np.float32)  # the painted square
+    painted = np.asarray(Image.open(tmp / "out" / "painted.jpg"), np.float32)  # the painted square
     original = env["photo"].image[60:140, 60:140] * 255
     assert np.abs(painted[60:140, 60:140] - original).mean() < 8.0  # sharp (JPEG's noise)
     # the example works on the original photo, not on Google's blurred picture
@@ -84,6 +86,8 @@ def test_command_lines_run(folder, capsys, tiny_checkpoint):
     lines = [ln.split("#")[0].strip() for b in _blocks("bash") for ln in b.splitlines()]
     commands = [shlex.split(ln) for ln in lines if ln.startswith("d2f ")]
     assert len(commands) >= 4
+    assert "mkdir -p out" in lines  # before the first line that writes there
+    Path("out").mkdir()
     # as written, from the checkout: the shipped samples and what earlier lines wrote
     samples = Path(__file__).resolve().parents[1] / "assets" / "samples"
     docs = Path(__file__).resolve().parents[1] / "docs"
@@ -92,8 +96,30 @@ def test_command_lines_run(folder, capsys, tiny_checkpoint):
         argv = [a.replace("docs/", f"{docs}/", 1) if a.startswith("docs/") else a for a in argv]
         code = cli_main([*argv, "--weights", str(tiny_checkpoint)])
         assert code == 0, (argv, capsys.readouterr().err)
+    # every output in out/, nothing beside the photos the folder held
     for name in ("coffee_bokeh.png", "coffee_cup.jpg", "coffee_own.jpg", "coffee_cup_sharp.jpg"):
-        assert (tmp / name).is_file(), name
-    assert (tmp / "maps" / "coffee_bokeh_disparity.png").is_file()
-    rendered = sorted(p.name for p in (tmp / "out").iterdir() if p.suffix != ".jsonl")
+        assert (tmp / "out" / name).is_file(), name
+    assert (tmp / "out" / "maps" / "coffee_bokeh_disparity.png").is_file()
+    assert sorted(p.name for p in tmp.iterdir()) == ["depth.png", "out", "photo.jpg", "photos"]
+    rendered = sorted(p.name for p in (tmp / "out" / "batch").iterdir() if p.suffix != ".jsonl")
     assert rendered == sorted(f"{p.stem}_bokeh{p.suffix}" for p in samples.iterdir()), rendered
+
+
+def test_the_two_commands_come_first():
+    lines = README.read_text().splitlines()
+    app = next(i for i, ln in enumerate(lines) if ln.endswith('pip install -e ".[app]" && d2f-app'))
+    tests = next(i for i, ln in enumerate(lines) if ln.endswith("&& python -m pytest"))
+    assert app < 40 and tests < 40, (app + 1, tests + 1)
+
+
+def test_the_before_after_picture_is_rewritten_only_when_asked():
+    import importlib.util
+
+    path = README.parent / "docs" / "before_after.py"
+    spec = importlib.util.spec_from_file_location("before_after", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    tracked = README.parent / "assets" / "charts" / "before_after.jpg"
+    assert module.output_path(module.parser().parse_args([])) != tracked
+    assert module.output_path(module.parser().parse_args([])).parts[-2] == "out"
+    assert module.output_path(module.parser().parse_args(["--readme"])) == tracked
