@@ -118,6 +118,8 @@ def test_no_float_setting_of_a_weights_file_is_infinite_or_nan(tiny_checkpoint, 
     assert {"sharp_coc", "fusion_theta", "train_blur"} <= set(FLOAT_FIELDS)
     ckpt = torch.load(tiny_checkpoint, weights_only=True)
     for name in FLOAT_FIELDS:
+        if name == "spread_clip" and value == math.inf:
+            continue  # no clip limit: the map's ranks (D2FConfig.spread_clip)
         edited = {**ckpt, "config": {**ckpt["config"], name: value}}
         path = tmp_path / f"{name}.pt"
         torch.save(edited, path)

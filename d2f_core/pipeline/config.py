@@ -34,6 +34,11 @@ _FLOAT_RANGES = {
 }
 
 
+#: The float settings for which +inf has a meaning (``spread_clip``: no clip limit, the
+#: equalised map is the map's ranks); NaN and -inf are refused for every one.
+_INFINITE_OK = {"spread_clip"}
+
+
 @dataclass
 class D2FConfig:
     """Architecture and inference settings; saved inside every checkpoint.
@@ -106,7 +111,7 @@ class D2FConfig:
             narrow band leaves a far background nearly as sharp as the subject. 0 keeps the
             network's map as it is; maps from any other source are never changed.
         spread_clip: the equalisation's clip limit, at least 1 (the larger, the nearer the
-            equalised map is to the map's ranks).
+            equalised map is to the map's ranks; ``inf``, the ranks themselves).
         depth_source: where :meth:`D2F.prepare` takes a photo's depth from when the photo
             brings none and none is asked for: ``"d2f"`` (this defocus network) or
             ``"scene"`` (the scene teachers with this network's subjects and map,
@@ -155,6 +160,8 @@ class D2FConfig:
             if not isinstance(value, kind) or (isinstance(value, bool) and kind is not bool):
                 raise InputTypeError(f"config.{f.name} must be {kind.__name__}, got {value!r}")
             if kind is float and not math.isfinite(value):
+                if value == math.inf and f.name in _INFINITE_OK:
+                    continue
                 raise ValueError(f"config.{f.name} must be a finite number, got {value!r}")
         for name, (low, high) in _FLOAT_RANGES.items():
             value = getattr(self, name)
@@ -186,11 +193,10 @@ class D2FConfig:
             raise ValueError(
                 f"config.depth_source must be 'd2f' or 'scene', got {self.depth_source!r}"
             )
-        if not (0 <= self.spread <= 1 and self.spread_clip >= 1):
-            raise ValueError(
-                f"config.spread must be in [0, 1] and spread_clip >= 1, got {self.spread} "
-                f"and {self.spread_clip}"
-            )
+        if not 0 <= self.spread <= 1:
+            raise ValueError(f"config.spread must be in [0, 1], got {self.spread}")
+        if not self.spread_clip >= 1:
+            raise ValueError(f"config.spread_clip must be at least 1, got {self.spread_clip}")
         if not 0 < self.render_scale <= 1:
             raise ValueError(f"config.render_scale must be in (0, 1], got {self.render_scale}")
         if self.full_pass_side < 0:
