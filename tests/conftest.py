@@ -43,6 +43,14 @@ def pytest_configure(config: pytest.Config) -> None:
         torch.set_num_threads(max(1, (os.cpu_count() or 1) // workers))
 
 
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Under pytest-xdist the slow tests (the browser's, the app server's) go first: each
+    worker starts on a long one and the short ones fill the gaps at the end, rather than a
+    long test starting last and running alone."""
+    if int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1") or 1) > 1:
+        items.sort(key=lambda item: item.get_closest_marker("slow") is None)
+
+
 #: Small networks and a small render pass keep model-backed tests fast on 2 cores.
 TINY_CONFIG = {"network_size": 64, "max_render_side": 256}
 
