@@ -46,6 +46,7 @@ def _controls(focus: float, f_number: float = 2.0, focal_range: float = 0.0) -> 
     return (focus, f_number, 0, 0.0, True, True, "Bokeh", "balanced", True, focal_range, None)
 
 
+@pytest.mark.slow
 def test_large_photo_is_shown_at_the_screens_size(logic, scene_factory, tmp_path):
     s = scene_factory(width=2400, height=1800)
     session = logic.load(str(s.photo), None, "disparity", None, 0.5, 2.0)[0]
@@ -67,6 +68,7 @@ def test_large_photo_is_shown_at_the_screens_size(logic, scene_factory, tmp_path
     assert np.array_equal(np.asarray(Image.open(tmp_path / "cli.png").convert("RGB")), full)
 
 
+@pytest.mark.slow
 def test_loupe_is_the_downloads_crop(logic, scene_factory):
     s = scene_factory(width=2400, height=1800, seed=2)
     session = logic.load(str(s.photo), None, "disparity", None, 0.5, 2.0)[0]

@@ -267,6 +267,7 @@ class TestLocalEngine:
         )
         assert _outputs(out) == before
 
+    @pytest.mark.slow
     def test_killed_run_resumes_without_truncated_outputs(self, tmp_path, tiny_checkpoint):
         """SIGKILL to the whole local engine (driver and workers) once some outputs exist; the
         rerun renders only the photos without a done row and an output."""
@@ -409,6 +410,7 @@ def ray_cluster():
 
 
 class TestRayEngine:
+    @pytest.mark.slow
     def test_same_outputs_as_local_and_a_complete_manifest(
         self, ray_cluster, library, tmp_path, tiny_checkpoint
     ):

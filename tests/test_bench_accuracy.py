@@ -22,6 +22,7 @@ pytestmark = pytest.mark.usefixtures("two_threads")
 
 
 class TestQuickRun:
+    @pytest.mark.slow
     def test_quick_mode_writes_json_and_charts(self, tmp_path, capsys):
         out, cache = tmp_path / "out", tmp_path / "cache"
         # through the d2f-bench dispatcher, as CI and the README run it

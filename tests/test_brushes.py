@@ -251,6 +251,7 @@ class TestCommandLine:
             env=env,
         )
 
+    @pytest.mark.slow
     def test_masks_on_the_command_line(self, two_plane_scene, tmp_path, tiny_checkpoint):
         """``--sharp-mask`` keeps the painted background sharp with the subject in focus, with
         the network's weights and with a depth map alone; the mask is never overwritten."""
@@ -295,6 +296,7 @@ class TestCommandLine:
         ]
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not PORTRAIT.exists(), reason="../shared/data (the 12 MP portrait) is absent")
 def test_portrait_lamp_painted_sharp():
     """The 12 MP portrait focused on the face (a click there, with its range), the lamps

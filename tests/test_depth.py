@@ -384,6 +384,7 @@ def test_teacher_layout_and_subject():
     assert scene_targets.teacher_subject(fg)[20, 15] == pytest.approx(0.5, abs=0.01)
 
 
+@pytest.mark.slow
 @pytest.mark.shared_data
 def test_bench_depth_scores_the_teachers_and_targets(tmp_path):
     """``d2f-bench depth --teachers``: on the 12 measured-depth photos the depth teacher

@@ -421,6 +421,7 @@ class TestCli:
             assert main([*base, "--depth", str(tmp_path / "d.npy"), "--depth-model", source]) == 2
             assert "name two depth sources" in capsys.readouterr().err
 
+    @pytest.mark.slow
     def test_d2f_asked_of_weights_whose_own_source_is_scene(self, tmp_path, capsys):
         """``--depth-model d2f`` with weights that default to the scene source renders the
         network's own map: the same picture as the same weights whose own source is d2f. The

@@ -565,6 +565,7 @@ class TestAdaptive:
             model.render(scene, 0.5, 30.0, budget=budget)
 
 
+@pytest.mark.slow
 def test_one_blur_limit_named_in_the_units_typed(tiny_model):
     """D2F.render and render_bokeh take the same largest blur, and a blur past it is reported
     as it was given (D2F.render passes blur / 2 to its half-resolution pass)."""

@@ -209,6 +209,7 @@ def _shared_photos() -> list[Image.Image]:
     return out
 
 
+@pytest.mark.slow
 @pytest.mark.shared_data
 def test_ade20k_port_is_as_close_as_the_original_is_to_itself(ade):
     """The original is dynamic-range quantized (its activations rounded to int8 per pixel),

@@ -138,6 +138,7 @@ def _original() -> None:
         pytest.skip(f"the original teacher is not available: {TEACHERS}")
 
 
+@pytest.mark.slow
 @pytest.mark.shared_data
 def test_port_matches_the_original_on_real_photos(net):
     _original()

@@ -61,6 +61,7 @@ def test_renders_bundled_sample(model):
     assert psnr(result.bokeh, image) < 60  # something was blurred
 
 
+@pytest.mark.slow
 def test_beats_identity_on_held_out_generated_pairs(network):
     """Twelve generated 192x192 pairs with seeds never used in training (training: 100, 101).
 
@@ -119,6 +120,7 @@ def _no_focus_against_blur(
     return ours, blurred[best]
 
 
+@pytest.mark.slow
 def test_no_focus_given_beats_blurring_the_whole_photo(network):
     """Generated scenes focused on their subject (seeds 7200-7211, never used in training),
     rendered as a user gets them with no focus given, against a Gaussian blur of the whole
@@ -130,6 +132,7 @@ def test_no_focus_given_beats_blurring_the_whole_photo(network):
     assert sum(o > b for o, b in zip(ours, blurred, strict=True)) >= 10
 
 
+@pytest.mark.slow
 @pytest.mark.shared_data
 def test_no_focus_given_beats_blurring_the_whole_photo_on_photo_scenes(network):
     """The same on real held-out cut-outs on real held-out photos (seeds 7300-7311).
@@ -346,6 +349,7 @@ def test_default_keeps_the_motorcycle_sharp_and_the_wall_soft(model):
     assert kept > 0.62 and lost < 0.40
 
 
+@pytest.mark.slow
 @pytest.mark.shared_data
 def test_default_ranks_held_out_subjects_nearer(model):
     """The 8 held-out masked photos of the network's test: measured mean subject AUC 0.929,
@@ -355,6 +359,7 @@ def test_default_ranks_held_out_subjects_nearer(model):
     assert min(aucs) > 0.55
 
 
+@pytest.mark.slow
 def test_default_on_generated_scenes(model):
     """Generated scenes are where the network was trained and the teachers are strangers
     (their layers read as walls): measured Spearman 0.692 and subject AUC 0.862 on the six

@@ -81,6 +81,7 @@ def test_prepare_takes_the_phone_depth_of_a_loaded_photo(folder, tiny_checkpoint
     assert model.prepare(photo.image).disparity_source != "embedded"  # a bare array
 
 
+@pytest.mark.slow
 def test_command_lines_run(folder, capsys, tiny_checkpoint):
     tmp, _ = folder
     lines = [ln.split("#")[0].strip() for b in _blocks("bash") for ln in b.splitlines()]

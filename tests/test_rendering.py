@@ -470,6 +470,7 @@ class TestImplementations:
         assert torch.allclose(out[:1], render(img[:1], disp[:1], 0.2, 30.0), atol=1e-6)
         assert torch.allclose(out[1:], render(img[1:], disp[1:], 0.7, 30.0), atol=1e-6)
 
+    @pytest.mark.slow
     def test_gradcheck(self):
         g = torch.Generator().manual_seed(8)
         img = (torch.rand(1, 3, 9, 9, generator=g, dtype=torch.float64) * 0.8).requires_grad_()
@@ -714,6 +715,7 @@ class TestImplementations:
         or not (__import__("os").confstr("CS_GNU_LIBC_VERSION") or "").startswith("glibc"),
         reason="glibc's malloc only",
     )
+    @pytest.mark.slow
     def test_frame_sized_blocks_come_from_the_heap(self):
         # after the first render's setting, a 16 MB block (a 5-channel 1 MP frame) is carved
         # from the heap, whose freed memory glibc keeps, instead of being mapped (and later
