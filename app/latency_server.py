@@ -105,6 +105,7 @@ def app_env(temp: Path) -> dict[str, str]:
     env = dict(os.environ)
     env.update(
         GRADIO_TEMP_DIR=str(temp),
+        D2F_APP_MASKS=str(temp / "masks"),  # the brushes' masks, kept for the command
         GRADIO_ANALYTICS_ENABLED="False",
         HF_HUB_DISABLE_TELEMETRY="1",
         HF_HUB_OFFLINE="1",

@@ -49,6 +49,15 @@ def _payload_path(value: Any) -> str | None:
     return str(path) if path else None
 
 
+def _safe_file_name(name: str, suffix: str) -> str:
+    """A file name that is safe here for a copy of the user's file ``name`` whose type is
+    ``suffix``: the stem's letters, digits, ``-`` and ``_`` kept, anything else ``_``
+    ("photo" when nothing is left)."""
+    stem = Path(str(name)).stem
+    safe = "".join(c if c.isalnum() or c in "-_" else "_" for c in stem)[:80].strip("_")
+    return (safe or "photo") + suffix.lower()
+
+
 def _payload_name(value: Any, default: str = "photo", *, ext: bool = False) -> str:
     """The user's file name (``ext``) or a file-system-safe stem of it, for names and messages."""
     name = None
@@ -386,7 +395,10 @@ class LoadEvents:
         """``() -> Scene``: the cached scene of ``key``, else the session's copy of the
         upload decoded and prepared again (the cache may have dropped it for other photos)."""
         folder = self._session_dir(session, "upload")
-        kept = folder / f"photo{Path(path).suffix.lower()}"
+        # the copy carries the user's file name: the photo panel may show it again (after a
+        # failed upload) and send it back (a depth source switched), and its name is the one
+        # the download and the command give
+        kept = folder / _safe_file_name(name, Path(path).suffix)
         shutil.copyfile(path, kept)
         session.upload, session.source_path, session.upload_name = kept, path, name
         kept_depth = None

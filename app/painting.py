@@ -3,14 +3,15 @@ or be blurred (red), whatever the depth map says (``D2F.paint``).
 
 The paint is the session's: every later render applies it for its own focus, so it stays
 when the focus or the aperture changes, until it is cleared or another photo is loaded. The
-masks as painted are kept as PNG files in the session's folder, and the status line's
-``d2f render`` command names them (``--sharp-mask``, ``--blur-mask``).
+masks as painted are kept as PNG files (:func:`masks_folder`, kept after the tab is closed),
+and the status line's ``d2f render`` command names them (``--sharp-mask``, ``--blur-mask``).
 """
 
 from __future__ import annotations
 
 import hashlib
 import logging
+import os
 import struct
 import warnings
 import zlib
@@ -21,7 +22,7 @@ import gradio as gr
 import numpy as np
 from PIL import Image
 
-from app.imaging import DISPLAY_MAX_SIDE
+from app.imaging import DISPLAY_MAX_SIDE, fit_display
 from app.reporting import NO_PHOTO, SKIP4, user_error
 from app.sessions import Session, reported
 from d2f_core.depth.brushes import Brushes
@@ -29,18 +30,44 @@ from d2f_core.io.depth import check_aspect
 
 log = logging.getLogger("app.handlers")
 
+#: What Apply says when the canvas holds no paint and the photo had none.
+NOTHING_PAINTED = (
+    "Nothing is painted: choose a brush, paint over the photo in the brushes' panel, then "
+    "Apply paint."
+)
+
 #: The brushes' colours on the canvas, with their opacity: keep sharp, blur.
 SHARP_COLOUR = "#22c55e"
 BLUR_COLOUR = "#ef4444"
 BRUSH_OPACITY = 0.6
 
 
+#: The long side of the brushes' canvas (px): the editor shows it at about 400-600 px, and
+#: exports its background, its paint and their composite at this size on Apply (in the
+#: browser, a second at 1600 px in software). The strokes' edges follow the photo's at this
+#: size too (``d2f_core.depth.brushes.EDGE_SIDE``).
+CANVAS_SIDE = 1024
 #: The largest side a canvas image (background, paint layer, composite) may have: the canvas
 #: is the photo at display size (:data:`app.imaging.DISPLAY_MAX_SIDE`), and a request's
 #: memory stays bounded by it whatever a client sends.
 CANVAS_MAX_SIDE = DISPLAY_MAX_SIDE
 #: What Pillow raises on a truncated or corrupt file.
 _DECODE_ERRORS = (OSError, SyntaxError, ValueError, EOFError, struct.error, zlib.error, IndexError)
+
+
+def masks_folder() -> Path:
+    """Where the painted masks are written for the status line's ``d2f render`` command:
+    ``$D2F_APP_MASKS``, else ``$XDG_CACHE_HOME/d2f/masks`` (``~/.cache/d2f/masks``). They
+    stay when the tab and the server are gone, so the command still runs; each is named by
+    its paint's content and is a few KB (a 1-bit picture at the canvas's size)."""
+    env = os.environ.get("D2F_APP_MASKS")
+    if env:
+        folder = Path(env)
+    else:
+        cache = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+        folder = Path(cache) / "d2f" / "masks"
+    folder.mkdir(parents=True, exist_ok=True)
+    return folder
 
 
 def check_canvas_image(file: Any) -> None:
@@ -123,11 +150,13 @@ class PaintEvents:
 
     @reported
     def paint_canvas(self, session: Session | None) -> Any:
-        """The paint editor's value for ``session``'s photo: the photo at display size as the
-        canvas's background, no paint (``None`` without a photo)."""
+        """The paint editor's value for ``session``'s photo: the photo at
+        :data:`CANVAS_SIDE` as the canvas's background, no paint (``None`` without a photo).
+        """
         if session is None:
             return None
-        return {"background": session.before, "layers": [], "composite": None}
+        background = fit_display(session.before, CANVAS_SIDE)
+        return {"background": background, "layers": [], "composite": None}
 
     def _keep_paint(
         self, session: Session, sharp: np.ndarray | None, blur: np.ndarray | None, edges: bool
@@ -151,11 +180,14 @@ class PaintEvents:
                     ) from None
             image = session.get_scene().image
             brushes = Brushes.painted(image, sharp, blur, edges=edges)
-            folder = self._session_dir(session, "paint")
+            folder = masks_folder()
             for key, m in (("sharp", sharp), ("blur", blur)):
                 if m is not None:
-                    path = Path(folder) / f"{key}_mask_{name}.png"
-                    Image.fromarray((m > 0).astype(np.uint8) * 255).save(path)
+                    path = folder / f"{key}_mask_{name}.png"
+                    if not path.exists():  # named by its content: written once
+                        partial = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+                        Image.fromarray((m > 0).astype(np.uint8) * 255).save(partial, "PNG")
+                        os.replace(partial, path)
                     files[key] = path
         with session.lock:
             session.brushes = brushes
@@ -186,6 +218,9 @@ class PaintEvents:
             return SKIP4
         layers = editor.get("layers") if isinstance(editor, dict) else None
         sharp, blur = masks_from_layers(layers)
+        if sharp is None and blur is None and not session.paint_id:
+            gr.Warning(NOTHING_PAINTED)
+            return SKIP4
         self._keep_paint(session, sharp, blur, bool(edges))
         return self.render_full(session, *controls)
 

@@ -4,6 +4,8 @@ lens's range (handlers called directly, the tiny model)."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import gradio as gr
 import numpy as np
 import pytest
@@ -43,13 +45,13 @@ def _paint(canvas: np.ndarray, green: bool) -> np.ndarray:
 def test_paint_on_the_canvas_of_a_photo_250_times_wider_than_tall(logic, tmp_path):
     session = _load(logic, tmp_path, 16, 4000)
     canvas = logic.paint_canvas(session)["background"]
-    assert canvas.shape[:2] == (6, 1600)  # 6.4 px tall, rounded: 7 % off the photo's aspect
+    assert canvas.shape[:2] == (4, 1024)  # 4.1 px tall, rounded: 2.4 % off the photo's aspect
     editor = {"background": canvas, "layers": [_paint(canvas, green=True)], "composite": None}
     out = logic.apply_paint(session, editor, True, *_controls(session))
     assert session.paint_id and "sharp" in session.paint_files
     assert len(out) == 4
     with Image.open(session.paint_files["sharp"]) as mask:
-        assert mask.size == (1600, 6)
+        assert mask.size == (1024, 4)
 
 
 def test_paint_of_another_shape_is_still_refused(logic, tmp_path):
@@ -95,3 +97,69 @@ def test_a_downscaled_side_rounded_to_a_pixel_keeps_the_aspect():
     for shape in ((12, 1600), (6, 1000), (1600, 6)):
         with pytest.raises(ValueError, match="aspect ratios differ"):
             check_aspect(shape, (16, 4000), "m")
+
+
+def test_apply_with_nothing_painted_says_so(logic, tmp_path):
+    session = _load(logic, tmp_path, 48, 64)
+    canvas = logic.paint_canvas(session)["background"]
+    empty = np.zeros((*canvas.shape[:2], 4), np.uint8)
+    for layers in ([], [empty]):
+        editor = {"background": canvas, "layers": layers, "composite": None}
+        with pytest.warns(UserWarning, match="Nothing is painted"):
+            out = logic.apply_paint(session, editor, True, *_controls(session))
+        assert all(isinstance(o, dict) and o.get("__type__") == "update" for o in out), out
+        assert session.paint_id == ""
+    # with paint applied before, an empty canvas clears it (and renders)
+    painted = {"background": canvas, "layers": [_paint(canvas, True)], "composite": None}
+    logic.apply_paint(session, painted, True, *_controls(session))
+    assert session.paint_id
+    editor = {"background": canvas, "layers": [empty], "composite": None}
+    logic.apply_paint(session, editor, True, *_controls(session))
+    assert session.paint_id == "" and session.brushes is None
+
+
+def test_the_canvas_is_at_most_its_side(logic, tmp_path):
+    session = _load(logic, tmp_path, 1200, 1800)
+    canvas = logic.paint_canvas(session)["background"]
+    assert canvas.shape[:2] == (683, 1024) and max(session.before.shape[:2]) == 1600
+
+
+def test_the_command_runs_after_the_tab_is_closed(logic, tmp_path, tiny_checkpoint):
+    import re
+    import shlex
+
+    from app.sessions import delete_session
+    from d2f_core import cli
+
+    rng = np.random.default_rng(3)
+    photo = tmp_path / "holiday.png"
+    Image.fromarray((rng.random((96, 128, 3)) * 255).astype(np.uint8)).save(photo)
+    session = logic.load(str(photo), None, "disparity", None, 0.5, 2.8)[0]
+    canvas = logic.paint_canvas(session)["background"]
+    editor = {"background": canvas, "layers": [_paint(canvas, True)], "composite": None}
+    info = logic.apply_paint(session, editor, True, *_controls(session))[3]
+    download = np.asarray(Image.open(logic.download(session, "PNG")["value"]).convert("RGB"))
+    words = shlex.split(re.search(r"reproduce: (d2f render .*?)(?: \| |$)", info).group(1))
+    assert words[2] == "holiday.png" and "--sharp-mask" in words
+    mask = Path(words[words.index("--sharp-mask") + 1])
+    folder = Path(session.folder)
+    delete_session(session)  # the tab closed: its folder goes
+    assert not folder.exists() and mask.is_file()
+    argv = words[2:]
+    argv[0] = str(photo)
+    argv[argv.index("-o") + 1] = str(tmp_path / "cli.png")
+    assert cli.main(["render", *argv, "--weights", str(tiny_checkpoint), "-q"]) == 0
+    cli_out = np.asarray(Image.open(tmp_path / "cli.png").convert("RGB"))
+    np.testing.assert_array_equal(cli_out, download)
+
+
+def test_the_photo_keeps_its_name_when_the_panel_sends_it_back(logic, tmp_path):
+    rng = np.random.default_rng(4)
+    photo = tmp_path / "holiday.png"
+    Image.fromarray((rng.random((48, 64, 3)) * 255).astype(np.uint8)).save(photo)
+    session = logic.load(str(photo), None, "disparity", None, 0.5, 2.8)[0]
+    assert session.upload.name == "holiday.png"
+    # after a failed upload the panel shows the kept copy; a depth source switched then
+    # sends that copy back, under its own name
+    again = logic.load(str(session.upload), None, "disparity", session, 0.5, 2.8)[0]
+    assert again.name == "holiday" and again.upload_name == "holiday.png"

@@ -9,6 +9,7 @@ import os
 import tempfile
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from PIL import Image
@@ -44,12 +45,18 @@ def to_uint8(array: np.ndarray, name: str = "array") -> np.ndarray:
 _BAND_ELEMENTS = 1 << 20
 
 
+#: How far past [0, 1] a float image may go and still be saved (clipped): half an 8-bit
+#: level, what rounding leaves. Further is another scale (0-255) or a fault, and is refused.
+ROUNDING = 0.5 / 255.0
+
+
 def float_to_uint8(a: np.ndarray, name: str | None = "array") -> np.ndarray:
     """Float ``a`` (any shape, values in [0, 1]) -> uint8 of the same shape, clipped and
     rounded half up, by bands of rows in one reused float32 buffer.
 
-    ``name`` set: NaN or infinite values raise ``ValueError`` naming it; ``None``: they are
-    not looked for (a renderer's output, clamped already).
+    ``name`` set: NaN or infinite values, and values more than :data:`ROUNDING` outside
+    [0, 1], raise ``ValueError`` naming it; ``None``: they are not looked for (a renderer's
+    output, clamped already).
     """
     if a.ndim == 0:
         return float_to_uint8(a.reshape(1), name).reshape(())
@@ -60,8 +67,15 @@ def float_to_uint8(a: np.ndarray, name: str | None = "array") -> np.ndarray:
     scratch = np.empty((min(rows, a.shape[0]), *a.shape[1:]), np.float32)
     for r0 in range(0, a.shape[0], rows):
         band = a[r0 : r0 + rows]
-        if name is not None and not np.isfinite(band).all():
-            raise ValueError(f"{name}: contains NaN or infinite values")
+        if name is not None:
+            if not np.isfinite(band).all():
+                raise ValueError(f"{name}: contains NaN or infinite values")
+            low, high = float(band.min()), float(band.max())
+            if low < -ROUNDING or high > 1.0 + ROUNDING:
+                hint = " (a 0-255 image? divide it by 255)" if high > 1.0 + ROUNDING else ""
+                raise ValueError(
+                    f"{name}: float values must be in [0, 1], got {low:g} to {high:g}{hint}"
+                )
         buf = scratch[: band.shape[0]]
         # clip, scale and add 0.5 in float32: rounds half up, 2x faster than np.round
         np.clip(band, 0.0, 1.0, out=buf)
@@ -160,10 +174,30 @@ def check_side_limit(path: str | os.PathLike, size: tuple[int, int]) -> None:
         )
 
 
+def _photo_info(source: Any) -> Any:
+    """The :class:`ImageInfo` behind ``source``: a ``Photo`` (``.info``), a ``Scene`` or a
+    ``Result`` (``.photo_info``), an ``ImageInfo`` itself; ``None`` when it has none."""
+    if source is None:
+        return None
+    if hasattr(source, "icc_profile") and hasattr(source, "exif"):
+        return source
+    for attr in ("photo_info", "info"):
+        info = getattr(source, attr, None)
+        if info is not None and hasattr(info, "icc_profile"):
+            return info
+    if hasattr(source, "photo_info") or hasattr(source, "info"):
+        return None  # a scene or a result of a bare array: nothing to keep
+    raise InputTypeError(
+        f"like: expected a Photo from load_photo, a Scene, a Result or an ImageInfo, got "
+        f"{type(source).__name__}"
+    )
+
+
 def save_image(
     path: str | os.PathLike,
-    array: np.ndarray,
+    array: Any,
     *,
+    like: Any = None,
     quality: int = 95,
     icc_profile: bytes | None = None,
     exif: bytes | Image.Exif | None = None,
@@ -171,13 +205,23 @@ def save_image(
 ) -> Path:
     """Write an RGB (or grey) image; the format follows the extension.
 
+    The photo's colour profile and EXIF go with the picture when they are known: from a
+    ``Result`` of a scene prepared from a loaded photo (``save_image(path, result)``), or
+    from ``like=`` (the ``Photo`` of ``load_photo``). Without its profile a Display P3 photo
+    would be read as sRGB by every viewer, its colours washed out.
+
     Args:
         path: ``.png``, ``.jpg``/``.jpeg``, ``.tif``/``.tiff`` or ``.webp``.
-        array: HxWx3 (or HxW) float in [0, 1] (clipped, rounded) or uint8.
+        array: HxWx3 (or HxW) float in [0, 1] (rounded; values past it by more than half a
+            level are refused, as ``D2F.prepare`` refuses them) or uint8; or a ``Result`` of
+            ``D2F.render`` (its ``bokeh``, with its photo's profile and EXIF).
+        like: where the ICC profile and EXIF come from: a ``Photo`` (``load_photo``), a
+            ``Scene``, a ``Result`` or an ``ImageInfo``; ``icc_profile=`` and ``exif=``
+            given explicitly win over it.
         quality: JPEG/WebP quality 1..100.
         icc_profile: ICC profile bytes to embed (e.g. the input's), or None.
         exif: EXIF bytes or ``PIL.Image.Exif`` to embed; its orientation tag is dropped
-            because the pixels are already upright.
+            because the pixels are already upright (so is a photo's, from ``like``).
         protect: path(s) that must not be overwritten (e.g. the input photo).
 
     Returns:
@@ -186,6 +230,13 @@ def save_image(
     Raises:
         ValueError: unknown extension, bad array, or ``path`` is a protected file.
     """
+    info = _photo_info(like)
+    if hasattr(array, "bokeh") and hasattr(array, "fusion_mask"):  # a Result
+        info = info if like is not None else _photo_info(array)
+        array = array.bokeh
+    if info is not None:
+        icc_profile = info.icc_profile if icc_profile is None else icc_profile
+        exif = info.exif if exif is None else exif
     out = Path(path)
     fmt = SAVE_FORMATS.get(out.suffix.lower())
     if fmt is None:

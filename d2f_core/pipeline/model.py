@@ -256,6 +256,7 @@ class D2F(DepthStage, FusionStage, FocusStage, ViewStage, RenderSteps, TrainingS
             focus=_recorded_focus(recorded),
             # a predicted map's full size is its pass's upsampled: never kept twice
             given_disparity=None if predicted else given,
+            photo_info=None if photo is None else photo.info,
         )
 
     def paint(

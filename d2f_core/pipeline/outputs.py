@@ -42,6 +42,9 @@ class Scene:
             downscaled to a screen (:meth:`D2F.screen_scene`); the fusion gate is a CoC in
             the photo's own pixels.
         cache: derived tensors (full-res disparity, preview-size inputs), filled lazily.
+        photo_info: the loaded photo's :class:`~d2f_core.io.ImageInfo` (ICC profile, EXIF)
+            when prepared from a :class:`~d2f_core.io.Photo`, else ``None``; every render
+            of the scene carries it.
     """
 
     image: Tensor
@@ -57,6 +60,7 @@ class Scene:
     brushes: Brushes | None = field(default=None, repr=False)
     pixel_scale: float = 1.0
     cache: dict[Any, Any] = field(default_factory=dict, repr=False)
+    photo_info: Any = field(default=None, repr=False)
 
     def brushed(self, focus: float) -> Scene:
         """This scene as a render focused at ``focus`` sees it: its full-resolution map
@@ -117,6 +121,9 @@ class Result:
         focus: the focal disparity rendered at (the subject's when none was given).
         focal_range: the span of disparity kept sharp around it (the subject's when no
             focus was given).
+        photo_info: the loaded photo's :class:`~d2f_core.io.ImageInfo` (its ICC profile
+            and EXIF) when the scene was prepared from a :class:`~d2f_core.io.Photo`, else
+            ``None``: ``save_image(path, result)`` writes them with the picture.
     """
 
     bokeh: np.ndarray
@@ -128,3 +135,4 @@ class Result:
     settings: adaptive.RenderSettings | None = None
     focus: float | None = None
     focal_range: float = 0.0
+    photo_info: Any = field(default=None, repr=False)

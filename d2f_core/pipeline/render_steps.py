@@ -117,6 +117,7 @@ class RenderSteps:
             settings=settings,
             focus=float(focus),
             focal_range=float(focal_range),
+            photo_info=scene.photo_info,
         )
         timings["to_numpy"] = ms_since(t0)
         return result
