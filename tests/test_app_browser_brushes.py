@@ -95,6 +95,10 @@ def test_brushes_keep_sharp_and_blur(app_server, chromium_launch_options, sharpn
         browser = p.chromium.launch(**chromium_launch_options)
         try:
             page = open_app(browser, server.url, height=1300, errors=errors)
+            # with the brushes' panel open, every new picture makes the editor export and
+            # upload its images again (tens of MB in the page, app/paint_bench.py): on a
+            # loaded machine an action waits for the page for tens of seconds
+            page.set_default_timeout(150_000)
             page.set_input_files("#input input[type=file]", str(photo))
             wait_status(page, "full render")
             page.get_by_text("Your own depth map (optional)").click()

@@ -141,3 +141,26 @@ def test_bench_in_browser_small(chromium_path, tmp_path, capsys):
     table = [line for line in printed.splitlines() if line.startswith("| small 800x600 |")]
     assert [line.split(" | ")[1] for line in table] == list(ROWS.values())
     assert f"at start {result['loadavg_start']}" in printed
+
+
+@pytest.mark.browser
+@pytest.mark.slow
+def test_paint_bench_in_browser_small(chromium_path, tmp_path):
+    """``python -m app.paint_bench`` on an 800x600 photo: a click and an Apply, each timed to
+    its full render, the page's longest pause and the requests behind each."""
+    from app import paint_bench
+    from app.latency_server import write_photos
+
+    photo = write_photos(tmp_path / "photos", (800, 600), 1)[0]
+    result = paint_bench.run(photo, repeats=1, threads=1, timeout_s=120.0)
+    assert result["tracebacks"] == 0
+    assert list(result["rows"]) == ["click", "apply"]
+    for key, runs in result["rows"].items():
+        assert len(runs) == 1, key
+        ms, pause, phases = runs[0]
+        assert math.isfinite(ms) and ms > 0 and 0 <= pause < 60, (key, runs)
+    # Apply sends the editor's images (its background, the paint and their composite)
+    _, _, apply = result["rows"]["apply"][0]
+    assert apply["uploads"] >= 3 and apply["upload_bytes"] > 0, apply
+    text = paint_bench.format_result(result)
+    assert "Apply / click (medians, in turns):" in text and "| apply |" in text

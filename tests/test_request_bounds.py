@@ -341,3 +341,38 @@ def test_a_16_bit_png_whose_data_inflates_past_its_rows_is_refused(tmp_path):
     raw = b"".join(b"\x00" + a[y].astype(">u2").tobytes() for y in range(48))
     buf.write(_png(64, 48, 16, 2, raw))
     np.testing.assert_allclose(load_image(buf.getvalue()), a / 65535.0, atol=1e-6)
+
+
+EXTREMES = [math.inf, -math.inf, math.nan, 1e300, -1e300, -1.0, 0.0, 0.5, 1.0, 2.0, 1e6,
+            2**63, -(2**63), "0.5", None, True, [], {"x": 1}]  # fmt: skip
+
+
+def test_fuzz_every_setting_of_a_weights_file(tiny_checkpoint, tmp_path):
+    """Every setting of a checkpoint's config set to each extreme value: the file loads with
+    finite settings in their ranges, or is refused with a ValueError naming the setting; a
+    sample of the edited files goes through ``D2F.from_checkpoint`` as written to disk."""
+    import random
+
+    ckpt = torch.load(tiny_checkpoint, weights_only=True)
+    names = [f.name for f in fields(D2FConfig)]
+    cases = [(name, value) for name in names for value in EXTREMES]
+    on_disk = set(random.Random("d2f-settings").sample(range(len(cases)), 24))
+    loaded = 0
+    for index, (name, value) in enumerate(cases):
+        config = {**ckpt["config"], name: value}
+        try:
+            if index in on_disk:
+                path = tmp_path / f"case{index}.pt"
+                torch.save({**ckpt, "config": config}, path)
+                cfg = D2F.from_checkpoint(path).config
+            else:
+                cfg = D2FConfig.from_dict(config)
+        except ValueError as exc:  # InputTypeError is a ValueError too
+            assert name in str(exc), (name, value, str(exc))
+            continue
+        loaded += 1
+        for f in fields(cfg):
+            v = getattr(cfg, f.name)
+            if isinstance(v, float) and not (f.name == "spread_clip" and v == math.inf):
+                assert math.isfinite(v), (name, value, f.name, v)
+    assert 0 < loaded < len(cases)

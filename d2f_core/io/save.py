@@ -22,7 +22,8 @@ from .image import SAVE_FORMATS
 
 
 def to_uint8(array: np.ndarray, name: str = "array") -> np.ndarray:
-    """HxWx3 / HxW float [0, 1] or uint8 array -> uint8 (rounded, clipped)."""
+    """HxWx3 / HxW float [0, 1] or uint8 array -> uint8 (rounded; floats more than
+    :data:`ROUNDING` outside [0, 1] are refused)."""
     a = np.asarray(array)
     if a.ndim == 3 and a.shape[2] == 1:
         a = a[..., 0]
@@ -36,7 +37,7 @@ def to_uint8(array: np.ndarray, name: str = "array") -> np.ndarray:
         return a.astype(np.uint8) * 255
     if not np.issubdtype(a.dtype, np.floating):
         raise InputTypeError(f"{name}: expected float [0, 1] or uint8 values, got dtype {a.dtype}")
-    return float_to_uint8(a, name)
+    return float_to_uint8(a, name, check_range=True)
 
 
 #: Elements of the float32 band :func:`float_to_uint8` works on at once (4 MB). A float
@@ -50,16 +51,18 @@ _BAND_ELEMENTS = 1 << 20
 ROUNDING = 0.5 / 255.0
 
 
-def float_to_uint8(a: np.ndarray, name: str | None = "array") -> np.ndarray:
+def float_to_uint8(
+    a: np.ndarray, name: str | None = "array", *, check_range: bool = False
+) -> np.ndarray:
     """Float ``a`` (any shape, values in [0, 1]) -> uint8 of the same shape, clipped and
     rounded half up, by bands of rows in one reused float32 buffer.
 
-    ``name`` set: NaN or infinite values, and values more than :data:`ROUNDING` outside
-    [0, 1], raise ``ValueError`` naming it; ``None``: they are not looked for (a renderer's
-    output, clamped already).
+    ``name`` set: NaN or infinite values raise ``ValueError`` naming it, and with
+    ``check_range`` values more than :data:`ROUNDING` outside [0, 1] too (else they are
+    clipped); ``None``: nothing is looked for (a renderer's output, clamped already).
     """
     if a.ndim == 0:
-        return float_to_uint8(a.reshape(1), name).reshape(())
+        return float_to_uint8(a.reshape(1), name, check_range=check_range).reshape(())
     out = np.empty(a.shape, np.uint8)
     if a.size == 0:
         return out
@@ -70,7 +73,7 @@ def float_to_uint8(a: np.ndarray, name: str | None = "array") -> np.ndarray:
         if name is not None:
             if not np.isfinite(band).all():
                 raise ValueError(f"{name}: contains NaN or infinite values")
-            low, high = float(band.min()), float(band.max())
+            low, high = (float(band.min()), float(band.max())) if check_range else (0.0, 1.0)
             if low < -ROUNDING or high > 1.0 + ROUNDING:
                 hint = " (a 0-255 image? divide it by 255)" if high > 1.0 + ROUNDING else ""
                 raise ValueError(
