@@ -163,7 +163,15 @@ def _apply(page, row: int, timeout_s: float) -> tuple[float, float, dict]:
     return _wait(page, since, old, timeout_s)
 
 
-def run(photo: Path | None, repeats: int, threads: int, timeout_s: float) -> dict[str, Any]:
+def run(
+    photo: Path | None,
+    repeats: int,
+    threads: int,
+    timeout_s: float,
+    weights: str | None = None,
+) -> dict[str, Any]:
+    """Run the bench (see the module's docstring); ``weights``: the app's checkpoint
+    (default: the app's own, the shipped weights)."""
     from playwright.sync_api import sync_playwright
 
     result: dict[str, Any] = {"commit": commit(), "threads": threads, "load_start": loadavg()}
@@ -172,7 +180,7 @@ def run(photo: Path | None, repeats: int, threads: int, timeout_s: float) -> dic
         if photo is None:
             photo = write_photos(folder / "photos", (4000, 3000), 1)[0]
         result["photo"] = str(photo)
-        server = start_app(folder, threads)
+        server = start_app(folder, threads, weights)
         try:
             with sync_playwright() as p:
                 browser = p.chromium.launch(
@@ -257,13 +265,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=3, help="rounds (%(default)s)")
     parser.add_argument("--threads", type=int, default=1, help="the app's torch threads")
     parser.add_argument("--timeout", type=float, default=120.0, help="seconds per picture")
+    parser.add_argument("--weights", default=None, help="checkpoint (default: the app's)")
     args = parser.parse_args(argv)
     if args.repeats < 1:
         parser.error("--repeats must be >= 1")
     if args.photo is not None and not args.photo.is_file():
         parser.error(f"--photo {args.photo}: no such file")
     try:
-        result = run(args.photo, args.repeats, args.threads, args.timeout)
+        result = run(args.photo, args.repeats, args.threads, args.timeout, args.weights)
     except BenchError as err:
         print(f"paint bench: {err}", file=sys.stderr)
         return 1

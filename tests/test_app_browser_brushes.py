@@ -41,6 +41,12 @@ def _write_scene(folder):
     return photo, depth, image
 
 
+def _brushes(page) -> None:
+    """Open or close the brushes' panel: the editor is closed while the app renders (open,
+    it exports and uploads its images again at each new picture, app/paint_bench.py)."""
+    page.get_by_text("Brushes: keep sharp / blur").click()
+
+
 def _picture(page, old_src):
     src = changed_result(page, old_src)
     return src, fetch_image(page, src)
@@ -123,6 +129,7 @@ def test_brushes_keep_sharp_and_blur(app_server, chromium_launch_options, sharpn
             page.locator("#paint button[aria-label=Brush]").click()
             _paint(page, PAINT)
             page.locator("#paint_apply").click()
+            _brushes(page)  # closed
             info = wait_status(page, "painted:", "full render", old=info)
             assert "--sharp-mask " in info and "--blur-mask" not in info
             mask_path = re.search(r"--sharp-mask (\S+)", info).group(1)
@@ -152,6 +159,8 @@ def test_brushes_keep_sharp_and_blur(app_server, chromium_launch_options, sharpn
             assert sharpness(plain, wall) < sharpness(f2, wall) < 0.9 * sharpness(image, wall)
 
             # 3. the red brush over the subject's right part: blurred, its left part sharp
+            _brushes(page)  # open again
+            page.locator("#paint canvas").first.scroll_into_view_if_needed()
             page.locator("#paint button[aria-label=Color]").click()
             # the palette's swatches: green (keep sharp), red (blur)
             page.locator("#paint button.color").nth(1).click()
@@ -160,6 +169,7 @@ def test_brushes_keep_sharp_and_blur(app_server, chromium_launch_options, sharpn
             # subject between them unpainted, and so sharp)
             _paint(page, (290, sy0 + 10, sx1 + 30, sy1 - 10), rows=16)
             page.locator("#paint_apply").click()
+            _brushes(page)  # closed
             info = wait_status(page, "% blurred", "full render", "--blur-mask", old=info)
             blur_path = re.search(r"--blur-mask (\S+)", info).group(1)
             blur_mask = np.asarray(Image.open(blur_path)) > 0
@@ -174,7 +184,9 @@ def test_brushes_keep_sharp_and_blur(app_server, chromium_launch_options, sharpn
             assert sharpness(red, inside) >= 0.9 * sharpness(image, inside)
 
             # 4. cleared: the picture without paint, the canvas back to the photo
+            _brushes(page)  # open again
             page.locator("#paint_clear").click()
+            _brushes(page)  # closed
             info = wait_status(page, "full render", absent="painted:", old=info)
             assert "--sharp-mask" not in info
             src, cleared = _picture(page, src)

@@ -145,14 +145,14 @@ def test_bench_in_browser_small(chromium_path, tmp_path, capsys):
 
 @pytest.mark.browser
 @pytest.mark.slow
-def test_paint_bench_in_browser_small(chromium_path, tmp_path):
+def test_paint_bench_in_browser_small(chromium_path, tmp_path, tiny_checkpoint):
     """``python -m app.paint_bench`` on an 800x600 photo: a click and an Apply, each timed to
     its full render, the page's longest pause and the requests behind each."""
     from app import paint_bench
     from app.latency_server import write_photos
 
     photo = write_photos(tmp_path / "photos", (800, 600), 1)[0]
-    result = paint_bench.run(photo, repeats=1, threads=1, timeout_s=120.0)
+    result = paint_bench.run(photo, 1, 1, 120.0, weights=str(tiny_checkpoint))
     assert result["tracebacks"] == 0
     assert list(result["rows"]) == ["click", "apply"]
     for key, runs in result["rows"].items():

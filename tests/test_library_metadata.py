@@ -9,6 +9,8 @@ be read as sRGB by every viewer.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import pytest
 from PIL import Image, ImageCms
@@ -19,10 +21,11 @@ from d2f_core import load_photo, save_image
 MAKE, MODEL, ORIENTATION, DATETIME = 0x010F, 0x0110, 0x0112, 0x0132
 
 
+@functools.cache
 def _profile() -> bytes:
-    """An RGB ICC profile that is not sRGB's: a wide-gamut one, as a phone's P3 would be."""
-    lab = ImageCms.createProfile("sRGB")
-    profile = ImageCms.ImageCmsProfile(lab)
+    """An RGB ICC profile that is not sRGB's, as a phone's P3 would be (made once: its header
+    holds the time it was made)."""
+    profile = ImageCms.ImageCmsProfile(ImageCms.createProfile("sRGB"))
     data = bytearray(profile.tobytes())
     data[44:48] = b"d2fT"  # a device manufacturer of its own: another profile's bytes
     return bytes(data)
@@ -98,3 +101,31 @@ def test_rounding_past_0_1_is_taken(tmp_path):
     a = np.linspace(-0.0015, 1.0015, 48 * 32 * 3).reshape(32, 48, 3)
     out = np.asarray(Image.open(save_image(tmp_path / "x.png", a)))
     assert out.min() == 0 and out.max() == 255
+
+
+def test_a_scenes_cache_is_bounded_and_not_pickled(tiny_model):
+    """Renders at 20 screen and preview sizes keep the few most recent of each kind; the
+    pickled scene carries no cache, renders the same after it, and clear_cache empties it."""
+    import pickle
+
+    from d2f_core.pipeline.outputs import SIZES_KEPT
+
+    image = np.random.default_rng(2).random((120, 160, 3)).astype(np.float32)
+    scene = tiny_model.prepare(image)
+    fresh = len(pickle.dumps(scene))
+    for side in range(40, 140, 5):  # 20 sizes
+        tiny_model.render(scene, 0.5, blur=4.0, max_side=side)
+        tiny_model.render(scene, 0.5, blur=4.0, screen=side)
+    kinds: dict = {}
+    for key in scene.cache:
+        if isinstance(key, tuple):
+            kinds[key[0]] = kinds.get(key[0], 0) + 1
+    assert kinds and max(kinds.values()) <= SIZES_KEPT, kinds
+    assert len(pickle.dumps(scene)) == fresh
+    again = pickle.loads(pickle.dumps(scene))
+    assert len(again.cache) == 0
+    a = tiny_model.render(scene, 0.5, blur=4.0, screen=60).bokeh
+    b = tiny_model.render(again, 0.5, blur=4.0, screen=60).bokeh
+    np.testing.assert_array_equal(a, b)
+    scene.clear_cache()
+    assert len(scene.cache) == 0

@@ -17,6 +17,31 @@ from ..depth.brushes import Brushes
 from ..rendering import adaptive
 from ..sizing import resize
 
+#: How many entries of each kind keyed by a size (a preview's inputs, a screen's scene, a
+#: tile size) a scene keeps: the most recently used ones. A server that renders one photo at
+#: many sizes keeps a scene's memory bounded (at 1 MP, 20 sizes had added 129 MB).
+SIZES_KEPT = 4
+
+
+class SceneCache(dict):
+    """A scene's derived tensors, filled lazily: one entry per name (``"disparity_full"``,
+    ``"subject"``), and of each kind keyed by a size (``("preview", size)``, ``("screen",
+    ...)``) the :data:`SIZES_KEPT` most recently used. Never pickled with its scene."""
+
+    def __getitem__(self, key: Any) -> Any:
+        value = super().__getitem__(key)
+        if isinstance(key, tuple):  # the most recently used goes last
+            super().pop(key, None)
+            super().__setitem__(key, value)
+        return value
+
+    def __setitem__(self, key: Any, value: Any) -> None:
+        super().__setitem__(key, value)
+        if isinstance(key, tuple) and key:
+            same = [k for k in list(self) if isinstance(k, tuple) and k and k[0] == key[0]]
+            for old in same[:-SIZES_KEPT]:
+                super().pop(old, None)
+
 
 @dataclass
 class Scene:
@@ -41,7 +66,9 @@ class Scene:
         pixel_scale: the scene's pixels per pixel of the photo: 1, or less for a photo
             downscaled to a screen (:meth:`D2F.screen_scene`); the fusion gate is a CoC in
             the photo's own pixels.
-        cache: derived tensors (full-res disparity, preview-size inputs), filled lazily.
+        cache: derived tensors (full-res disparity, preview-size inputs), filled lazily: a
+            :class:`SceneCache` keeping the :data:`SIZES_KEPT` most recent sizes of each
+            kind, left out of a pickled scene; :meth:`clear_cache` empties it.
         photo_info: the loaded photo's :class:`~d2f_core.io.ImageInfo` (ICC profile, EXIF)
             when prepared from a :class:`~d2f_core.io.Photo`, else ``None``; every render
             of the scene carries it.
@@ -59,8 +86,20 @@ class Scene:
     given_disparity: Tensor | None = field(default=None, repr=False)
     brushes: Brushes | None = field(default=None, repr=False)
     pixel_scale: float = 1.0
-    cache: dict[Any, Any] = field(default_factory=dict, repr=False)
+    cache: dict[Any, Any] = field(default_factory=SceneCache, repr=False)
     photo_info: Any = field(default=None, repr=False)
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.cache, SceneCache):
+            self.cache = SceneCache(self.cache)
+
+    def __getstate__(self) -> dict[str, Any]:
+        """A pickled scene leaves its cache behind (it is made again when needed)."""
+        return {**self.__dict__, "cache": SceneCache()}
+
+    def clear_cache(self) -> None:
+        """Drop what renders derived from this scene (made again when needed)."""
+        self.cache.clear()
 
     def brushed(self, focus: float) -> Scene:
         """This scene as a render focused at ``focus`` sees it: its full-resolution map
