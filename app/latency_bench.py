@@ -46,13 +46,13 @@ from typing import Any
 
 from app.latency_probe import (
     CHROMIUM,
-    CHROMIUM_ARGS,
     CLICK_POINTS,
     PAGE_PROBE,
     Probe,
+    app_in_browser,
     show_details,
 )
-from app.latency_server import BenchError, commit, loadavg, start_app, write_photos
+from app.latency_server import BenchError, commit, loadavg, write_photos
 
 #: Named photo sizes, width x height.
 SIZES = {"small": (800, 600), "1mp": (1152, 864), "12mp": (4000, 3000)}
@@ -201,7 +201,7 @@ def run_bench(
         raise BenchError(f"{chromium} not found: install Debian's chromium (apt-get install -y "
                          "chromium)")  # fmt: skip
     try:
-        from playwright.sync_api import sync_playwright
+        import playwright.sync_api  # noqa: F401 (app_in_browser drives it)
     except ImportError as err:
         raise BenchError("playwright is not installed (pip install playwright)") from err
 
@@ -218,35 +218,26 @@ def run_bench(
     }
     with tempfile.TemporaryDirectory(prefix="d2f-latency-bench-") as tmp:
         folder = Path(tmp)
-        server = start_app(folder, threads, weights)
-        try:
-            with sync_playwright() as p:
-                browser = p.chromium.launch(
-                    executable_path=chromium, headless=True, args=list(CHROMIUM_ARGS)
-                )
-                result["chromium"] = browser.version
-                try:
-                    probes, files = {}, {}
-                    for name, (w, h) in parsed:
-                        photos = write_photos(folder / name, (w, h), repeats + 1)
-                        page = browser.new_page(viewport={"width": 1400, "height": 900})
-                        page.add_init_script(PAGE_PROBE)
-                        page.set_default_timeout(timeout_s * 1000)
-                        page.goto(server.url)
-                        page.wait_for_selector("#blur input[type=range]")
-                        show_details(page)
-                        upload_ms = (timeout_s + 10 * w * h / 1e6) * 1000
-                        probes[name] = (Probe(page, server, timeout_s * 1000), photos, upload_ms)
-                        files[name] = statistics.mean(p.stat().st_size for p in photos)
-                    for name, entry in bench_sizes(probes, repeats, steps).items():
-                        entry["size"] = list(dict(parsed)[name])
-                        entry["file_mb"] = files[name] / (1 << 20)
-                        result["sizes"][name] = entry
-                finally:
-                    browser.close()
-        finally:
-            server.stop()
-            result["server_log_tracebacks"] = server.log.read_text().count("Traceback")
+        with app_in_browser(folder, threads, weights, chromium) as app:
+            server, browser = app.server, app.browser
+            result["chromium"] = browser.version
+            probes, files = {}, {}
+            for name, (w, h) in parsed:
+                photos = write_photos(folder / name, (w, h), repeats + 1)
+                page = browser.new_page(viewport={"width": 1400, "height": 900})
+                page.add_init_script(PAGE_PROBE)
+                page.set_default_timeout(timeout_s * 1000)
+                page.goto(server.url)
+                page.wait_for_selector("#blur input[type=range]")
+                show_details(page)
+                upload_ms = (timeout_s + 10 * w * h / 1e6) * 1000
+                probes[name] = (Probe(page, server, timeout_s * 1000), photos, upload_ms)
+                files[name] = statistics.mean(p.stat().st_size for p in photos)
+            for name, entry in bench_sizes(probes, repeats, steps).items():
+                entry["size"] = list(dict(parsed)[name])
+                entry["file_mb"] = files[name] / (1 << 20)
+                result["sizes"][name] = entry
+        result["server_log_tracebacks"] = app.tracebacks
     result["loadavg_end"] = loadavg()
     return result
 

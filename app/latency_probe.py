@@ -4,13 +4,16 @@ like a user and reads when each result is on screen.
 
 from __future__ import annotations
 
+import contextlib
 import re
+from collections.abc import Iterator
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
 
-from app.latency_server import BenchError, Server, wait_idle
+from app.latency_server import BenchError, Server, start_app, wait_idle
 
 CHROMIUM = "/usr/bin/chromium"
 
@@ -326,3 +329,27 @@ class Probe:
 
     def settle(self) -> None:
         wait_idle(self.server.process.pid)
+
+
+@contextlib.contextmanager
+def app_in_browser(
+    folder: Path, threads: int, weights: str | None = None, chromium: str = CHROMIUM
+) -> Iterator[SimpleNamespace]:
+    """The real app (``python -m app``, its files in ``folder``) and a headless Chromium:
+    yields ``run`` with ``run.server`` and ``run.browser``; both are closed afterwards, and
+    ``run.tracebacks`` then counts the tracebacks in the app's log."""
+    from playwright.sync_api import sync_playwright
+
+    run = SimpleNamespace(server=start_app(folder, threads, weights), browser=None, tracebacks=0)
+    try:
+        with sync_playwright() as p:
+            run.browser = p.chromium.launch(
+                executable_path=chromium, headless=True, args=list(CHROMIUM_ARGS)
+            )
+            try:
+                yield run
+            finally:
+                run.browser.close()
+    finally:
+        run.server.stop()
+        run.tracebacks = run.server.log.read_text().count("Traceback")

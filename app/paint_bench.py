@@ -28,8 +28,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from app.latency_probe import CHROMIUM, CHROMIUM_ARGS, FULL_RENDER_RE, PAGE_PROBE, show_details
-from app.latency_server import BenchError, commit, loadavg, start_app, wait_idle, write_photos
+from app.latency_probe import FULL_RENDER_RE, PAGE_PROBE, app_in_browser, show_details
+from app.latency_server import BenchError, commit, loadavg, wait_idle, write_photos
 
 #: Records clicks on the Apply button with their page time (PAGE_PROBE records the others),
 #: and every request the page makes with ``fetch``: its start and end, URL and body size.
@@ -172,52 +172,41 @@ def run(
 ) -> dict[str, Any]:
     """Run the bench (see the module's docstring); ``weights``: the app's checkpoint
     (default: the app's own, the shipped weights)."""
-    from playwright.sync_api import sync_playwright
-
     result: dict[str, Any] = {"commit": commit(), "threads": threads, "load_start": loadavg()}
     with tempfile.TemporaryDirectory(prefix="d2f-paint-bench-") as tmp:
         folder = Path(tmp)
         if photo is None:
             photo = write_photos(folder / "photos", (4000, 3000), 1)[0]
         result["photo"] = str(photo)
-        server = start_app(folder, threads, weights)
-        try:
-            with sync_playwright() as p:
-                browser = p.chromium.launch(
-                    executable_path=CHROMIUM, headless=True, args=list(CHROMIUM_ARGS)
-                )
-                try:
-                    page = browser.new_page(viewport={"width": 1400, "height": 1300})
-                    page.add_init_script(PAGE_PROBE)
-                    page.add_init_script(APPLY_PROBE)
-                    page.set_default_timeout(timeout_s * 1000)
-                    page.goto(server.url)
-                    page.wait_for_selector("#blur input[type=range]")
-                    show_details(page)
-                    old = _result_src(page)
-                    page.set_input_files("#input input[type=file]", str(photo))
-                    _wait(page, 0.0, old, timeout_s + 60)
-                    page.wait_for_function(
-                        "() => { const i = document.querySelector('#input img');"
-                        " return i && i.complete && i.naturalWidth > 0; }"
-                    )
-                    _open_brushes(page)
-                    wait_idle(server.process.pid)
-                    _click(page, 0.5, 0.55, timeout_s)  # untimed: the first click warms up
-                    wait_idle(server.process.pid)
-                    rows: dict[str, list[tuple[float, float, dict]]] = {"click": [], "apply": []}
-                    points = ((0.08, 0.1), (0.5, 0.55))
-                    for i in range(repeats):
-                        rows["click"].append(_click(page, *points[i % 2], timeout_s))
-                        wait_idle(server.process.pid)
-                        rows["apply"].append(_apply(page, 2 * i, timeout_s))
-                        wait_idle(server.process.pid)
-                    result["rows"] = rows
-                finally:
-                    browser.close()
-        finally:
-            server.stop()
-            result["tracebacks"] = server.log.read_text().count("Traceback")
+        with app_in_browser(folder, threads, weights) as app:
+            server, browser = app.server, app.browser
+            page = browser.new_page(viewport={"width": 1400, "height": 1300})
+            page.add_init_script(PAGE_PROBE)
+            page.add_init_script(APPLY_PROBE)
+            page.set_default_timeout(timeout_s * 1000)
+            page.goto(server.url)
+            page.wait_for_selector("#blur input[type=range]")
+            show_details(page)
+            old = _result_src(page)
+            page.set_input_files("#input input[type=file]", str(photo))
+            _wait(page, 0.0, old, timeout_s + 60)
+            page.wait_for_function(
+                "() => { const i = document.querySelector('#input img');"
+                " return i && i.complete && i.naturalWidth > 0; }"
+            )
+            _open_brushes(page)
+            wait_idle(server.process.pid)
+            _click(page, 0.5, 0.55, timeout_s)  # untimed: the first click warms up
+            wait_idle(server.process.pid)
+            rows: dict[str, list[tuple[float, float, dict]]] = {"click": [], "apply": []}
+            points = ((0.08, 0.1), (0.5, 0.55))
+            for i in range(repeats):
+                rows["click"].append(_click(page, *points[i % 2], timeout_s))
+                wait_idle(server.process.pid)
+                rows["apply"].append(_apply(page, 2 * i, timeout_s))
+                wait_idle(server.process.pid)
+            result["rows"] = rows
+        result["tracebacks"] = app.tracebacks
     result["load_end"] = loadavg()
     return result
 

@@ -56,38 +56,6 @@ def _masks_in_a_temporary_folder(tmp_path_factory: pytest.TempPathFactory) -> It
         os.environ["D2F_APP_MASKS"] = old
 
 
-#: The browser tests' two lanes (``xdist_group``): at most two pages and their app servers at
-#: once, each lane's modules one after the other (four at once on two cores time out). The
-#: longest modules start their lanes; the others are dealt out in turn.
-BROWSER_LANES = {
-    "test_app_browser_brushes": "browser-a",
-    "test_app_browser_late_events": "browser-b",
-}
-
-
-@pytest.hookimpl(tryfirst=True)
-def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """Under pytest-xdist (``--dist loadgroup``): each module's tests go to one worker (its
-    fixtures made once), the browser tests to two lanes (:data:`BROWSER_LANES`), and the slow
-    tests first, so that each worker starts on a long one and the short ones fill the gaps
-    at the end, rather than a long test starting last and running alone."""
-    if int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1") or 1) <= 1:
-        return
-    items.sort(key=lambda item: item.get_closest_marker("slow") is None)
-    lanes = dict(BROWSER_LANES)
-    turn = 0
-    for item in items:
-        module = item.path.stem
-        if item.get_closest_marker("browser") is not None:
-            if module not in lanes:
-                lanes[module] = ("browser-b", "browser-a")[turn % 2]
-                turn += 1
-            group = lanes[module]
-        else:
-            group = module
-        item.add_marker(pytest.mark.xdist_group(group))
-
-
 #: Small networks and a small render pass keep model-backed tests fast on 2 cores.
 TINY_CONFIG = {"network_size": 64, "max_render_side": 256}
 
