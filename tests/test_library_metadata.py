@@ -129,3 +129,18 @@ def test_a_scenes_cache_is_bounded_and_not_pickled(tiny_model):
     np.testing.assert_array_equal(a, b)
     scene.clear_cache()
     assert len(scene.cache) == 0
+
+
+def test_renders_options_are_keywords_and_the_model_is_callable(tiny_model):
+    """``render(scene, 0.5, 30, 40)`` took 40 as ``fusion``; ``model(scene)`` raised torch's
+    "missing the required forward function"."""
+    image = np.random.default_rng(3).random((48, 64, 3)).astype(np.float32)
+    scene = tiny_model.prepare(image)
+    with pytest.raises(TypeError, match="positional argument"):
+        tiny_model.render(scene, 0.5, 30.0, False)
+    np.testing.assert_array_equal(
+        tiny_model(scene, 0.5, 30.0, fusion=False).bokeh,
+        tiny_model.render(scene, 0.5, 30.0, fusion=False).bokeh,
+    )
+    with pytest.raises(ValueError, match="renders a Scene from model.prepare"):
+        tiny_model(image)

@@ -290,16 +290,25 @@ class D2F(DepthStage, FusionStage, FocusStage, ViewStage, RenderSteps, TrainingS
         brushes = Brushes.painted(scene.image, sharp, blur, edges=edges)
         return dataclasses.replace(scene, brushes=brushes)
 
+    def forward(self, scene: Any, *args: Any, **kwargs: Any) -> Result:
+        """``model(scene, focus, blur, ...)`` is :meth:`render` of a prepared scene."""
+        if not isinstance(scene, Scene):
+            raise InputTypeError(
+                f"model(...) renders a Scene from model.prepare(photo), got "
+                f"{type(scene).__name__}: prepare the photo first"
+            )
+        return self.render(scene, *args, **kwargs)
+
     @torch.no_grad()
     def render(
         self,
         scene: Scene,
         focus: float | None = None,
         blur: float | None = None,
+        *,
         fusion: bool = True,
         max_side: int | None = None,
         budget: str | float | None = adaptive.DEFAULT_QUALITY,
-        *,
         f_number: float | None = None,
         focal_range: float | None = None,
         screen: int | None = None,
