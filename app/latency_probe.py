@@ -117,6 +117,22 @@ WAIT_JS = """
 """
 
 
+def photo_point(page, fx: float, fy: float) -> tuple[float, float]:
+    """Where fraction ``(fx, fy)`` of the photo's pixels is on ``#input img``, relative to the
+    element (the panel letterboxes the photo and scales it down, never up)."""
+    box = page.evaluate(
+        """() => {
+            const img = document.querySelector('#input img');
+            const r = img.getBoundingClientRect();
+            return {w: r.width, h: r.height, nw: img.naturalWidth, nh: img.naturalHeight};
+        }"""
+    )
+    scale = min(box["w"] / box["nw"], box["h"] / box["nh"], 1.0)
+    x = (box["w"] - box["nw"] * scale) / 2 + fx * box["nw"] * scale
+    y = (box["h"] - box["nh"] * scale) / 2 + fy * box["nh"] * scale
+    return x, y
+
+
 class Probe:
     """The page with :data:`PAGE_PROBE` installed: actions, and the times the page saw."""
 
@@ -245,18 +261,8 @@ class Probe:
         return out
 
     def click_photo(self, fx: float, fy: float) -> dict[str, Any]:
-        """Click the photo at fraction ``(fx, fy)`` of its pixels (the panel letterboxes and
-        scales it)."""
-        box = self.page.evaluate(
-            """() => {
-                const img = document.querySelector('#input img');
-                const r = img.getBoundingClientRect();
-                return {w: r.width, h: r.height, nw: img.naturalWidth, nh: img.naturalHeight};
-            }"""
-        )
-        scale = min(box["w"] / box["nw"], box["h"] / box["nh"], 1.0)
-        x = (box["w"] - box["nw"] * scale) / 2 + fx * box["nw"] * scale
-        y = (box["h"] - box["nh"] * scale) / 2 + fy * box["nh"] * scale
+        """Click the photo at fraction ``(fx, fy)`` of its pixels (:func:`photo_point`)."""
+        x, y = photo_point(self.page, fx, fy)
         old = self.state()
         start = self.event_count()
         self.page.locator("#input img").click(position={"x": x, "y": y})

@@ -49,13 +49,12 @@ def _payload_path(value: Any) -> str | None:
     return str(path) if path else None
 
 
-def _safe_file_name(name: str, suffix: str) -> str:
-    """A file name that is safe here for a copy of the user's file ``name`` whose type is
-    ``suffix``: the stem's letters, digits, ``-`` and ``_`` kept, anything else ``_``
+def _safe_stem(name: str, most: int) -> str:
+    """The stem of the user's file ``name`` as part of a file name that is safe here: its
+    letters, digits, ``-`` and ``_`` kept, anything else ``_``, at most ``most`` characters
     ("photo" when nothing is left)."""
     stem = Path(str(name)).stem
-    safe = "".join(c if c.isalnum() or c in "-_" else "_" for c in stem)[:80].strip("_")
-    return (safe or "photo") + suffix.lower()
+    return "".join(c if c.isalnum() or c in "-_" else "_" for c in stem)[:most] or "photo"
 
 
 def _payload_name(value: Any, default: str = "photo", *, ext: bool = False) -> str:
@@ -398,7 +397,7 @@ class LoadEvents:
         # the copy carries the user's file name: the photo panel may show it again (after a
         # failed upload) and send it back (a depth source switched), and its name is the one
         # the download and the command give
-        kept = folder / _safe_file_name(name, Path(path).suffix)
+        kept = folder / (_safe_stem(name, 80) + Path(path).suffix.lower())
         shutil.copyfile(path, kept)
         session.upload, session.source_path, session.upload_name = kept, path, name
         kept_depth = None
@@ -434,8 +433,7 @@ class LoadEvents:
         clicks on it are mapped from its size (:attr:`Session.shown_size`).
         """
         folder = self._session_dir(session, "panel")
-        stem = Path(session.upload_name or session.name).stem
-        safe = "".join(c if c.isalnum() or c in "-_" else "_" for c in stem)[:60] or "photo"
+        safe = _safe_stem(session.upload_name or session.name, 60)
         path = folder / f"{PANEL_PREFIX}{uuid.uuid4().hex[:12]}-{safe}.jpg"
         imaging.write_display(session.before, path)
         session.panel = path

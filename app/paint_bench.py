@@ -28,7 +28,13 @@ import time
 from pathlib import Path
 from typing import Any
 
-from app.latency_probe import FULL_RENDER_RE, PAGE_PROBE, app_in_browser, show_details
+from app.latency_probe import (
+    FULL_RENDER_RE,
+    PAGE_PROBE,
+    app_in_browser,
+    photo_point,
+    show_details,
+)
 from app.latency_server import BenchError, commit, loadavg, wait_idle, write_photos
 
 #: Records clicks on the Apply button with their page time (PAGE_PROBE records the others),
@@ -117,15 +123,7 @@ def _wait(page, since: float, old: str | None, timeout_s: float) -> tuple[float,
 
 
 def _click(page, fx: float, fy: float, timeout_s: float) -> tuple[float, float, dict]:
-    box = page.evaluate(
-        """() => { const img = document.querySelector('#input img');
-                   const r = img.getBoundingClientRect();
-                   return {w: r.width, h: r.height,
-                           nw: img.naturalWidth, nh: img.naturalHeight}; }"""
-    )
-    scale = min(box["w"] / box["nw"], box["h"] / box["nh"], 1.0)
-    x = (box["w"] - box["nw"] * scale) / 2 + fx * box["nw"] * scale
-    y = (box["h"] - box["nh"] * scale) / 2 + fy * box["nh"] * scale
+    x, y = photo_point(page, fx, fy)
     old = _result_src(page)
     start = page.evaluate("() => window.__bench.events.length")
     page.locator("#input img").click(position={"x": x, "y": y})

@@ -12,9 +12,7 @@ from __future__ import annotations
 import hashlib
 import logging
 import os
-import struct
 import warnings
-import zlib
 from pathlib import Path
 from typing import Any
 
@@ -27,6 +25,8 @@ from app.reporting import NO_PHOTO, SKIP4, user_error
 from app.sessions import Session, reported
 from d2f_core.depth.brushes import Brushes
 from d2f_core.io.depth import check_aspect
+from d2f_core.io.masks import DECODE_ERRORS
+from d2f_core.io.save import atomic_write
 
 log = logging.getLogger("app.handlers")
 
@@ -51,8 +51,6 @@ CANVAS_SIDE = 1024
 #: is the photo at display size (:data:`app.imaging.DISPLAY_MAX_SIDE`), and a request's
 #: memory stays bounded by it whatever a client sends.
 CANVAS_MAX_SIDE = DISPLAY_MAX_SIDE
-#: What Pillow raises on a truncated or corrupt file.
-_DECODE_ERRORS = (OSError, SyntaxError, ValueError, EOFError, struct.error, zlib.error, IndexError)
 
 
 def masks_folder() -> Path:
@@ -82,7 +80,7 @@ def check_canvas_image(file: Any) -> None:
             warnings.simplefilter("ignore", Image.DecompressionBombWarning)
             with Image.open(source) as im:
                 w, h = im.size
-    except (*_DECODE_ERRORS, Image.DecompressionBombError) as exc:
+    except (*DECODE_ERRORS, Image.DecompressionBombError) as exc:
         raise gr.Error(f"The paint layer is not an image: {exc}", print_exception=False) from None
     if max(w, h) > CANVAS_MAX_SIDE:
         raise gr.Error(
@@ -103,7 +101,7 @@ def bound_canvas(editor: gr.ImageEditor) -> gr.ImageEditor:
         check_canvas_image(file)
         try:
             return convert(file, flatten_on_white)
-        except _DECODE_ERRORS as exc:
+        except DECODE_ERRORS as exc:
             raise gr.Error(
                 f"The paint layer is truncated or corrupt: {exc}", print_exception=False
             ) from None
@@ -185,9 +183,8 @@ class PaintEvents:
                 if m is not None:
                     path = folder / f"{key}_mask_{name}.png"
                     if not path.exists():  # named by its content: written once
-                        partial = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-                        Image.fromarray((m > 0).astype(np.uint8) * 255).save(partial, "PNG")
-                        os.replace(partial, path)
+                        picture = Image.fromarray((m > 0).astype(np.uint8) * 255)
+                        atomic_write(path, lambda fh, p=picture: p.save(fh, format="PNG"))
                     files[key] = path
         with session.lock:
             session.brushes = brushes

@@ -24,6 +24,7 @@ import torch
 from torch import Tensor
 
 from ..io.depth import check_aspect
+from ..io.masks import integer_top
 from ..sizing import resize, scaled_size
 from .refine import box_mean, colour_share
 
@@ -63,9 +64,7 @@ def mask_tensor(mask: Any, size: tuple[int, int], name: str) -> Tensor:
     if a.ndim == 3:
         if a.shape[2] not in (1, 2, 3, 4):
             raise ValueError(f"{name}: a mask has 1-4 channels, got shape {a.shape}")
-        scale = 1.0
-        if np.issubdtype(a.dtype, np.integer):
-            scale = 1.0 if a.size and a.max() <= 1 else 255.0
+        scale = integer_top(a, 255.0) if np.issubdtype(a.dtype, np.integer) else 1.0
         a = a.astype(np.float32) / scale
         colour = a[..., : 3 if a.shape[2] >= 3 else 1].mean(axis=2)
         alpha = a[..., -1] if a.shape[2] in (2, 4) else 1.0
@@ -79,8 +78,7 @@ def mask_tensor(mask: Any, size: tuple[int, int], name: str) -> Tensor:
     elif np.issubdtype(a.dtype, np.integer):
         if a.min() < 0 or a.max() > 255:
             raise ValueError(f"{name}: integer mask values must be 0-255")
-        # a mask of 0 and 1 only, as (a > t).astype(np.uint8) makes, is a 0/1 mask
-        a = a.astype(np.float32) / (1.0 if a.max() <= 1 else 255.0)
+        a = a.astype(np.float32) / integer_top(a, 255.0)
     else:
         a = a.astype(np.float32)
         if not np.isfinite(a).all():

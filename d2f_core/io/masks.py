@@ -32,7 +32,7 @@ MASK_AREA_FACTOR = 4
 MASK_FLOOR_PIXELS = 1 << 22
 
 
-def _integer_top(a: np.ndarray, full: float) -> float:
+def integer_top(a: np.ndarray, full: float) -> float:
     """The value that means "painted" in an integer mask: 1 when no value is above 1 (a 0/1
     mask, ``(a > t).astype(np.uint8)``), else ``full``."""
     return 1.0 if a.size and a.max() <= 1 else full
@@ -42,7 +42,7 @@ def _mask_values(im: Image.Image, name: str) -> np.ndarray:
     """The decoded mask as ``H x W`` float32 in [0, 1]."""
     if im.mode.startswith("I;16"):
         a = np.asarray(im).astype(np.float32)
-        return a / _integer_top(a, 65535.0)
+        return a / integer_top(a, 65535.0)
     if im.mode in ("I", "F"):
         a = np.asarray(im, dtype=np.float64)
         if not np.isfinite(a).all():
@@ -50,17 +50,17 @@ def _mask_values(im: Image.Image, name: str) -> np.ndarray:
         if im.mode == "F":
             top = 1.0
         else:
-            top = _integer_top(a, 255.0 if a.max() <= 255 else 65535.0)
+            top = integer_top(a, 255.0 if a.max() <= 255 else 65535.0)
         if a.min() < 0 or a.max() > top:
             raise ValueError(f"{name}: mask values must be in [0, {top:g}]")
         return (a / top).astype(np.float32)
     has_alpha = "A" in im.getbands() or "transparency" in im.info
     if has_alpha:
         la = np.asarray(im.convert("RGBA").convert("LA"))
-        grey = la[..., 0].astype(np.float32) / _integer_top(la[..., 0], 255.0)
+        grey = la[..., 0].astype(np.float32) / integer_top(la[..., 0], 255.0)
         return grey * (la[..., 1].astype(np.float32) / 255.0)
     grey = np.asarray(im.convert("L"))
-    return grey.astype(np.float32) / _integer_top(grey, 255.0)
+    return grey.astype(np.float32) / integer_top(grey, 255.0)
 
 
 def check_mask_size(mask: tuple[int, int], photo: tuple[int, int], name: str) -> None:

@@ -73,12 +73,13 @@ def float_to_uint8(
         if name is not None:
             if not np.isfinite(band).all():
                 raise ValueError(f"{name}: contains NaN or infinite values")
-            low, high = (float(band.min()), float(band.max())) if check_range else (0.0, 1.0)
-            if low < -ROUNDING or high > 1.0 + ROUNDING:
-                hint = " (a 0-255 image? divide it by 255)" if high > 1.0 + ROUNDING else ""
-                raise ValueError(
-                    f"{name}: float values must be in [0, 1], got {low:g} to {high:g}{hint}"
-                )
+            if check_range:
+                low, high = float(band.min()), float(band.max())
+                if low < -ROUNDING or high > 1.0 + ROUNDING:
+                    hint = " (a 0-255 image? divide it by 255)" if high > 1.0 + ROUNDING else ""
+                    raise ValueError(
+                        f"{name}: float values must be in [0, 1], got {low:g} to {high:g}{hint}"
+                    )
         buf = scratch[: band.shape[0]]
         # clip, scale and add 0.5 in float32: rounds half up, 2x faster than np.round
         np.clip(band, 0.0, 1.0, out=buf)
